@@ -1,0 +1,47 @@
+"""Planetary bodies: radius for curvature and default atmospheric refraction."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+
+class BodyName(str, enum.Enum):
+    EARTH = "earth"
+    MOON = "moon"
+    MARS = "mars"
+
+
+@dataclass(frozen=True)
+class Body:
+    """A body on which the appliance may stand.
+
+    ``radius_m`` is the mean radius used for curvature; ``refraction`` the default coefficient of
+    atmospheric refraction k (the effective radius is ``radius_m / (1 - k)``).
+    """
+
+    name: BodyName
+    radius_m: float
+    refraction: float
+    semi_major_m: float
+    inverse_flattening: float
+
+    def effective_radius_m(self, refraction: float | None = None) -> float:
+        k = self.refraction if refraction is None else refraction
+        return self.radius_m / (1.0 - k)
+
+
+EARTH = Body(BodyName.EARTH, 6_371_008.8, 0.13, 6_378_137.0, 298.257223563)
+MOON = Body(BodyName.MOON, 1_737_400.0, 0.0, 1_737_400.0, 0.0)
+MARS = Body(BodyName.MARS, 3_389_500.0, 0.0, 3_396_190.0, 169.894447223612)
+
+BODIES = {b.name.value: b for b in (EARTH, MOON, MARS)}
+
+
+def body_named(name: str) -> Body:
+    from appliance.errors import ConfigError
+
+    try:
+        return BODIES[name.lower()]
+    except KeyError:
+        raise ConfigError(f"unknown body {name!r}: expected one of {', '.join(BODIES)}") from None

@@ -1,0 +1,168 @@
+"""Configuration: TOML read once at the edge into frozen, typed objects.
+
+Every section is a frozen dataclass; :func:`from_mapping` converts a parsed TOML table into one,
+rejecting unknown keys and values of the wrong type with the key's dotted name.  Drivers and
+procedures receive these objects and never read files or the environment themselves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar, Union
+
+from appliance.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class TerrainConfig:
+    """How skylines are rendered from a DEM."""
+
+    camera_height_m: float = 1.5
+    max_range_m: float = 60_000.0
+    refraction: float | None = None  # None: the body's default (0.13 on Earth, 0 elsewhere)
+    azimuths: int = 360
+    body: str | None = None  # None: inferred from the DEM's CRS
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """The position estimator (paper section 4)."""
+
+    sigma_deg: tuple[float, float] = (0.2, 0.4)
+    heading_tolerance_deg: float = 4.0
+    heading_step_deg: float = 1.0
+    min_valid_fraction: float = 0.2
+
+
+@dataclass(frozen=True)
+class PlatformConfig:
+    """Which platform the daemons drive: real hardware or the simulated twins."""
+
+    kind: str = "sim"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sim", "hardware"):
+            raise ConfigError(f"platform.kind: expected 'sim' or 'hardware', got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class Config:
+    terrain: TerrainConfig = field(default_factory=TerrainConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    platform: PlatformConfig = field(default_factory=PlatformConfig)
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _convert(value: Any, tp: Any, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for alt in args:
+            if alt is type(None):
+                continue
+            try:
+                return _convert(value, alt, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{key}: invalid value {value!r}")
+    if tp is Any:
+        return value
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a table, got {type(value).__name__}")
+        return from_mapping(tp, value, prefix=key)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key}: expected an array, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{key}: expected {len(args)} values, got {len(value)}")
+        return tuple(_convert(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a table, got {type(value).__name__}")
+        return {str(k): _convert(v, args[1], f"{key}.{k}") for k, v in value.items()}
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        try:
+            return tp(value)
+        except ValueError:
+            allowed = ", ".join(repr(m.value) for m in tp)
+            raise ConfigError(f"{key}: {value!r} is not one of {allowed}") from None
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    if tp is Path:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a path string, got {value!r}")
+        return Path(value)
+    raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")
+
+
+def from_mapping(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
+    """Build the frozen dataclass ``cls`` from ``data``; unknown keys and wrong types raise."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - names)
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise ConfigError(f"unknown key {where}{unknown[0]} (known: {', '.join(sorted(names))})")
+    kwargs = {
+        name: _convert(value, hints[name], f"{prefix}.{name}" if prefix else name)
+        for name, value in data.items()
+    }
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:
+        raise ConfigError(f"{prefix or 'config'}: {exc}") from None
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read a TOML configuration file; ``None`` gives the defaults."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+    try:
+        return from_mapping(Config, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{p}: {exc}") from None

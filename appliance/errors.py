@@ -1,0 +1,54 @@
+"""One error hierarchy for the whole appliance.
+
+Every error the appliance raises on purpose derives from :class:`ViperError`; subclasses also
+inherit the matching builtin so callers may catch either.  The CLI turns any ``ViperError`` into a
+single line on stderr and a non-zero exit status.
+"""
+
+from __future__ import annotations
+
+
+class ViperError(Exception):
+    """Root of the appliance's errors."""
+
+    exit_code = 1
+
+
+class ConfigError(ViperError, ValueError):
+    """A configuration file or option is invalid (names the key)."""
+
+    exit_code = 2
+
+
+class InputError(ViperError, ValueError):
+    """User input (a file's content, a command-line value) is invalid."""
+
+    exit_code = 2
+
+
+class DemError(ViperError, OSError):
+    """A DEM cannot be read or is unusable (unreadable, unknown CRS, all nodata...)."""
+
+
+class DatabaseError(ViperError, OSError):
+    """A skyline database is corrupt, of another format version, or built from another DEM."""
+
+
+class EstimationError(ViperError, ValueError):
+    """The estimator cannot produce an estimate from its input."""
+
+
+class DeviceError(ViperError, OSError):
+    """A device does not answer, answers wrongly or went away."""
+
+
+class ProtocolError(ViperError, ValueError):
+    """Bytes from a device do not follow its protocol."""
+
+
+class LogError(ViperError, OSError):
+    """A logbook (MCAP) cannot be written, read or recovered."""
+
+
+class CalibrationError(ViperError, ValueError):
+    """A calibration cannot be computed from its input."""
