@@ -1,0 +1,110 @@
+"""The skyline record and its CSV form, shared by the renderer, the vision chain and the estimator.
+
+CSV: header ``azimuth_deg,elevation_deg``; one row per azimuth (degrees clockwise from north, as
+the heading sensor reports it); an empty elevation means missing (masked, occluded, not detected).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from appliance.errors import InputError
+
+HEADER = ("azimuth_deg", "elevation_deg")
+
+
+@dataclass(frozen=True)
+class Skyline:
+    """Elevation of the skyline (degrees above the local horizontal) per azimuth; NaN = missing."""
+
+    azimuth_deg: np.ndarray
+    elevation_deg: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.azimuth_deg.shape != self.elevation_deg.shape or self.azimuth_deg.ndim != 1:
+            raise InputError("skyline: azimuth and elevation must be 1-D arrays of the same length")
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.isfinite(self.elevation_deg)
+
+    @property
+    def valid_fraction(self) -> float:
+        return float(self.valid.mean()) if self.valid.size else 0.0
+
+
+def read_skyline_csv(path: str | Path) -> Skyline:
+    """Read a skyline CSV; malformed content raises :class:`InputError` naming the file and line."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{p}: skyline file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read skyline: {exc}") from None
+    return parse_skyline_csv(text, name=str(p))
+
+
+def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
+    rows = list(csv.reader(io.StringIO(text)))
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{name}: empty skyline file")
+    header = tuple(c.strip() for c in rows[0])
+    if header != HEADER:
+        raise InputError(f"{name}: expected header 'azimuth_deg,elevation_deg', got {','.join(header)!r}")
+    if len(rows) < 2:
+        raise InputError(f"{name}: no skyline rows after the header")
+    az = np.empty(len(rows) - 1)
+    el = np.empty(len(rows) - 1)
+    for i, row in enumerate(rows[1:]):
+        line = i + 2
+        if len(row) != 2:
+            raise InputError(f"{name}: line {line}: expected 2 fields, got {len(row)}")
+        try:
+            az[i] = float(row[0])
+        except ValueError:
+            raise InputError(f"{name}: line {line}: azimuth {row[0]!r} is not a number") from None
+        cell = row[1].strip()
+        if cell == "" or cell.lower() == "nan":
+            el[i] = math.nan
+            continue
+        try:
+            el[i] = float(cell)
+        except ValueError:
+            raise InputError(f"{name}: line {line}: elevation {cell!r} is not a number") from None
+        if not -90.0 <= el[i] <= 90.0:
+            raise InputError(f"{name}: line {line}: elevation {el[i]} outside [-90, 90] degrees")
+    if not np.all(np.isfinite(az)):
+        raise InputError(f"{name}: azimuths must be finite")
+    return Skyline(np.mod(az, 360.0), el)
+
+
+def format_skyline_csv(skyline: Skyline, decimals: int = 4) -> str:
+    out = io.StringIO()
+    out.write(",".join(HEADER) + "\n")
+    for a, e in zip(skyline.azimuth_deg, skyline.elevation_deg):
+        el = "" if not math.isfinite(e) else f"{e:.{decimals}f}"
+        out.write(f"{a:g},{el}\n")
+    return out.getvalue()
+
+
+def write_skyline_csv(skyline: Skyline, path: str | Path) -> None:
+    """Write atomically: a temporary file in the same folder, then a rename."""
+    p = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=p.parent if str(p.parent) else ".", prefix=p.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(format_skyline_csv(skyline))
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
