@@ -1,0 +1,206 @@
+"""``viper calibrate theodolite|camera|compass|inclinometer``: thin wrappers over calibration/."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from appliance.config import Config, from_mapping
+from appliance.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+def _validate_config_text(path: Path) -> Any:
+    def validate(text: str) -> None:
+        try:
+            from_mapping(Config, tomllib.loads(text))
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: the edited configuration is not valid TOML: {exc}") from None
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+
+    return validate
+
+
+def _theodolite(args: argparse.Namespace) -> int:
+    from calibration.config_edit import significant, update_toml_table
+    from calibration.theodolite import calibrate_sigma, format_report, read_points_csv
+
+    result = calibrate_sigma(read_points_csv(args.points), confidence=args.confidence)
+    lo, hi = (significant(v) for v in result.sigma_deg)
+    if args.config is not None:
+        update_toml_table(
+            args.config, "estimator", {"sigma_deg": [lo, hi]}, validate=_validate_config_text(args.config)
+        )
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "n": result.n,
+                    "confidence": result.confidence,
+                    "mean_residual_deg": result.mean_residual_deg,
+                    "s_deg": result.s_deg,
+                    "sigma_deg": [lo, hi],
+                }
+            )
+        )
+    else:
+        print(format_report(result))
+        if args.config is not None:
+            print(f"wrote estimator.sigma_deg = [{lo}, {hi}] to {args.config}")
+    return 0
+
+
+def _confidence(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie strictly between 0 and 1, got {value}")
+    return value
+
+
+def _pattern(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected COLSxROWS inner corners such as 9x6, got {text!r}"
+        ) from None
+    if cols < 3 or rows < 3:
+        raise argparse.ArgumentTypeError(f"a board needs at least 3x3 inner corners, got {text!r}")
+    return cols, rows
+
+
+def _camera(args: argparse.Namespace) -> int:
+    from calibration.camera import calibrate_camera, format_report
+
+    result = calibrate_camera(
+        args.images, pattern_size=args.pattern, square_size_m=args.square_m, min_boards=args.min_boards
+    )
+    if args.output is not None:
+        from appliance.vision.intrinsics import save_intrinsics
+
+        try:
+            save_intrinsics(result.intrinsics, args.output)
+        except OSError as exc:
+            raise ConfigError(f"{args.output}: cannot write: {exc.strerror or exc}") from None
+    if args.json:
+        print(json.dumps(result.as_dict()))
+    else:
+        print(format_report(result))
+        if args.output is not None:
+            print(f"wrote {args.output}")
+    return 0
+
+
+def _compass(args: argparse.Namespace) -> int:
+    from calibration.compass import calibrate_compass_file, format_report, write_compass_calibration
+
+    result = calibrate_compass_file(
+        args.log,
+        mode=args.mode,
+        known_bearing_deg=args.known_bearing_deg,
+        declination_deg=args.declination_deg,
+    )
+    if args.output is not None:
+        write_compass_calibration(args.output, result)
+    if args.json:
+        print(json.dumps(result.as_dict()))
+    else:
+        print(format_report(result))
+        if args.output is not None:
+            print(f"wrote [compass] to {args.output}")
+    return 0
+
+
+def _inclinometer(args: argparse.Namespace) -> int:
+    from calibration.inclinometer import (
+        calibrate_reversal,
+        format_report,
+        read_reversal_csv,
+        write_inclinometer_calibration,
+    )
+
+    result = calibrate_reversal(
+        read_reversal_csv(args.readings), angle_tolerance_deg=args.angle_tolerance_deg
+    )
+    if args.output is not None:
+        write_inclinometer_calibration(args.output, result)
+    if args.json:
+        print(json.dumps(result.as_dict()))
+    else:
+        print(format_report(result))
+        if args.output is not None:
+            print(f"wrote [inclinometer] to {args.output}")
+    return 0
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "calibrate", help="calibrate the theodolite sigma, camera, compass, inclinometers"
+    )
+    sub = parser.add_subparsers(dest="target", metavar="TARGET", required=True)
+
+    p = sub.add_parser("theodolite", help="sigma interval of the elevation residuals against a theodolite")
+    p.add_argument("points", type=Path, help="CSV: point,camera_elevation_deg,theodolite_elevation_deg")
+    p.add_argument("--config", type=Path, help="configuration TOML to receive [estimator] sigma_deg")
+    p.add_argument("--confidence", type=_confidence, default=0.95, help="confidence level (default 0.95)")
+    p.add_argument("--json", action="store_true", help="print one JSON object with n, s_deg and sigma_deg")
+    p.set_defaults(func=_theodolite)
+
+    p = sub.add_parser(
+        "camera", help="intrinsics (focal length, principal point, plumb_bob) from chessboards"
+    )
+    p.add_argument("images", type=Path, nargs="+", help="chessboard images (PNG, JPEG...)")
+    p.add_argument("--pattern", type=_pattern, default=(9, 6), help="inner corners COLSxROWS (default 9x6)")
+    p.add_argument(
+        "--square-m", type=_positive_float, default=0.025, help="square size, metres (default 0.025)"
+    )
+    p.add_argument("--min-boards", type=int, default=5, help="fewest boards to accept (default 5)")
+    p.add_argument("--output", type=Path, help="camera calibration TOML to write ([camera] table)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_camera)
+
+    p = sub.add_parser("compass", help="hard and soft iron from a logged rotation, and the mounting offset")
+    p.add_argument(
+        "log", type=Path, help="CSV with columns mag_x_gauss,mag_y_gauss,mag_z_gauss (+ optional ones)"
+    )
+    p.add_argument(
+        "--mode",
+        choices=("sphere", "level"),
+        default="sphere",
+        help="sphere: ellipsoid fit of a full-sphere rotation; level: ellipse fit of a levelled turn",
+    )
+    p.add_argument("--known-bearing-deg", type=float, help="true azimuth the platform faces at the start")
+    p.add_argument("--declination-deg", type=float, default=0.0, help="magnetic declination, east positive")
+    p.add_argument("--output", type=Path, help="calibration TOML to receive the [compass] table")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_compass)
+
+    p = sub.add_parser("inclinometer", help="offsets by the two-position (reversal) method")
+    p.add_argument("readings", type=Path, help="CSV: stage_deg,tilt_x_deg,tilt_y_deg at stage 0 and 180 deg")
+    p.add_argument(
+        "--angle-tolerance-deg", type=float, default=2.0, help="how far from 0/180 a stage angle may be"
+    )
+    p.add_argument("--output", type=Path, help="calibration TOML to receive the [inclinometer] table")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_inclinometer)

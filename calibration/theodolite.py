@@ -1,0 +1,177 @@
+"""The estimator's sigma interval from a theodolite survey (paper section 5.2).
+
+n points are sighted twice: once through the camera platform (the elevation angle the vision chain
+measures) and once with a theodolite (the reference).  The residuals camera - theodolite have a
+sample standard deviation s (n - 1 degrees of freedom); with residuals normal of standard deviation
+sigma, (n - 1) s^2 / sigma^2 is chi-square with n - 1 degrees of freedom, so the two-sided confidence
+interval for sigma at level c = 1 - alpha is
+
+    [ sqrt((n-1) s^2 / chi2_{1-alpha/2}),  sqrt((n-1) s^2 / chi2_{alpha/2}) ]
+
+where chi2_q is the q-quantile.  The estimator takes this interval as ``sigma_deg = [lo, hi]``.
+All angles are elevations in degrees above the local horizontal.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from appliance.errors import CalibrationError, InputError
+
+HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
+MIN_POINTS = 3
+ARCSEC_PER_DEG = 3600.0
+
+
+@dataclass(frozen=True)
+class ElevationPoint:
+    """One surveyed point: the camera's and the theodolite's elevation of it (degrees)."""
+
+    point: str
+    camera_elevation_deg: float
+    theodolite_elevation_deg: float
+
+    @property
+    def residual_deg(self) -> float:
+        """Camera minus theodolite elevation, degrees."""
+        return self.camera_elevation_deg - self.theodolite_elevation_deg
+
+
+@dataclass(frozen=True)
+class SigmaCalibration:
+    """The result: residual statistics and the confidence interval for sigma (degrees)."""
+
+    points: tuple[ElevationPoint, ...]
+    confidence: float
+    mean_residual_deg: float
+    s_deg: float
+    sigma_deg: tuple[float, float]
+
+    @property
+    def n(self) -> int:
+        return len(self.points)
+
+    @property
+    def residuals_deg(self) -> tuple[float, ...]:
+        return tuple(p.residual_deg for p in self.points)
+
+
+def parse_points_csv(data: bytes, source: str = "<points>") -> tuple[ElevationPoint, ...]:
+    """Parse the survey CSV (header ``point,camera_elevation_deg,theodolite_elevation_deg``)."""
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{source}: not UTF-8 text: {exc}") from None
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{source}: empty file, expected the header {','.join(HEADER)}")
+    header = tuple(c.strip() for c in rows[0])
+    if header != HEADER:
+        raise InputError(f"{source}: header is {','.join(header)!r}, expected {','.join(HEADER)!r}")
+    points: list[ElevationPoint] = []
+    seen: set[str] = set()
+    for line_no, row in enumerate(rows[1:], start=2):
+        if len(row) != len(HEADER):
+            raise InputError(f"{source}:{line_no}: expected {len(HEADER)} fields, got {len(row)}")
+        name = row[0].strip()
+        if not name:
+            raise InputError(f"{source}:{line_no}: empty point name")
+        if name in seen:
+            raise InputError(f"{source}:{line_no}: point {name!r} appears twice")
+        seen.add(name)
+        values = []
+        for column, cell in zip(HEADER[1:], row[1:], strict=True):
+            try:
+                value = float(cell)
+            except ValueError:
+                raise InputError(f"{source}:{line_no}: {column} {cell.strip()!r} is not a number") from None
+            if not math.isfinite(value) or abs(value) > 90.0:
+                raise InputError(
+                    f"{source}:{line_no}: {column} {cell.strip()} is not an elevation in [-90, 90]"
+                )
+            values.append(value)
+        points.append(ElevationPoint(name, values[0], values[1]))
+    return tuple(points)
+
+
+def read_points_csv(path: str | Path) -> tuple[ElevationPoint, ...]:
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{p}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    return parse_points_csv(data, source=str(p))
+
+
+def sigma_interval(s: float, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Two-sided chi-square confidence interval for sigma from a sample deviation s of n residuals."""
+    if not 0.0 < confidence < 1.0:
+        raise InputError(f"confidence must lie strictly between 0 and 1, got {confidence}")
+    if n < 2:
+        raise CalibrationError(f"a sigma interval needs at least 2 residuals, got {n}")
+    dof = n - 1
+    alpha = 1.0 - confidence
+    upper_q = float(chi2.ppf(1.0 - alpha / 2.0, dof))
+    lower_q = float(chi2.ppf(alpha / 2.0, dof))
+    return math.sqrt(dof * s * s / upper_q), math.sqrt(dof * s * s / lower_q)
+
+
+def calibrate_sigma(points: Sequence[ElevationPoint], confidence: float = 0.95) -> SigmaCalibration:
+    """Residual statistics and the sigma interval; refuses degenerate surveys with one clear line."""
+    n = len(points)
+    if n < MIN_POINTS:
+        raise CalibrationError(f"{n} surveyed point(s); the sigma interval needs at least {MIN_POINTS}")
+    camera = np.array([p.camera_elevation_deg for p in points])
+    theodolite = np.array([p.theodolite_elevation_deg for p in points])
+    for name, column in (("camera_elevation_deg", camera), ("theodolite_elevation_deg", theodolite)):
+        if np.ptp(column) == 0.0:
+            raise CalibrationError(
+                f"{name} is constant ({column[0]} deg) over all {n} points; survey several elevations"
+            )
+    residuals = camera - theodolite
+    s = float(np.std(residuals, ddof=1))
+    if s == 0.0:
+        raise CalibrationError(
+            f"all {n} residuals are equal ({residuals[0]} deg); a zero spread gives no sigma interval"
+        )
+    return SigmaCalibration(
+        points=tuple(points),
+        confidence=confidence,
+        mean_residual_deg=float(np.mean(residuals)),
+        s_deg=s,
+        sigma_deg=sigma_interval(s, n, confidence),
+    )
+
+
+def format_report(result: SigmaCalibration) -> str:
+    """The residual table and the interval, as printed by ``viper calibrate theodolite``."""
+    width = max(5, *(len(p.point) for p in result.points))
+    lines = [
+        f"{'point':<{width}}  {'camera_deg':>11}  {'theodolite_deg':>14}"
+        f"  {'residual_deg':>12}  {'residual_arcsec':>15}",
+    ]
+    for p in result.points:
+        lines.append(
+            f"{p.point:<{width}}  {p.camera_elevation_deg:>11.5f}  {p.theodolite_elevation_deg:>14.5f}"
+            f"  {p.residual_deg:>12.6f}  {p.residual_deg * ARCSEC_PER_DEG:>15.2f}"
+        )
+    lo, hi = result.sigma_deg
+    lines += [
+        f"n = {result.n}, mean residual = {result.mean_residual_deg:.6f} deg"
+        f" ({result.mean_residual_deg * ARCSEC_PER_DEG:.2f} arcsec)",
+        f"s = {result.s_deg:.6f} deg ({result.s_deg * ARCSEC_PER_DEG:.2f} arcsec),"
+        f" {result.n - 1} degrees of freedom",
+        f"{result.confidence * 100:g}% interval for sigma: [{lo:.6f}, {hi:.6f}] deg"
+        f" ([{lo * ARCSEC_PER_DEG:.2f}, {hi * ARCSEC_PER_DEG:.2f}] arcsec)",
+    ]
+    return "\n".join(lines)

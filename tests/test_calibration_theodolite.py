@@ -1,0 +1,176 @@
+"""Theodolite sigma interval: chi-square table values, coverage, CLI and format-preserving config edit."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from appliance.cli.main import main
+from appliance.config import load_config
+from appliance.errors import CalibrationError, InputError
+from calibration.theodolite import (
+    ElevationPoint,
+    calibrate_sigma,
+    parse_points_csv,
+    sigma_interval,
+)
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "calibration" / "examples" / "theodolite_points.csv"
+
+CONFIG_TEXT = """\
+# Field configuration of the rover
+[terrain]
+camera_height_m = 1.6   # mast height
+
+[estimator]
+# interval from the last survey
+sigma_deg = [0.2, 0.4]  # degrees
+heading_tolerance_deg = 4.0
+
+[platform]
+kind = "sim"
+"""
+
+
+def _points(residuals_deg: list[float]) -> list[ElevationPoint]:
+    return [ElevationPoint(f"P{i}", 1.0 + 0.5 * i + r, 1.0 + 0.5 * i) for i, r in enumerate(residuals_deg)]
+
+
+@pytest.mark.parametrize(
+    ("n", "confidence", "chi2_upper", "chi2_lower"),
+    [
+        # Printed chi-square tables (upper-tail critical values), 3 decimals.
+        (17, 0.95, 28.845, 6.908),
+        (10, 0.95, 19.023, 2.700),
+        (17, 0.99, 34.267, 5.142),
+        (4, 0.95, 9.348, 0.216),
+    ],
+)
+def test_interval_matches_chi2_table(n: int, confidence: float, chi2_upper: float, chi2_lower: float) -> None:
+    s = 30.0 / 3600.0  # thirty seconds of arc, as in the paper's survey
+    lo, hi = sigma_interval(s, n, confidence)
+    dof = n - 1
+    assert lo == pytest.approx(math.sqrt(dof * s * s / chi2_upper), rel=2e-4)
+    assert hi == pytest.approx(math.sqrt(dof * s * s / chi2_lower), rel=2e-3)
+
+
+def test_paper_survey_seventeen_points_at_thirty_arcsec() -> None:
+    lo, hi = sigma_interval(30.0 / 3600.0, 17, 0.95)
+    # 30" * sqrt(16/28.845) = 22.34", 30" * sqrt(16/6.908) = 45.66"
+    assert lo * 3600.0 == pytest.approx(22.34, abs=0.01)
+    assert hi * 3600.0 == pytest.approx(45.66, abs=0.01)
+
+
+def test_hand_computed_small_survey() -> None:
+    result = calibrate_sigma(_points([1.0, 2.0, 3.0, 4.0]))
+    # s^2 = 5/3; (n-1)s^2 = 5; 5/9.348 = 0.53487; 5/0.21580 = 23.170
+    assert result.n == 4
+    assert result.mean_residual_deg == pytest.approx(2.5)
+    assert result.s_deg == pytest.approx(math.sqrt(5.0 / 3.0))
+    assert result.sigma_deg[0] == pytest.approx(0.73135, rel=1e-4)
+    assert result.sigma_deg[1] == pytest.approx(4.8135, rel=1e-3)
+
+
+def test_interval_covers_true_sigma_at_nominal_rate() -> None:
+    rng = np.random.default_rng(5)
+    sigma = 0.01
+    trials = 2000
+    covered = 0
+    for _ in range(trials):
+        result = calibrate_sigma(_points(list(rng.normal(0.003, sigma, 17))))
+        lo, hi = result.sigma_deg
+        assert lo < result.s_deg < hi
+        covered += lo <= sigma <= hi
+    # binomial standard deviation sqrt(0.95 * 0.05 / 2000) = 0.0049
+    assert covered / trials == pytest.approx(0.95, abs=0.02)
+
+
+def test_refuses_too_few_and_degenerate_surveys() -> None:
+    with pytest.raises(CalibrationError, match="at least 3"):
+        calibrate_sigma(_points([0.1, 0.2]))
+    with pytest.raises(CalibrationError, match="camera_elevation_deg is constant"):
+        calibrate_sigma([ElevationPoint(f"P{i}", 5.0, 5.0 + 0.01 * i) for i in range(5)])
+    with pytest.raises(CalibrationError, match="theodolite_elevation_deg is constant"):
+        calibrate_sigma([ElevationPoint(f"P{i}", 5.0 + 0.01 * i, 5.0) for i in range(5)])
+    with pytest.raises(CalibrationError, match="residuals are equal"):
+        calibrate_sigma(_points([0.25] * 6))
+
+
+def test_parser_rejects_bad_rows() -> None:
+    header = b"point,camera_elevation_deg,theodolite_elevation_deg\n"
+    with pytest.raises(InputError, match="header"):
+        parse_points_csv(b"point,cam,theo\nA,1,2\n")
+    with pytest.raises(InputError, match=r":2: camera_elevation_deg 'x' is not a number"):
+        parse_points_csv(header + b"A,x,2\n")
+    with pytest.raises(InputError, match="appears twice"):
+        parse_points_csv(header + b"A,1,2\nA,2,3\n")
+    with pytest.raises(InputError, match=r"not an elevation"):
+        parse_points_csv(header + b"A,nan,2\n")
+    points = parse_points_csv(header + b"A, 1.5 ,1.25\n\nB,2,2.5\n")
+    assert [(p.point, p.residual_deg) for p in points] == [("A", 0.25), ("B", -0.5)]
+
+
+def test_cli_writes_interval_and_keeps_the_rest_of_the_config(tmp_path: Path, capsys) -> None:
+    config = tmp_path / "viper.toml"
+    config.write_text(CONFIG_TEXT)
+    assert main(["calibrate", "theodolite", str(EXAMPLE), "--config", str(config), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["n"] == 17
+    expected = calibrate_sigma(parse_points_csv(EXAMPLE.read_bytes()))
+    assert out["s_deg"] == pytest.approx(expected.s_deg, rel=1e-12)
+    assert out["sigma_deg"] == pytest.approx(list(expected.sigma_deg), rel=1e-5)
+    lo, hi = out["sigma_deg"]
+    assert config.read_text() == CONFIG_TEXT.replace(
+        "sigma_deg = [0.2, 0.4]  # degrees", f"sigma_deg = [{lo!r}, {hi!r}]  # degrees"
+    )
+    assert load_config(config).estimator.sigma_deg == (lo, hi)
+    assert [p.name for p in tmp_path.iterdir()] == ["viper.toml"]  # no temporary file left behind
+
+
+def test_cli_prints_a_table(capsys) -> None:
+    assert main(["calibrate", "theodolite", str(EXAMPLE)]) == 0
+    out = capsys.readouterr().out
+    assert "P17" in out and "95% interval for sigma" in out
+
+
+BAD_INPUTS = {
+    "too_few": "point,camera_elevation_deg,theodolite_elevation_deg\nA,1.0,1.01\nB,2.0,2.02\n",
+    "constant": "point,camera_elevation_deg,theodolite_elevation_deg\nA,1.0,1.01\nB,1.0,2.02\nC,1.0,3.0\n",
+    "not_a_number": "point,camera_elevation_deg,theodolite_elevation_deg\nA,1.0,one\n",
+    "empty": "",
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_cli_bad_input_is_one_line_and_config_untouched(tmp_path: Path, capsys, case: str) -> None:
+    config = tmp_path / "viper.toml"
+    config.write_text(CONFIG_TEXT)
+    before = config.read_bytes()
+    points = tmp_path / "points.csv"
+    points.write_text(BAD_INPUTS[case])
+    assert main(["calibrate", "theodolite", str(points), "--config", str(config)]) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("viper calibrate: error:")
+    assert config.read_bytes() == before
+
+
+def test_cli_missing_points_file_and_missing_config(tmp_path: Path, capsys) -> None:
+    assert main(["calibrate", "theodolite", str(tmp_path / "absent.csv")]) == 2
+    assert "absent.csv: file not found" in capsys.readouterr().err
+    missing = tmp_path / "absent.toml"
+    assert main(["calibrate", "theodolite", str(EXAMPLE), "--config", str(missing)]) == 2
+    assert "absent.toml: file not found" in capsys.readouterr().err
+    assert not missing.exists()
+
+
+def test_cli_refuses_an_invalid_config_and_leaves_it(tmp_path: Path, capsys) -> None:
+    config = tmp_path / "viper.toml"
+    config.write_text(CONFIG_TEXT + "[estimator.extra]\nunknown = 1\n")
+    before = config.read_bytes()
+    assert main(["calibrate", "theodolite", str(EXAMPLE), "--config", str(config)]) == 2
+    assert "unknown key estimator.extra" in capsys.readouterr().err
+    assert config.read_bytes() == before
