@@ -59,10 +59,51 @@ class PlatformConfig:
 
 
 @dataclass(frozen=True)
+class LogbookConfig:
+    """The session logs (one MCAP file per session): where they go and how often they are made durable."""
+
+    log_dir: Path = Path("/var/lib/viper/logs")
+    fsync_interval_s: float = 2.0
+    chunk_size_bytes: int = 262_144
+    compression: str = "zstd"  # "zstd", "lz4" or "none"
+    reserve_bytes: int = 65_536  # freed on a full disk so the log can still be sealed
+
+    def __post_init__(self) -> None:
+        if not self.fsync_interval_s > 0:
+            raise ConfigError(f"logbook.fsync_interval_s: must be positive, got {self.fsync_interval_s}")
+        if self.compression not in ("zstd", "lz4", "none"):
+            allowed = "'zstd', 'lz4' or 'none'"
+            raise ConfigError(f"logbook.compression: expected {allowed}, got {self.compression!r}")
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Unattended sessions and the tolerances of their procedures (paper section 5.2)."""
+
+    interval_s: float = 3600.0  # the session daemon starts a session this often
+    max_sessions: int = 0  # the daemon stops after this many sessions; 0 = never
+    watchdog_margin: float = 0.5  # WATCHDOG=1 every margin * WatchdogSec
+    level_tolerance_deg: float = 0.5  # |roll| and |pitch| must both be within this
+    level_timeout_s: float = 120.0
+    level_poll_s: float = 0.5
+    compass_steps: int = 24  # stage positions over the full circle for the hard/soft iron fit
+    compass_max_residual: float = 0.05  # RMS of the fit, relative to the field's magnitude
+    truth_duration_s: float = 30.0  # GPS ground truth: averaging time
+    truth_min_fixes: int = 5
+    truth_max_hdop: float = 5.0
+    capture_overlap: float = 0.3  # fraction of the horizontal field of view shared by neighbours
+    settle_s: float = 0.5  # wait after every stage move before capturing
+    stage_tolerance_deg: float = 1.0  # stage considered stalled if it ends farther than this
+    black_frame_max_mean: float = 8.0  # a frame whose mean grey level is below this is rejected
+
+
+@dataclass(frozen=True)
 class Config:
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     platform: PlatformConfig = field(default_factory=PlatformConfig)
+    logbook: LogbookConfig = field(default_factory=LogbookConfig)
+    session: SessionConfig = field(default_factory=SessionConfig)
 
 
 def _type_name(tp: Any) -> str:
