@@ -1,0 +1,177 @@
+"""Reading a log, complete or cut short by a power cut, a kill or a full disk.
+
+:class:`LogReader` reads the file sequentially (it never needs the summary), so a log that was
+truncated anywhere yields every message of every complete chunk before the cut.  What happens at
+the first unreadable byte depends on the :class:`ErrorPolicy`: ``RAISE`` raises :class:`LogError`
+naming the offset; ``STOP`` ends the iteration there and records the problem in
+``reader.problem`` (``reader.complete`` is False).
+"""
+
+from __future__ import annotations
+
+import enum
+import io
+import json
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zstandard
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.well_known import MessageEncoding
+from mcap_protobuf.decoder import DecoderFactory
+
+from appliance.errors import LogError
+
+# What a corrupt or truncated byte stream raises inside mcap's reader (CRC errors are ValueErrors).
+_CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError)
+
+
+class ErrorPolicy(enum.Enum):
+    RAISE = "raise"
+    STOP = "stop"
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    """One message as stored: topic, schema, encoding, acquisition time (ns) and raw bytes."""
+
+    topic: str
+    schema_name: str
+    message_encoding: str
+    log_time_ns: int
+    data: bytes
+    schema: Schema | None
+    sequence: int = 0
+    channel_id: int = 0
+
+    def decode(self) -> Any:
+        """The protobuf object (``foxglove.*``) or the parsed JSON value."""
+        if self.message_encoding == MessageEncoding.JSON:
+            try:
+                return json.loads(self.data)
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise LogError(
+                    f"{self.topic} at {self.log_time_ns} ns: invalid JSON message: {exc}"
+                ) from None
+        if self.message_encoding == MessageEncoding.Protobuf and self.schema is not None:
+            return _proto_decoder(self.schema)(self.data)
+        raise LogError(f"{self.topic}: cannot decode messages of encoding {self.message_encoding!r}")
+
+
+_DECODERS: dict[tuple[str, bytes], Callable[[bytes], Any]] = {}
+
+
+def _proto_decoder(schema: Schema) -> Callable[[bytes], Any]:
+    key = (schema.name, schema.data)
+    dec = _DECODERS.get(key)
+    if dec is None:
+        try:
+            made = DecoderFactory().decoder_for(MessageEncoding.Protobuf, schema)
+        except McapError as exc:
+            raise LogError(f"schema {schema.name}: cannot build a protobuf decoder: {exc}") from None
+        if made is None:
+            raise LogError(f"schema {schema.name}: not a protobuf schema")
+        dec = _DECODERS[key] = made
+    return dec
+
+
+class LogReader:
+    """Sequential reader of one MCAP log.  Iterate :meth:`messages` once; then read the outcome.
+
+    After iteration: ``complete`` (the footer was reached), ``problem`` (why reading stopped early,
+    or None), ``stopped_at`` (byte offset of the first unreadable record), ``header``,
+    ``size_bytes``.
+    """
+
+    def __init__(self, path: str | Path, policy: ErrorPolicy = ErrorPolicy.STOP) -> None:
+        self.path = Path(path)
+        self.policy = policy
+        self.complete = False
+        self.problem: str | None = None
+        self.stopped_at: int | None = None
+        self.header: Header | None = None
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        try:
+            self._data = self.path.read_bytes()
+        except FileNotFoundError:
+            raise LogError(f"{self.path}: log file not found") from None
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot read log: {exc.strerror}") from None
+        self.size_bytes = len(self._data)
+
+    def messages(self) -> Iterator[LogMessage]:
+        stream = io.BytesIO(self._data)
+        reader = StreamReader(stream, emit_chunks=True, validate_crcs=True, record_size_limit=self.size_bytes)
+        records = reader.records
+        offset = 0
+        while True:
+            try:
+                offset = stream.tell()
+                record = next(records)
+                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
+            except StopIteration:
+                break
+            except EndOfFile:
+                self._stop(offset, "file ends before its footer (truncated)")
+                return
+            except _CORRUPTION as exc:
+                self._stop(offset, f"unreadable record at byte {offset}: {exc}")
+                return
+            for rec in inner:
+                msg = self._take(rec)
+                if msg is not None:
+                    yield msg
+            if isinstance(record, Footer):
+                self.complete = True
+        if not self.complete:
+            self._stop(offset, "file ends before its footer (truncated)")
+
+    def _take(self, rec: Any) -> LogMessage | None:
+        if isinstance(rec, Header):
+            self.header = rec
+        elif isinstance(rec, Schema):
+            self.schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            self.channels[rec.id] = rec
+        elif isinstance(rec, Message):
+            channel = self.channels.get(rec.channel_id)
+            if channel is None:
+                problem = f"message on unknown channel {rec.channel_id} at {rec.log_time} ns"
+                if self.policy is ErrorPolicy.RAISE:
+                    raise LogError(f"{self.path}: {problem}")
+                return None
+            schema = self.schemas.get(channel.schema_id)
+            return LogMessage(
+                topic=channel.topic,
+                schema_name=schema.name if schema is not None else "",
+                message_encoding=channel.message_encoding,
+                log_time_ns=rec.log_time,
+                data=bytes(rec.data),
+                schema=schema,
+                sequence=rec.sequence,
+                channel_id=rec.channel_id,
+            )
+        elif isinstance(rec, DataEnd):
+            pass
+        return None
+
+    def _stop(self, offset: int, problem: str) -> None:
+        self.complete = False
+        self.stopped_at = offset
+        self.problem = problem
+        if self.policy is ErrorPolicy.RAISE:
+            raise LogError(f"{self.path}: {problem}")
+
+
+def read_messages(
+    path: str | Path, policy: ErrorPolicy = ErrorPolicy.STOP
+) -> tuple[list[LogMessage], LogReader]:
+    """All messages of a log in file order, and the reader (for ``complete``/``problem``)."""
+    reader = LogReader(path, policy)
+    return list(reader.messages()), reader

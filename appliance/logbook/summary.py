@@ -1,0 +1,114 @@
+"""``viper log info``: topics, message counts, time span, and the estimate against the GPS truth."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from appliance.logbook import topics
+from appliance.logbook.reader import ErrorPolicy, LogReader
+
+EARTH_RADIUS_M = 6_371_008.8
+
+
+@dataclass
+class TopicStats:
+    schema_name: str
+    count: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+
+@dataclass
+class LogSummary:
+    path: Path
+    size_bytes: int
+    complete: bool
+    problem: str | None
+    topics: dict[str, TopicStats] = field(default_factory=dict)
+    estimate: dict[str, Any] | None = None
+    truth: dict[str, Any] | None = None
+
+    @property
+    def message_count(self) -> int:
+        return sum(t.count for t in self.topics.values())
+
+    @property
+    def span_ns(self) -> tuple[int, int] | None:
+        firsts = [t.first_ns for t in self.topics.values() if t.first_ns is not None]
+        lasts = [t.last_ns for t in self.topics.values() if t.last_ns is not None]
+        return (min(firsts), max(lasts)) if firsts and lasts else None
+
+    @property
+    def error_m(self) -> float | None:
+        """Distance between the last estimate and the GPS truth (great circle, metres)."""
+        if self.estimate is not None and self.estimate.get("error_m") is not None:
+            return float(self.estimate["error_m"])
+        if self.estimate is None or self.truth is None:
+            return None
+        return great_circle_m(
+            self.estimate["lat"], self.estimate["lon"], self.truth["lat"], self.truth["lon"]
+        )
+
+    def lines(self) -> list[str]:
+        state = "complete" if self.complete else f"INCOMPLETE: {self.problem} (try 'viper log recover')"
+        out = [f"{self.path}: {self.size_bytes} bytes, {self.message_count} messages, {state}"]
+        span = self.span_ns
+        if span is not None:
+            out.append(f"time span: {span[0]} .. {span[1]} ns ({(span[1] - span[0]) / 1e9:.3f} s)")
+        width = max((len(t) for t in self.topics), default=5)
+        for name, st in sorted(self.topics.items()):
+            out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}")
+        if self.truth is not None:
+            out.append(f"GPS truth: lat {self.truth['lat']:.6f} lon {self.truth['lon']:.6f}")
+        if self.estimate is not None:
+            out.append(f"estimate:  lat {self.estimate['lat']:.6f} lon {self.estimate['lon']:.6f}")
+        err = self.error_m
+        if err is not None:
+            out.append(f"estimate error vs GPS truth: {err:.1f} m")
+        elif self.estimate is None:
+            out.append("no estimate in this log")
+        return out
+
+
+def great_circle_m(
+    lat1: float, lon1: float, lat2: float, lon2: float, radius_m: float = EARTH_RADIUS_M
+) -> float:
+    """Haversine distance in metres on a sphere of ``radius_m``."""
+    p1, p2 = math.radians(lat1), math.radians(lat2)
+    dp, dl = p2 - p1, math.radians(lon2 - lon1)
+    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2 * radius_m * math.asin(min(1.0, math.sqrt(a)))
+
+
+def summarize_log(path: str | Path) -> LogSummary:
+    reader = LogReader(path, ErrorPolicy.STOP)
+    stats: dict[str, TopicStats] = {}
+    estimate: dict[str, Any] | None = None
+    truth: dict[str, Any] | None = None
+    for msg in reader.messages():
+        st = stats.setdefault(msg.topic, TopicStats(msg.schema_name))
+        st.count += 1
+        st.first_ns = msg.log_time_ns if st.first_ns is None else min(st.first_ns, msg.log_time_ns)
+        st.last_ns = msg.log_time_ns if st.last_ns is None else max(st.last_ns, msg.log_time_ns)
+        if msg.topic == topics.ESTIMATE_RECORD:
+            rec = msg.decode()
+            if isinstance(rec, dict) and rec.get("lat") is not None and rec.get("lon") is not None:
+                estimate = rec
+        elif msg.topic == topics.ESTIMATE_FIX and estimate is None:
+            fix = msg.decode()
+            estimate = {"lat": fix.latitude, "lon": fix.longitude}
+        elif msg.topic == topics.GPS_TRUTH:
+            fix = msg.decode()
+            truth = {"lat": fix.latitude, "lon": fix.longitude}
+    return LogSummary(
+        path=Path(path),
+        size_bytes=reader.size_bytes,
+        complete=reader.complete,
+        problem=reader.problem,
+        topics=stats,
+        estimate=estimate,
+        truth=truth,
+    )

@@ -1,0 +1,295 @@
+"""The session writer: one MCAP file, flushed and fsynced often, sealed cleanly on a full disk.
+
+Durability.  The MCAP writer collects messages into a compressed chunk in memory; :meth:`Logbook.flush`
+closes that chunk, hands it to the file and fsyncs.  The session calls it after every capture and
+the logbook calls it itself when ``fsync_interval_s`` has passed since the last one, so a power
+cut loses at most that much: the file then reads (with :class:`appliance.logbook.reader.LogReader`
+or ``viper log recover``) up to its last flush.
+
+Full disk.  A write that fails with ENOSPC (or EDQUOT) cuts the torn tail off at the last complete
+record, frees a small reserve file kept beside the log, and closes the data section with an empty
+summary (DataEnd, Footer, magic): a valid MCAP file holding everything written before the failure.
+The logbook then refuses further writes and raises :class:`LogbookFullError`.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mcap.data_stream import RecordBuilder
+from mcap.records import DataEnd, Footer
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import MCAP0_MAGIC, CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
+
+from appliance.errors import LogError
+from appliance.logbook.messages import to_jsonable
+from appliance.logbook.sink import DurableFile, Sink
+from appliance.logbook.topics import JSON_SCHEMAS
+
+PROFILE = "viper"
+LIBRARY = "viper-appliance logbook"
+_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class LogbookFullError(LogError):
+    """The disk filled up; the log was sealed with everything written before."""
+
+
+class Logbook:
+    """Writes one session's MCAP file.  Not thread-safe: one writer per session.
+
+    ``sink`` is the file (normally a :class:`DurableFile`); ``clock`` a monotonic clock in seconds,
+    used only for the periodic flush.  Every message's log_time (and publish_time) is its
+    acquisition time in nanoseconds since the Unix epoch.
+    """
+
+    def __init__(
+        self,
+        sink: Sink,
+        *,
+        name: str = "log",
+        fsync_interval_s: float = 2.0,
+        chunk_size_bytes: int = 256 * 1024,
+        compression: str = "zstd",
+        reserve_path: Path | None = None,
+        reserve_bytes: int = 64 * 1024,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if compression not in COMPRESSIONS:
+            raise LogError(f"{name}: unknown compression {compression!r} (known: {', '.join(COMPRESSIONS)})")
+        if not fsync_interval_s > 0:
+            raise LogError(f"{name}: fsync_interval_s must be positive, got {fsync_interval_s}")
+        self.name = name
+        self._sink = sink
+        self._clock = clock
+        self._interval_s = fsync_interval_s
+        self._reserve_path = reserve_path
+        self._state = "open"
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, str]] = {}
+        self.messages_written = 0
+        self.messages_durable = 0
+        self.flushes = 0
+        self.seal_problem: str | None = None
+        if reserve_path is not None:
+            self._make_reserve(reserve_path, reserve_bytes)
+        self._writer = McapWriter(
+            sink,  # type: ignore[arg-type]
+            chunk_size=chunk_size_bytes,
+            compression=COMPRESSIONS[compression],
+        )
+        self._guarded(lambda: self._writer.start(profile=PROFILE, library=LIBRARY))
+        self._last_flush = self._clock()
+
+    @classmethod
+    def create(
+        cls,
+        path: str | Path,
+        *,
+        fsync_interval_s: float = 2.0,
+        chunk_size_bytes: int = 256 * 1024,
+        compression: str = "zstd",
+        reserve_bytes: int = 64 * 1024,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> Logbook:
+        """A new log at ``path`` (its directory is created; an existing file is never overwritten)."""
+        p = Path(path)
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise LogError(f"{p.parent}: cannot create log directory: {exc.strerror}") from None
+        sink = DurableFile(p)
+        reserve = p.with_name(f".{p.name}.reserve") if reserve_bytes > 0 else None
+        try:
+            return cls(
+                sink,
+                name=str(p),
+                fsync_interval_s=fsync_interval_s,
+                chunk_size_bytes=chunk_size_bytes,
+                compression=compression,
+                reserve_path=reserve,
+                reserve_bytes=reserve_bytes,
+                clock=clock,
+            )
+        except LogError:
+            sink.close()
+            raise
+
+    # ----------------------------------------------------------------------------------- state
+    @property
+    def is_open(self) -> bool:
+        return self._state == "open"
+
+    @property
+    def disk_full(self) -> bool:
+        return self._state == "full"
+
+    def _require_open(self) -> None:
+        if self._state == "full":
+            raise LogbookFullError(f"{self.name}: disk full; the log was sealed and takes no more messages")
+        if self._state != "open":
+            raise LogError(f"{self.name}: log is closed")
+
+    # ----------------------------------------------------------------------------------- writes
+    def write_proto(self, topic: str, message: Any, log_time_ns: int, sequence: int = 0) -> None:
+        """Write a protobuf message (a Foxglove schema) on ``topic``."""
+        self._require_open()
+        type_name = type(message).DESCRIPTOR.full_name
+        channel_id = self._channel(
+            topic, type_name, MessageEncoding.Protobuf, lambda: self._proto_schema(message)
+        )
+        data = message.SerializeToString()
+        self._add(channel_id, log_time_ns, data, sequence)
+
+    def write_json(
+        self, topic: str, schema_name: str, payload: Any, log_time_ns: int, sequence: int = 0
+    ) -> None:
+        """Write a JSON message; ``schema_name`` must be one of :data:`topics.JSON_SCHEMAS`."""
+        self._require_open()
+        if schema_name not in JSON_SCHEMAS:
+            raise LogError(f"{self.name}: unknown JSON schema {schema_name!r} for topic {topic}")
+        channel_id = self._channel(
+            topic, schema_name, MessageEncoding.JSON, lambda: self._json_schema(schema_name)
+        )
+        data = json.dumps(to_jsonable(payload), allow_nan=False, separators=(",", ":")).encode()
+        self._add(channel_id, log_time_ns, data, sequence)
+
+    def flush(self) -> None:
+        """Close the chunk in progress, write it and fsync: everything written so far is durable."""
+        self._require_open()
+        self._guarded(self._writer.flush)
+        self._guarded(self._sink.sync)
+        self.messages_durable = self.messages_written
+        self.flushes += 1
+        self._last_flush = self._clock()
+
+    def maybe_flush(self) -> None:
+        """Flush if ``fsync_interval_s`` has passed since the last flush."""
+        if self._state == "open" and self._clock() - self._last_flush >= self._interval_s:
+            self.flush()
+
+    def close(self) -> None:
+        """Write the summary and footer, fsync and close.  A sealed (full) log just closes."""
+        if self._state == "closed":
+            return
+        if self._state == "full":
+            self._state = "closed"
+            return
+        self._guarded(self._writer.flush)
+        self._guarded(self._sink.sync)
+        self.messages_durable = self.messages_written
+        data_end = self._sink.committed
+        self._guarded(self._writer.finish, rollback_to=data_end)
+        self._guarded(self._sink.sync, rollback_to=data_end)
+        self._sink.close()
+        self._drop_reserve()
+        self._state = "closed"
+
+    def __enter__(self) -> Logbook:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------------------------- internals
+    def _channel(
+        self, topic: str, schema_name: str, encoding: str, schema: Callable[[], tuple[str, bytes]]
+    ) -> int:
+        known = self._channels.get(topic)
+        if known is not None:
+            if known[1] != schema_name:
+                raise LogError(f"{self.name}: topic {topic} carries {known[1]}, cannot write a {schema_name}")
+            return known[0]
+        schema_id = self._schemas.get(schema_name)
+        if schema_id is None:
+            schema_encoding, data = schema()
+            schema_id = self._guarded(
+                lambda: self._writer.register_schema(schema_name, schema_encoding, data)
+            )
+            self._schemas[schema_name] = schema_id
+        channel_id = self._guarded(lambda: self._writer.register_channel(topic, encoding, schema_id))
+        self._channels[topic] = (channel_id, schema_name)
+        return channel_id
+
+    @staticmethod
+    def _proto_schema(message: Any) -> tuple[str, bytes]:
+        return SchemaEncoding.Protobuf, build_file_descriptor_set(type(message)).SerializeToString()
+
+    @staticmethod
+    def _json_schema(schema_name: str) -> tuple[str, bytes]:
+        return SchemaEncoding.JSONSchema, json.dumps(JSON_SCHEMAS[schema_name]).encode()
+
+    def _add(self, channel_id: int, log_time_ns: int, data: bytes, sequence: int) -> None:
+        t = int(log_time_ns)
+        if t < 0:
+            raise LogError(f"{self.name}: negative log_time {t} ns")
+        self._guarded(lambda: self._writer.add_message(channel_id, t, data, t, sequence))
+        self.messages_written += 1
+        self.maybe_flush()
+
+    def _guarded(self, action: Callable[[], Any], rollback_to: int | None = None) -> Any:
+        try:
+            return action()
+        except OSError as exc:
+            full = exc.errno in _FULL_ERRNOS
+            sealed = self._seal(rollback_to)
+            self._state = "full" if full else "closed"
+            what = "disk full" if full else f"write failed ({exc.strerror or exc})"
+            kept = (
+                f"sealed with {self.messages_durable} durable messages"
+                if sealed
+                else "left readable up to its last flush (run 'viper log recover')"
+            )
+            cls = LogbookFullError if full else LogError
+            raise cls(f"{self.name}: {what}; log {kept}") from None
+
+    def _seal(self, rollback_to: int | None) -> bool:
+        """Cut the torn tail and close the data section with an empty summary; True if it worked."""
+        self._drop_reserve()
+        offset = self._sink.committed if rollback_to is None else rollback_to
+        try:
+            self._sink.truncate(offset)
+            if offset == 0:
+                return False
+            builder = RecordBuilder()
+            DataEnd(data_section_crc=0).write(builder)
+            Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+            self._sink.write(builder.end() + MCAP0_MAGIC)
+            self._sink.sync()
+            return True
+        except OSError as exc:
+            self.seal_problem = str(exc)
+            return False
+        finally:
+            try:
+                self._sink.close()
+            except OSError:
+                pass
+
+    def _make_reserve(self, path: Path, size: int) -> None:
+        try:
+            with open(path, "wb") as f:
+                f.write(b"\0" * size)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            raise LogbookFullError(
+                f"{path}: cannot reserve {size} bytes beside the log: {exc.strerror}"
+            ) from None
+
+    def _drop_reserve(self) -> None:
+        if self._reserve_path is not None:
+            try:
+                self._reserve_path.unlink()
+            except FileNotFoundError:
+                pass
+            self._reserve_path = None
