@@ -108,7 +108,10 @@ def _compass(args: argparse.Namespace) -> int:
     result = calibrate_compass_file(
         args.log,
         mode=args.mode,
+        accel_path=args.accel,
+        accel_measures=args.accel_measures,
         known_bearing_deg=args.known_bearing_deg,
+        bearing_window_s=args.bearing_window_s,
         declination_deg=args.declination_deg,
     )
     if args.output is not None:
@@ -190,7 +193,19 @@ def register(subparsers: Any) -> None:
         default="sphere",
         help="sphere: ellipsoid fit of a full-sphere rotation; level: ellipse fit of a levelled turn",
     )
-    p.add_argument("--known-bearing-deg", type=float, help="true azimuth the platform faces at the start")
+    p.add_argument(
+        "--accel", type=Path, help="accelerometer CSV t_s,acc_x_g,acc_y_g,acc_z_g (tilt compensation)"
+    )
+    p.add_argument(
+        "--accel-measures",
+        choices=("up", "down"),
+        default="up",
+        help="the accelerometer's reading at rest points up (usual) or down",
+    )
+    p.add_argument("--known-bearing-deg", type=float, help="true azimuth the x axis faces at the start")
+    p.add_argument(
+        "--bearing-window-s", type=_positive_float, default=1.0, help="how long it faces it (default 1 s)"
+    )
     p.add_argument("--declination-deg", type=float, default=0.0, help="magnetic declination, east positive")
     p.add_argument("--output", type=Path, help="calibration TOML to receive the [compass] table")
     p.add_argument("--json", action="store_true", help="print one JSON object")

@@ -1,0 +1,158 @@
+"""Inclinometer offsets by the two-position (reversal) method.
+
+The platform stands on a stage; the two-axis inclinometer is read with the stage at 0 deg and again
+after turning it 180 deg about the vertical.  The turn reverses the sign of the true tilt seen by
+each sensor axis but not the sensor's zero offset, so with readings r0 and r180 (degrees)
+
+    offset = (r0 + r180) / 2        true tilt at 0 deg = (r0 - r180) / 2
+
+Corrected reading = raw reading - offset.  Several readings per position are averaged.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from appliance.errors import CalibrationError, InputError
+from calibration.config_edit import significant, update_toml_table
+
+HEADER = ("stage_deg", "tilt_x_deg", "tilt_y_deg")
+AXES = ("x", "y")
+
+
+@dataclass(frozen=True)
+class ReversalReadings:
+    """Stage angles (deg) and tilt readings (N, 2) in degrees, axes x and y."""
+
+    stage_deg: np.ndarray
+    tilt_deg: np.ndarray
+
+
+@dataclass(frozen=True)
+class InclinometerCalibration:
+    """Per-axis zero offsets, the stage tilt seen at 0 deg, and the reading spread per position (deg)."""
+
+    offset_deg: tuple[float, float]
+    tilt_at_zero_deg: tuple[float, float]
+    readings_at_0: int
+    readings_at_180: int
+    spread_deg: tuple[float, float]  # largest std of one axis at one position (0 with one reading)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "offset_x_deg": self.offset_deg[0],
+            "offset_y_deg": self.offset_deg[1],
+            "tilt_x_at_zero_deg": self.tilt_at_zero_deg[0],
+            "tilt_y_at_zero_deg": self.tilt_at_zero_deg[1],
+            "readings_at_0": self.readings_at_0,
+            "readings_at_180": self.readings_at_180,
+        }
+
+
+def parse_reversal_csv(data: bytes, source: str = "<readings>") -> ReversalReadings:
+    """Parse ``stage_deg,tilt_x_deg,tilt_y_deg`` rows."""
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{source}: not UTF-8 text: {exc}") from None
+    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{source}: empty file, expected the header {','.join(HEADER)}")
+    header = tuple(c.strip() for c in rows[0])
+    if header != HEADER:
+        raise InputError(f"{source}: header is {','.join(header)!r}, expected {','.join(HEADER)!r}")
+    values = np.empty((len(rows) - 1, 3))
+    for i, row in enumerate(rows[1:]):
+        line_no = i + 2
+        if len(row) != len(HEADER):
+            raise InputError(f"{source}:{line_no}: expected {len(HEADER)} fields, got {len(row)}")
+        for j, (name, cell) in enumerate(zip(HEADER, row, strict=True)):
+            try:
+                value = float(cell)
+            except ValueError:
+                raise InputError(f"{source}:{line_no}: {name} {cell.strip()!r} is not a number") from None
+            if not math.isfinite(value):
+                raise InputError(f"{source}:{line_no}: {name} is {cell.strip()}")
+            values[i, j] = value
+    return ReversalReadings(values[:, 0], values[:, 1:])
+
+
+def read_reversal_csv(path: str | Path) -> ReversalReadings:
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{p}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    return parse_reversal_csv(data, source=str(p))
+
+
+def calibrate_reversal(
+    readings: ReversalReadings, angle_tolerance_deg: float = 2.0
+) -> InclinometerCalibration:
+    """Offsets from readings at stage 0 and 180 deg (each within ``angle_tolerance_deg``)."""
+    stage = np.mod(readings.stage_deg, 360.0)
+    tilt = readings.tilt_deg
+    at_0 = (stage <= angle_tolerance_deg) | (stage >= 360.0 - angle_tolerance_deg)
+    at_180 = np.abs(stage - 180.0) <= angle_tolerance_deg
+    elsewhere = ~(at_0 | at_180)
+    if np.any(elsewhere):
+        first = float(readings.stage_deg[np.argmax(elsewhere)])
+        raise InputError(
+            f"stage angle {first} deg is neither 0 nor 180 (tolerance {angle_tolerance_deg} deg);"
+            " the reversal method uses those two positions only"
+        )
+    if not at_0.any() or not at_180.any():
+        have = "0" if at_0.any() else "180"
+        raise CalibrationError(f"readings only at stage {have} deg; the reversal needs both 0 and 180 deg")
+    for k, axis in enumerate(AXES):
+        if np.ptp(tilt[:, k]) == 0.0:
+            raise CalibrationError(
+                f"tilt_{axis}_deg is constant ({tilt[0, k]} deg) at both positions; is the sensor answering?"
+            )
+    mean_0 = tilt[at_0].mean(axis=0)
+    mean_180 = tilt[at_180].mean(axis=0)
+    offset = (mean_0 + mean_180) / 2.0
+    true_tilt = (mean_0 - mean_180) / 2.0
+    spread = np.maximum(tilt[at_0].std(axis=0), tilt[at_180].std(axis=0))
+    return InclinometerCalibration(
+        offset_deg=(float(offset[0]), float(offset[1])),
+        tilt_at_zero_deg=(float(true_tilt[0]), float(true_tilt[1])),
+        readings_at_0=int(at_0.sum()),
+        readings_at_180=int(at_180.sum()),
+        spread_deg=(float(spread[0]), float(spread[1])),
+    )
+
+
+def inclinometer_table(result: InclinometerCalibration) -> dict[str, float]:
+    """The ``[inclinometer]`` table of the calibration file: subtract these from the raw readings."""
+    return {
+        "offset_x_deg": significant(result.offset_deg[0], 8),
+        "offset_y_deg": significant(result.offset_deg[1], 8),
+    }
+
+
+def write_inclinometer_calibration(path: str | Path, result: InclinometerCalibration) -> None:
+    """Set ``[inclinometer]`` in the calibration TOML ``path`` (created if absent; the rest kept)."""
+    update_toml_table(path, "inclinometer", inclinometer_table(result), must_exist=False)
+
+
+def format_report(result: InclinometerCalibration) -> str:
+    lines = [
+        f"readings: {result.readings_at_0} at stage 0 deg, {result.readings_at_180} at stage 180 deg",
+        f"{'axis':<5}  {'offset_deg':>11}  {'stage_tilt_deg':>14}  {'spread_deg':>10}",
+    ]
+    for k, axis in enumerate(AXES):
+        lines.append(
+            f"{axis:<5}  {result.offset_deg[k]:>11.4f}  {result.tilt_at_zero_deg[k]:>14.4f}"
+            f"  {result.spread_deg[k]:>10.4f}"
+        )
+    return "\n".join(lines)
