@@ -1,0 +1,44 @@
+"""``viper render DEM --lat --lon``: the skyline one should see from a point, as CSV."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from appliance.errors import InputError
+from appliance.skyline import format_skyline_csv, write_skyline_csv
+from appliance.terrain.dem import load_dem
+from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("render", help="render the skyline seen from a point of a DEM")
+    p.add_argument("dem", help="DEM file or 'jacksboro'")
+    p.add_argument("--lat", type=float, required=True, help="latitude (deg)")
+    p.add_argument("--lon", type=float, required=True, help="longitude (deg)")
+    p.add_argument("--height", type=float, default=DEFAULT_HEIGHT_M, help="camera height above ground (m)")
+    p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE_M, help="farthest terrain (m)")
+    p.add_argument("--refraction", type=float, help="refraction coefficient (default: the body's)")
+    p.add_argument("--azimuths", type=int, default=360, help="number of azimuths (default 360)")
+    p.add_argument("--crs", help="CRS for a DEM file that carries none")
+    p.add_argument("--out", help="CSV file to write (default: standard output)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not 1 <= args.azimuths <= 36000:
+        raise InputError(f"--azimuths {args.azimuths} outside [1, 36000]")
+    if args.height < 0:
+        raise InputError(f"--height {args.height} m is negative")
+    if not -180.0 <= args.lon <= 360.0:
+        raise InputError(f"--lon {args.lon} outside [-180, 360]")
+    dem = load_dem(args.dem, crs=args.crs)
+    az = np.arange(args.azimuths) * (360.0 / args.azimuths)
+    horizon = render_skyline(dem, args.lat, args.lon, args.height, az, args.max_range, args.refraction)
+    if args.out:
+        write_skyline_csv(horizon, args.out)
+    else:
+        sys.stdout.write(format_skyline_csv(horizon))
+    return 0

@@ -1,0 +1,466 @@
+"""The skyline database: the skyline of every node of a candidate grid, compact and memory-mapped.
+
+File layout (little-endian)::
+
+    8 bytes   magic b"VIPERDB\\0"
+    4 bytes   uint32 header length H
+    H bytes   JSON header (format version, DEM identity, grid, camera height, body, refraction,
+              azimuth sampling, array offsets), padded with spaces to a multiple of 64
+    arrays    codes uint8[n_nodes, n_azimuths]  (255 = no terrain along that azimuth)
+              offset_deg float32[n_nodes]       (NaN = node on nodata)
+              step_deg float32[n_nodes]
+              ground_m float32[n_nodes]
+
+Elevation (deg) = offset + step * code.  The step is 0.1 degree (quantisation error at most 0.05
+degree) unless a node's skyline spans more than 25.4 degrees, where it grows to span/254.
+Azimuth j is ``j * 360 / n_azimuths`` degrees clockwise from true north.
+
+Nodes form a regular grid in a metric CRS: the DEM's own when it is a projected CRS with scale
+close to 1, else a transverse Mercator centred on the search area.  Node (row, col) lies at
+x = x0 + col * dx, y = y0 - row * dy; node index = row * n_cols + col.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+from affine import Affine
+from pyproj import CRS, Transformer
+
+from appliance.errors import DatabaseError, DemError, InputError
+from appliance.terrain.dem import Dem
+from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
+from appliance.terrain.sweep import horizon_tan_grid
+
+MAGIC = b"VIPERDB\0"
+FORMAT_VERSION = 1
+MISSING_CODE = 255
+BASE_STEP_DEG = 0.1
+MAX_SPAN_DEG = 25.0
+ALIGN = 64
+
+
+@dataclass(frozen=True)
+class NodeGrid:
+    """A regular grid of candidate nodes: in a metric CRS, or the lon/lat grid of a geographic DEM.
+
+    ``dx``/``dy`` are in the CRS's units; ``dx_m``/``dy_m`` the ground spacing in metres (for a
+    geographic grid, at the grid's centre latitude).
+    """
+
+    crs_wkt: str
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+    n_rows: int
+    n_cols: int
+    dx_m: float
+    dy_m: float
+
+    @property
+    def n_nodes(self) -> int:
+        return self.n_rows * self.n_cols
+
+    @cached_property
+    def crs(self) -> CRS:
+        return CRS.from_wkt(self.crs_wkt)
+
+    @cached_property
+    def to_lonlat(self) -> Transformer:
+        return Transformer.from_crs(self.crs, self.crs.geodetic_crs, always_xy=True)
+
+    @cached_property
+    def from_lonlat(self) -> Transformer:
+        return Transformer.from_crs(self.crs.geodetic_crs, self.crs, always_xy=True)
+
+    def node_xy(self, index: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+        row, col = np.divmod(np.asarray(index), self.n_cols)
+        return self.x0 + col * self.dx, self.y0 - row * self.dy
+
+    def rc_to_xy(self, row: np.ndarray | float, col: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        return self.x0 + np.asarray(col) * self.dx, self.y0 - np.asarray(row) * self.dy
+
+    def xy_to_rc(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        return (self.y0 - np.asarray(y)) / self.dy, (np.asarray(x) - self.x0) / self.dx
+
+    def xy_to_lonlat(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        lon, lat = self.to_lonlat.transform(np.asarray(x, float), np.asarray(y, float))
+        return np.asarray(lon), np.asarray(lat)
+
+    def lonlat_to_xy(self, lon: np.ndarray | float, lat: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        x, y = self.from_lonlat.transform(np.asarray(lon, float), np.asarray(lat, float))
+        return np.asarray(x), np.asarray(y)
+
+    @property
+    def transform(self) -> Affine:
+        """Affine of the node grid seen as pixels centred on the nodes (for GeoTIFF output)."""
+        return Affine(self.dx, 0.0, self.x0 - self.dx / 2, 0.0, -self.dy, self.y0 + self.dy / 2)
+
+
+@dataclass(frozen=True, eq=False)
+class SkylineDatabase:
+    """A loaded (memory-mapped) skyline database."""
+
+    path: str
+    header: dict
+    grid: NodeGrid
+    codes: np.ndarray
+    offset_deg: np.ndarray
+    step_deg: np.ndarray
+    ground_m: np.ndarray
+
+    @property
+    def n_azimuths(self) -> int:
+        return int(self.codes.shape[1])
+
+    @property
+    def azimuths_deg(self) -> np.ndarray:
+        return np.arange(self.n_azimuths) * (360.0 / self.n_azimuths)
+
+    @property
+    def height_m(self) -> float:
+        return float(self.header["height_m"])
+
+    @property
+    def valid_nodes(self) -> np.ndarray:
+        return np.isfinite(self.offset_deg)
+
+    def skylines_deg(self, index: np.ndarray | slice | int) -> np.ndarray:
+        """Decoded skylines (deg, NaN = no terrain) of the given nodes, shape (k, n_azimuths)."""
+        codes = np.asarray(self.codes[index])
+        off = np.asarray(self.offset_deg[index], dtype=np.float64)
+        step = np.asarray(self.step_deg[index], dtype=np.float64)
+        el = off[..., None] + step[..., None] * codes
+        return np.where(codes == MISSING_CODE, np.nan, el)
+
+
+def _metric_grid_crs(dem: Dem, lon_c: float, lat_c: float) -> tuple[CRS, bool]:
+    """The CRS of the node grid, and True if it is the DEM's own (no resampling).
+
+    A geographic DEM keeps its own lon/lat grid, treated as locally metric with the spacing at the
+    search area's centre latitude; a projected DEM keeps its grid where the projection's scale is
+    within 0.2 % of 1; any other map is resampled onto a transverse Mercator grid.
+    """
+    if dem.crs.is_geographic:
+        return dem.crs, True
+    if dem.crs.is_projected:
+        try:
+            from pyproj import Proj
+
+            factors = Proj(dem.crs).get_factors(lon_c, lat_c)
+            scale = math.sqrt(factors.areal_scale)
+        except Exception:  # pyproj raises plain errors for CRSs without factors
+            scale = float("nan")
+        unit = dem.crs.axis_info[0].unit_conversion_factor if dem.crs.axis_info else 1.0
+        if abs(scale - 1.0) < 0.002 and abs(unit - 1.0) < 1e-9:
+            return dem.crs, True
+    return _tmerc(dem, lon_c, lat_c), False
+
+
+def _tmerc(dem: Dem, lon_c: float, lat_c: float) -> CRS:
+    ell = dem.crs.ellipsoid
+    a = ell.semi_major_metre if ell is not None else dem.body.semi_major_m
+    b = ell.semi_minor_metre if ell is not None else dem.body.semi_major_m
+    proj = f"+proj=tmerc +lat_0={lat_c!r} +lon_0={lon_c!r} +k=1 +x_0=0 +y_0=0 +a={a!r} +b={b!r} +units=m"
+    return CRS.from_proj4(proj + " +no_defs")
+
+
+def plan_grids(
+    dem: Dem,
+    search_bounds: tuple[float, float, float, float] | None,
+    spacing_m: float | None,
+    max_range_m: float,
+) -> tuple[NodeGrid, NodeGrid, tuple[int, int]]:
+    """Candidate grid, terrain grid (candidates plus the horizon's reach) and the candidates' offset
+    (row, col) inside the terrain grid."""
+    west, south, east, north = dem.bounds_lonlat()
+    if search_bounds is None:
+        search_bounds = (west, south, east, north)
+    sw, ss, se, sn = search_bounds
+    if not (sw < se and ss < sn):
+        raise InputError(f"search bounds {search_bounds}: expected W,S,E,N with W < E and S < N")
+    if se <= west or sw >= east or sn <= south or ss >= north:
+        raise InputError(
+            f"search bounds {search_bounds} lie outside the DEM {dem.source} "
+            f"({west:.5f}, {south:.5f}, {east:.5f}, {north:.5f})"
+        )
+    sw, ss, se, sn = max(sw, west), max(ss, south), min(se, east), min(sn, north)
+    if se - sw > 30.0 or sn - ss > 30.0:
+        raise InputError(
+            f"search area {se - sw:.1f} x {sn - ss:.1f} degrees is too large for one metric grid: "
+            "give --search-bounds W,S,E,N spanning at most 30 degrees"
+        )
+    lon_c, lat_c = (sw + se) / 2.0, (ss + sn) / 2.0
+    crs, native = _metric_grid_crs(dem, lon_c, lat_c)
+    to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
+    if native and spacing_m is None:
+        dx, dy = abs(dem.transform.a), abs(dem.transform.e)
+        ox, oy = dem.pixel_to_xy(np.array(0.0), np.array(0.0))
+        origin = (float(ox), float(oy))
+        if crs.is_geographic:
+            geod = dem.geod
+            _, _, dx_m = geod.inv(lon_c, lat_c, lon_c + dx, lat_c)
+            _, _, dy_m = geod.inv(lon_c, lat_c - dy / 2, lon_c, lat_c + dy / 2)
+        else:
+            dx_m, dy_m = dx, dy
+    else:
+        if crs.is_geographic:
+            crs, native = _tmerc(dem, lon_c, lat_c), False
+            to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
+        rx, ry = dem.resolution_m()
+        dx, dy = (rx, ry) if spacing_m is None else (float(spacing_m), float(spacing_m))
+        origin = (0.0, 0.0)
+        dx_m, dy_m = dx, dy
+    reach = max_range_m if not crs.is_geographic else max_range_m / min(dx_m / dx, dy_m / dy)
+    if not (dx > 0 and dy > 0):
+        raise InputError(f"grid spacing must be positive, got {dx} x {dy} m")
+
+    def box(lo_lon: float, lo_lat: float, hi_lon: float, hi_lat: float) -> tuple[float, ...]:
+        t = np.linspace(0, 1, 41)
+        lons = np.concatenate([lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, hi_lon),
+                               lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, lo_lon)])
+        lats = np.concatenate([np.full_like(t, lo_lat), lo_lat + (hi_lat - lo_lat) * t,
+                               np.full_like(t, hi_lat), lo_lat + (hi_lat - lo_lat) * t])
+        x, y = to_grid.transform(lons, lats)
+        return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
+
+    cx0, cy0, cx1, cy1 = box(sw, ss, se, sn)
+    tx0, ty0, tx1, ty1 = box(west, south, east, north)
+    tx0, ty0 = max(tx0, cx0 - reach), max(ty0, cy0 - reach)
+    tx1, ty1 = min(tx1, cx1 + reach), min(ty1, cy1 + reach)
+
+    def cols(lo: float, hi: float, o: float, d: float) -> tuple[int, int]:
+        return math.ceil((lo - o) / d - 1e-9), math.floor((hi - o) / d + 1e-9)
+
+    c0, c1 = cols(cx0, cx1, origin[0], dx)
+    r0, r1 = cols(cy0, cy1, origin[1], dy)
+    tc0, tc1 = cols(tx0, tx1, origin[0], dx)
+    tr0, tr1 = cols(ty0, ty1, origin[1], dy)
+    if c1 < c0 or r1 < r0:
+        raise InputError(f"search bounds {search_bounds} contain no grid node at {dx:.1f} x {dy:.1f} m")
+    wkt = crs.to_wkt()
+    cand = NodeGrid(wkt, origin[0] + c0 * dx, origin[1] + r1 * dy, dx, dy, r1 - r0 + 1, c1 - c0 + 1, dx_m, dy_m)
+    terr = NodeGrid(
+        wkt, origin[0] + tc0 * dx, origin[1] + tr1 * dy, dx, dy, tr1 - tr0 + 1, tc1 - tc0 + 1, dx_m, dy_m
+    )
+    return cand, terr, (tr1 - r1, c0 - tc0)
+
+
+def terrain_on_grid(dem: Dem, grid: NodeGrid) -> np.ndarray:
+    """DEM heights (m, NaN = nodata) at the grid's nodes, bilinear."""
+    if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
+        col0, row0 = dem.xy_to_pixel(np.array(grid.x0), np.array(grid.y0))
+        r, c = int(round(float(row0))), int(round(float(col0)))
+        if abs(r - row0) < 1e-6 and abs(c - col0) < 1e-6 and r >= 0 and c >= 0:
+            sub = dem.elevation_m[r : r + grid.n_rows, c : c + grid.n_cols]
+            if sub.shape == (grid.n_rows, grid.n_cols):
+                return np.array(sub, dtype=np.float64)
+    to_dem = Transformer.from_crs(grid.crs, dem.crs, always_xy=True)
+    out = np.empty((grid.n_rows, grid.n_cols))
+    cols = grid.x0 + np.arange(grid.n_cols) * grid.dx
+    for r in range(grid.n_rows):
+        x, y = to_dem.transform(cols, np.full(grid.n_cols, grid.y0 - r * grid.dy))
+        out[r] = dem.sample(np.asarray(x), np.asarray(y))
+    return out
+
+
+def grid_convergence_deg(grid: NodeGrid, geod_crs: CRS) -> np.ndarray:
+    """True azimuth (deg) of grid north at every node, interpolated from a coarse lattice."""
+    from pyproj import Geod
+    from scipy.interpolate import RegularGridInterpolator
+
+    ell = geod_crs.ellipsoid
+    geod = Geod(a=ell.semi_major_metre, b=ell.semi_minor_metre) if ell is not None else Geod(ellps="WGS84")
+    rs = np.linspace(0, grid.n_rows - 1, min(grid.n_rows, 24))
+    cs = np.linspace(0, grid.n_cols - 1, min(grid.n_cols, 24))
+    rr, cc = np.meshgrid(rs, cs, indexing="ij")
+    x, y = grid.rc_to_xy(rr.ravel(), cc.ravel())
+    lon0, lat0 = grid.xy_to_lonlat(x, y)
+    lon1, lat1 = grid.xy_to_lonlat(x, y + grid.dy * min(1.0, 10.0 / grid.dy_m))
+    az, _, _ = geod.inv(lon0, lat0, lon1, lat1)
+    az = ((np.asarray(az) + 180.0) % 360.0) - 180.0
+    table = az.reshape(rr.shape)
+    if len(rs) < 2 or len(cs) < 2:
+        return np.full((grid.n_rows, grid.n_cols), float(np.mean(table)))
+    interp = RegularGridInterpolator((rs, cs), table)
+    R, C = np.meshgrid(np.arange(grid.n_rows), np.arange(grid.n_cols), indexing="ij")
+    return interp(np.stack([R.ravel(), C.ravel()], axis=1)).reshape(grid.n_rows, grid.n_cols)
+
+
+def quantize(elev_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-node offset and step, and uint8 codes, of skylines ``elev_deg[n, n_az]`` (NaN = missing)."""
+    with np.errstate(invalid="ignore"):
+        lo = np.nanmin(np.where(np.isfinite(elev_deg), elev_deg, np.inf), axis=1)
+        hi = np.nanmax(np.where(np.isfinite(elev_deg), elev_deg, -np.inf), axis=1)
+    empty = ~np.isfinite(lo)
+    lo = np.where(empty, np.nan, lo)
+    span = np.where(empty, 0.0, hi - lo)
+    step = np.maximum(BASE_STEP_DEG, span / (MISSING_CODE - 1)).astype(np.float32)
+    off = lo.astype(np.float32)
+    q = np.rint((elev_deg - off[:, None]) / step[:, None])
+    codes = np.where(np.isfinite(q), np.clip(q, 0, MISSING_CODE - 1), MISSING_CODE).astype(np.uint8)
+    return codes, off, step
+
+
+def _progress(done: int, total: int, label: str) -> None:
+    if not sys.stderr.isatty():
+        return
+    width = 30
+    filled = int(width * done / max(total, 1))
+    sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
+    if done >= total:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def build_database(
+    dem: Dem,
+    out_path: str | Path,
+    search_bounds: tuple[float, float, float, float] | None = None,
+    spacing_m: float | None = None,
+    height_m: float = DEFAULT_HEIGHT_M,
+    n_azimuths: int = 360,
+    refraction: float | None = None,
+    max_range_m: float = DEFAULT_MAX_RANGE_M,
+    progress: Callable[[int, int, str], None] | None = _progress,
+) -> dict:
+    """Render every candidate node's skyline and write the database atomically; returns its header."""
+    if not 8 <= n_azimuths <= 3600:
+        raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
+    if not 0.0 <= height_m < 1000.0:
+        raise InputError(f"camera height {height_m} m outside [0, 1000)")
+    cand, terr, (ro, co) = plan_grids(dem, search_bounds, spacing_m, max_range_m)
+    Z = terrain_on_grid(dem, terr)
+    if not np.isfinite(Z[ro : ro + cand.n_rows, co : co + cand.n_cols]).any():
+        raise DemError(f"{dem.source}: every candidate node inside the search bounds is nodata")
+    r_eff = dem.body.effective_radius_m(refraction)
+    gamma = grid_convergence_deg(cand, dem.crs.geodetic_crs or dem.crs)
+    step_az = 360.0 / n_azimuths
+    n = cand.n_nodes
+    cdeg = np.empty((n, n_azimuths), dtype=np.int16)  # centidegrees at grid azimuths
+    sl = (slice(ro, ro + cand.n_rows), slice(co, co + cand.n_cols))
+    for j in range(n_azimuths):
+        tan = horizon_tan_grid(Z, terr.dx_m, terr.dy_m, j * step_az, height_m, r_eff)[sl]
+        with np.errstate(invalid="ignore"):
+            deg = np.degrees(np.arctan(tan.ravel())) * 100.0
+        cdeg[:, j] = np.where(np.isfinite(deg), np.rint(deg), np.iinfo(np.int16).min)
+        if progress is not None:
+            progress(j + 1, n_azimuths, "skylines")
+
+    header = {
+        "format": "viper-skyline-db",
+        "format_version": FORMAT_VERSION,
+        "dem_sha256": dem.sha256,
+        "dem_source": Path(dem.source).name,
+        "dem_crs": dem.crs.to_wkt(),
+        "body": dem.body.name.value,
+        "refraction": dem.body.refraction if refraction is None else refraction,
+        "height_m": height_m,
+        "max_range_m": max_range_m,
+        "n_azimuths": n_azimuths,
+        "grid": {
+            "crs_wkt": cand.crs_wkt, "x0": cand.x0, "y0": cand.y0, "dx": cand.dx, "dy": cand.dy,
+            "n_rows": cand.n_rows, "n_cols": cand.n_cols, "dx_m": cand.dx_m, "dy_m": cand.dy_m,
+        },
+        "search_bounds": list(search_bounds) if search_bounds else list(dem.bounds_lonlat()),
+    }
+    ground = Z[sl].ravel().astype(np.float32)
+    _write(out_path, header, cdeg, gamma.ravel() / step_az, ground)
+    return header
+
+
+def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, shift: np.ndarray, ground: np.ndarray) -> None:
+    n, n_az = cdeg.shape
+    layout = {}
+    pos = 0
+    for name, nbytes in (("codes", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n), ("ground_m", 4 * n)):
+        layout[name] = pos
+        pos += -(-nbytes // ALIGN) * ALIGN
+    header = dict(header, arrays=layout, n_nodes=n)
+    raw = json.dumps(header).encode()
+    hlen = -(-(len(raw) + 12) // ALIGN) * ALIGN - 12
+    data_start = 12 + hlen
+    out = Path(out_path)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        with tmp.open("wb") as fh:
+            fh.write(MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" "))
+            fh.truncate(data_start + pos)
+        mm = np.memmap(tmp, mode="r+", dtype=np.uint8, offset=data_start, shape=(pos,))
+        codes = mm[layout["codes"] : layout["codes"] + n * n_az].reshape(n, n_az)
+        offs = np.empty(n, np.float32)
+        steps = np.empty(n, np.float32)
+        cols = np.arange(n_az)
+        chunk = 20_000
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            c = cdeg[a:b].astype(np.float64)
+            c[cdeg[a:b] == np.iinfo(np.int16).min] = np.nan
+            c /= 100.0
+            # resample from grid azimuths to true azimuths: true = grid + gamma
+            pos_f = (cols[None, :] - shift[a:b, None]) % n_az
+            i0 = np.floor(pos_f).astype(np.intp)
+            w = pos_f - i0
+            i1 = (i0 + 1) % n_az
+            e = np.take_along_axis(c, i0, 1) * (1 - w) + np.take_along_axis(c, i1, 1) * w
+            codes[a:b], offs[a:b], steps[a:b] = quantize(e)
+        for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground)):
+            mm[layout[name] : layout[name] + 4 * n] = arr.view(np.uint8)
+        mm.flush()
+        del mm, codes
+        with tmp.open("rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
+    """Memory-map a database; refuses a foreign format or version, or one from another DEM."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            magic = fh.read(8)
+            if magic != MAGIC:
+                raise DatabaseError(f"{p}: not a Viper skyline database")
+            hlen = int(np.frombuffer(fh.read(4), np.uint32)[0])
+            header = json.loads(fh.read(hlen).decode())
+    except FileNotFoundError:
+        raise DatabaseError(f"{p}: database not found") from None
+    except (OSError, ValueError, IndexError) as exc:
+        raise DatabaseError(f"{p}: unreadable database header ({exc})") from None
+    version = header.get("format_version")
+    if version != FORMAT_VERSION:
+        raise DatabaseError(f"{p}: database format version {version}, this viper reads {FORMAT_VERSION}")
+    if dem is not None and header.get("dem_sha256") != dem.sha256:
+        raise DatabaseError(
+            f"{p}: built from DEM {header.get('dem_source')} ({str(header.get('dem_sha256'))[:12]}), "
+            f"not from {Path(dem.source).name} ({dem.sha256[:12]})"
+        )
+    n = int(header["n_nodes"])
+    n_az = int(header["n_azimuths"])
+    lay = header["arrays"]
+    start = 12 + hlen
+    try:
+        mm = np.memmap(p, mode="r", dtype=np.uint8, offset=start)
+        codes = mm[lay["codes"] : lay["codes"] + n * n_az].reshape(n, n_az)
+        f32 = {k: mm[lay[k] : lay[k] + 4 * n].view(np.float32) for k in ("offset_deg", "step_deg", "ground_m")}
+    except (ValueError, OSError) as exc:
+        raise DatabaseError(f"{p}: truncated or corrupt database ({exc})") from None
+    g = header["grid"]
+    grid = NodeGrid(
+        g["crs_wkt"], g["x0"], g["y0"], g["dx"], g["dy"], g["n_rows"], g["n_cols"], g["dx_m"], g["dy_m"]
+    )
+    if grid.n_nodes != n:
+        raise DatabaseError(f"{p}: grid of {grid.n_nodes} nodes but {n} skylines")
+    return SkylineDatabase(str(p), header, grid, codes, f32["offset_deg"], f32["step_deg"], f32["ground_m"])

@@ -1,0 +1,375 @@
+"""DEM ingest: every map the appliance reads becomes one :class:`Dem`.
+
+Formats go through rasterio/GDAL (GeoTIFF, USGS ASCII DEM, SRTM .hgt, PDS labels such as the LOLA
+Moon DEM) plus two readers GDAL lacks: matplotlib's sample ``.npz`` grids (jacksboro, whose
+``ymin``/``ymax`` are swapped, and topobathy) and ArcInfo ``.e00`` export grids.
+
+Heights are metres above the body's reference (geoid on Earth, the 1737.4 km sphere on the Moon);
+heights stored in feet are converted; nodata is NaN, never 0.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+from affine import Affine
+from pyproj import CRS, Geod, Transformer
+
+from appliance.bodies import EARTH, MARS, MOON, Body
+from appliance.errors import DemError
+
+FEET_UNITS = {"ft", "feet", "foot", "us-ft", "us survey foot", "us_survey_foot"}
+DEMO_DEM = "jacksboro"
+
+
+@dataclass(frozen=True, eq=False)
+class Dem:
+    """A gridded elevation model.
+
+    ``elevation_m[row, col]`` is the height (m, NaN = nodata) at the centre of pixel (row, col);
+    ``transform`` maps (col, row) pixel *edges* to CRS coordinates, as in rasterio.
+    """
+
+    elevation_m: np.ndarray
+    transform: Affine
+    crs: CRS
+    body: Body
+    source: str
+    sha256: str
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.elevation_m.shape[0]), int(self.elevation_m.shape[1]))
+
+    @property
+    def is_geographic(self) -> bool:
+        return bool(self.crs.is_geographic)
+
+    @cached_property
+    def _to_lonlat(self) -> Transformer:
+        return Transformer.from_crs(self.crs, self.crs.geodetic_crs, always_xy=True)
+
+    @cached_property
+    def _from_lonlat(self) -> Transformer:
+        return Transformer.from_crs(self.crs.geodetic_crs, self.crs, always_xy=True)
+
+    @cached_property
+    def geod(self) -> Geod:
+        ell = self.crs.ellipsoid
+        if ell is None:  # pragma: no cover - every CRS we accept has one
+            return Geod(a=self.body.semi_major_m, f=0.0)
+        return Geod(a=ell.semi_major_metre, b=ell.semi_minor_metre)
+
+    def xy_to_lonlat(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        lon, lat = self._to_lonlat.transform(np.asarray(x, float), np.asarray(y, float))
+        return np.asarray(lon), np.asarray(lat)
+
+    def lonlat_to_xy(self, lon: np.ndarray | float, lat: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        x, y = self._from_lonlat.transform(np.asarray(lon, float), np.asarray(lat, float))
+        return np.asarray(x), np.asarray(y)
+
+    def xy_to_pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional (col, row) of pixel centres: (0, 0) is the centre of the first pixel."""
+        col, row = affine_apply(~self.transform, np.asarray(x, float), np.asarray(y, float))
+        return np.asarray(col) - 0.5, np.asarray(row) - 0.5
+
+    def pixel_to_xy(self, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, y = affine_apply(self.transform, np.asarray(col, float) + 0.5, np.asarray(row, float) + 0.5)
+        return np.asarray(x), np.asarray(y)
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Bilinear height (m) at CRS coordinates; NaN off the map or next to nodata."""
+        col, row = self.xy_to_pixel(x, y)
+        return bilinear(self.elevation_m, col, row)
+
+    def sample_lonlat(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        x, y = self.lonlat_to_xy(lon, lat)
+        return self.sample(x, y)
+
+    def bounds_xy(self) -> tuple[float, float, float, float]:
+        """(left, bottom, right, top) of the pixel edges in the DEM's CRS."""
+        rows, cols = self.shape
+        xs, ys = affine_apply(self.transform, np.array([0, cols, 0, cols]), np.array([0, 0, rows, rows]))
+        return float(np.min(xs)), float(np.min(ys)), float(np.max(xs)), float(np.max(ys))
+
+    def bounds_lonlat(self) -> tuple[float, float, float, float]:
+        """(west, south, east, north) of the map, densified along its edges."""
+        rows, cols = self.shape
+        t = np.linspace(0.0, 1.0, 41)
+        cs = np.concatenate([t * cols, np.full_like(t, cols), t * cols, np.zeros_like(t)])
+        rs = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t * rows])
+        x, y = affine_apply(self.transform, cs, rs)
+        lon, lat = self.xy_to_lonlat(x, y)
+        west, east = float(lon.min()), float(lon.max())
+        if east - west > 350.0:  # a global map: its edges wrap around the antimeridian
+            west, east = -180.0, 180.0
+        return west, max(float(lat.min()), -90.0), east, min(float(lat.max()), 90.0)
+
+    def resolution_m(self) -> tuple[float, float]:
+        """Ground size (m) of one pixel along x and y at the map's centre."""
+        rows, cols = self.shape
+        c, r = cols / 2.0, rows / 2.0
+        x0, y0 = self.transform * (c, r)
+        x1, y1 = self.transform * (c + 1, r)
+        x2, y2 = self.transform * (c, r + 1)
+        lon, lat = self.xy_to_lonlat(np.array([x0, x1, x2]), np.array([y0, y1, y2]))
+        _, _, dx = self.geod.inv(lon[0], lat[0], lon[1], lat[1])
+        _, _, dy = self.geod.inv(lon[0], lat[0], lon[2], lat[2])
+        return float(dx), float(dy)
+
+    def info(self) -> dict[str, object]:
+        finite = self.elevation_m[np.isfinite(self.elevation_m)]
+        epsg = self.crs.to_epsg()
+        return {
+            "source": self.source,
+            "crs": f"EPSG:{epsg}" if epsg else self.crs.to_string(),
+            "body": self.body.name.value,
+            "shape": list(self.shape),
+            "resolution_m": [round(v, 3) for v in self.resolution_m()],
+            "bounds_lonlat": [round(v, 7) for v in self.bounds_lonlat()],
+            "elevation_min_m": float(finite.min()),
+            "elevation_max_m": float(finite.max()),
+            "nodata_cells": int(np.count_nonzero(~np.isfinite(self.elevation_m))),
+            "sha256": self.sha256,
+        }
+
+
+def affine_apply(t: Affine, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply an affine transform to arrays of (col, row)."""
+    col = np.asarray(col, dtype=float)
+    row = np.asarray(row, dtype=float)
+    return t.a * col + t.b * row + t.c, t.d * col + t.e * row + t.f
+
+
+def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of ``grid`` at fractional pixel-centre coordinates; NaN outside."""
+    col = np.asarray(col, dtype=float)
+    row = np.asarray(row, dtype=float)
+    nrows, ncols = grid.shape
+    inside = (col >= 0) & (row >= 0) & (col <= ncols - 1) & (row <= nrows - 1)
+    c = np.where(inside, col, 0.0)
+    r = np.where(inside, row, 0.0)
+    c0 = np.minimum(np.floor(c).astype(np.intp), max(ncols - 2, 0))
+    r0 = np.minimum(np.floor(r).astype(np.intp), max(nrows - 2, 0))
+    fc = c - c0
+    fr = r - r0
+    c1 = np.minimum(c0 + 1, ncols - 1)
+    r1 = np.minimum(r0 + 1, nrows - 1)
+    z = (
+        grid[r0, c0] * (1 - fc) * (1 - fr)
+        + grid[r0, c1] * fc * (1 - fr)
+        + grid[r1, c0] * (1 - fc) * fr
+        + grid[r1, c1] * fc * fr
+    )
+    return np.where(inside, z, np.nan)
+
+
+def body_of_crs(crs: CRS) -> Body:
+    ell = crs.ellipsoid
+    a = ell.semi_major_metre if ell is not None else EARTH.semi_major_m
+    for body in (MOON, MARS):
+        if abs(a - body.semi_major_m) < 0.01 * body.semi_major_m:
+            return body
+    if abs(a - EARTH.semi_major_m) < 0.01 * EARTH.semi_major_m:
+        return EARTH
+    raise DemError(f"CRS with semi-major axis {a:.0f} m is not Earth, Moon or Mars")
+
+
+def _sha256(path: Path, extra: bytes = b"") -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    h.update(extra)
+    return h.hexdigest()
+
+
+def demo_dem_path() -> Path:
+    """matplotlib's sample DEM (Jacksboro fault, Tennessee): the appliance's embedded default map."""
+    import matplotlib.cbook
+
+    return Path(matplotlib.cbook.get_sample_data("jacksboro_fault_dem.npz", asfileobj=False))
+
+
+def load_dem(path: str | Path | None = None, crs: str | None = None) -> Dem:
+    """Read a DEM; ``None`` or ``"jacksboro"`` gives the embedded demo map.
+
+    ``crs`` overrides (or supplies) the coordinate reference system, for files that carry none.
+    """
+    if path is None or str(path) == DEMO_DEM:
+        path = demo_dem_path()
+    p = Path(path)
+    if not p.exists():
+        raise DemError(f"{p}: DEM file not found")
+    if p.is_dir():
+        raise DemError(f"{p}: is a folder, not a DEM file")
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".npz":
+            dem = _load_npz(p)
+        elif suffix == ".e00":
+            dem = _load_e00(p)
+        else:
+            dem = _load_gdal(p, crs)
+    except DemError:
+        raise
+    except (OSError, ValueError, KeyError, IndexError) as exc:
+        raise DemError(f"{p}: cannot read DEM: {exc}") from None
+    if crs is not None and suffix in (".npz", ".e00"):
+        dem = Dem(dem.elevation_m, dem.transform, _parse_crs(crs, p), dem.body, dem.source, dem.sha256)
+    if not np.isfinite(dem.elevation_m).any():
+        raise DemError(f"{p}: every cell is nodata")
+    if min(dem.shape) < 2:
+        raise DemError(f"{p}: a DEM needs at least 2x2 cells, got {dem.shape[0]}x{dem.shape[1]}")
+    return dem
+
+
+def _parse_crs(text: str, p: Path) -> CRS:
+    try:
+        return CRS.from_user_input(text)
+    except Exception as exc:  # pyproj raises CRSError, a plain Exception subclass
+        raise DemError(f"{p}: unknown CRS {text!r}: {exc}") from None
+
+
+def _load_gdal(p: Path, crs_override: str | None) -> Dem:
+    import rasterio
+    from rasterio.errors import RasterioError
+
+    open_path = p
+    if p.suffix.lower() == ".img":
+        for label in (p.with_suffix(".LBL"), p.with_suffix(".lbl")):
+            if label.exists():
+                open_path = label
+                break
+    try:
+        with rasterio.open(open_path) as ds:
+            band = ds.read(1, masked=True)
+            scale = float(ds.scales[0] or 1.0)
+            offset = float(ds.offsets[0] or 0.0)
+            units = (ds.units[0] or ds.tags(1).get("UNITTYPE") or ds.tags().get("ZUNITS") or "").strip()
+            transform = ds.transform
+            crs_wkt = ds.crs.to_wkt() if ds.crs else None
+            driver = ds.driver
+    except RasterioError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DemError(f"{p}: not a readable DEM ({first})") from None
+    if crs_override is not None:
+        crs = _parse_crs(crs_override, p)
+    elif crs_wkt is None:
+        raise DemError(f"{p}: the file carries no CRS (give one with --crs, e.g. EPSG:32632)")
+    else:
+        crs = _parse_crs(crs_wkt, p)
+    if transform.is_identity:
+        raise DemError(f"{p}: the file carries no georeferencing")
+    body = body_of_crs(crs)
+    data = np.ma.filled(band.astype(np.float64), np.nan)
+    data[np.abs(data) > 1e30] = np.nan
+    # PDS planetary DEMs store radius = raw * scale + reference radius: keep height above the sphere.
+    if offset > 1e5:
+        offset = 0.0
+    data = data * scale + offset
+    if units.lower() in FEET_UNITS:
+        data *= 0.3048
+    sha = _sha256(p)
+    meta = {"driver": driver, "units": units or "m"}
+    return Dem(data, transform, crs, body, str(p), sha, meta)
+
+
+def _load_npz(p: Path) -> Dem:
+    with np.load(p) as z:
+        keys = set(z.files)
+        if {"elevation", "dx", "dy", "xmin", "xmax", "ymin", "ymax"} <= keys:
+            elev = z["elevation"].astype(np.float64)
+            dx, dy = float(z["dx"]), float(z["dy"])
+            west = min(float(z["xmin"]), float(z["xmax"]))
+            # The sample file's ymin and ymax are swapped: take the larger as the north edge.
+            north = max(float(z["ymin"]), float(z["ymax"]))
+            transform = Affine(dx, 0.0, west, 0.0, -dy, north)
+        elif {"topo", "longitude", "latitude"} <= keys:
+            topo = z["topo"].astype(np.float64)
+            lon = z["longitude"].astype(np.float64)
+            lat = z["latitude"].astype(np.float64)
+            lon = np.where(lon > 180.0, lon - 360.0, lon)
+            elev, transform = _regularise(topo, lon, lat)
+        else:
+            raise DemError(f"{p}: unknown .npz layout (keys: {', '.join(sorted(keys))})")
+    return Dem(elev, transform, CRS.from_epsg(4326), EARTH, str(p), _sha256(p), {"driver": "npz"})
+
+
+def _regularise(topo: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, Affine]:
+    """Resample a grid with irregular axes onto a regular north-up grid of the mean spacing."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    if lat[0] > lat[-1]:
+        lat, topo = lat[::-1], topo[::-1]
+    dlon = (lon[-1] - lon[0]) / (len(lon) - 1)
+    dlat = (lat[-1] - lat[0]) / (len(lat) - 1)
+    interp = RegularGridInterpolator((lat, lon), topo, bounds_error=False, fill_value=np.nan)
+    glat = lat[-1] - dlat * np.arange(len(lat))
+    glon = lon[0] + dlon * np.arange(len(lon))
+    mlat, mlon = np.meshgrid(glat, glon, indexing="ij")
+    elev = interp(np.stack([mlat.ravel(), mlon.ravel()], axis=1)).reshape(mlat.shape)
+    transform = Affine(dlon, 0.0, lon[0] - dlon / 2, 0.0, -dlat, lat[-1] + dlat / 2)
+    return elev, transform
+
+
+_E00_FLOAT = re.compile(r"[-+]?\d*\.\d+E[-+]\d+")
+
+
+def _load_e00(p: Path) -> Dem:
+    """ArcInfo uncompressed export grid (``GRD`` section, ``PRJ`` block for the CRS)."""
+    lines = p.read_text(encoding="latin-1").splitlines()
+    try:
+        start = next(i for i, ln in enumerate(lines) if ln.startswith("GRD "))
+    except StopIteration:
+        raise DemError(f"{p}: no GRD section (compressed or non-grid .e00 files are not supported)") from None
+    head = lines[start + 1].split()
+    ncols, nrows = int(head[0]), int(head[1])
+    nodata_match = _E00_FLOAT.findall(lines[start + 1])
+    nodata = float(nodata_match[-1]) if nodata_match else -3.4028234663853e38
+    cell = [float(v) for v in _E00_FLOAT.findall(lines[start + 2])]
+    ll = [float(v) for v in _E00_FLOAT.findall(lines[start + 3])]
+    per_row = math.ceil(ncols / 5)
+    body = lines[start + 5 : start + 5 + nrows * per_row]
+    if len(body) < nrows * per_row:
+        raise DemError(f"{p}: grid truncated ({len(body)} of {nrows * per_row} lines)")
+    elev = np.empty((nrows, ncols))
+    for r in range(nrows):
+        row = _E00_FLOAT.findall("".join(body[r * per_row : (r + 1) * per_row]))
+        if len(row) < ncols:
+            raise DemError(f"{p}: row {r} has {len(row)} values, expected {ncols}")
+        elev[r] = [float(v) for v in row[:ncols]]
+    elev[(elev == nodata) | (np.abs(elev) > 1e30)] = np.nan
+    transform = Affine(cell[0], 0.0, ll[0], 0.0, -cell[1], ll[1] + nrows * cell[1])
+    prj = {}
+    for i in range(start, len(lines)):
+        if lines[i].startswith("PRJ "):
+            for ln in lines[i + 1 :]:
+                if ln.startswith("EOP"):
+                    break
+                parts = ln.split(None, 1)
+                if len(parts) == 2:
+                    prj[parts[0].lower()] = parts[1].strip()
+            break
+    crs = _e00_crs(prj, p)
+    return Dem(elev, transform, crs, EARTH, str(p), _sha256(p), {"driver": "e00"})
+
+
+def _e00_crs(prj: dict[str, str], p: Path) -> CRS:
+    proj = prj.get("projection", "").upper()
+    datum = prj.get("datum", "").upper()
+    if proj == "UTM" and "zone" in prj:
+        zone = int(prj["zone"])
+        base = {"NAD83": 26900, "NAD27": 26700, "WGS84": 32600}.get(datum)
+        if base is not None and 1 <= zone <= 60:
+            return CRS.from_epsg(base + zone)
+    if proj == "GEOGRAPHIC":
+        return CRS.from_epsg(4326)
+    raise DemError(f"{p}: unknown CRS in the PRJ block (projection {proj!r}, datum {datum!r})")
