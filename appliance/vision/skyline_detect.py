@@ -1,0 +1,453 @@
+"""Skyline detection in a panorama: pixels -> per-azimuth skyline elevation (degrees).
+
+Two methods:
+
+- ``gradient`` (the Viper paper's): per column, the image is smoothed vertically with a Gaussian
+  and the first pixel from the top whose downward intensity drop exceeds a threshold is the skyline.
+  Fast and exact on a clean sky, but a cloud's lower edge or a person stops it.
+- ``dp`` (the default): dynamic programming across columns (after Lie et al. 2005).  Every pixel
+  gets a cost from the downward drop of intensity (an edge) and from how sky-like the pixels just
+  above it and how ground-like those just below it are; the path minimises the summed cost plus a
+  penalty per row of vertical jump between neighbouring columns.  The sky/ground colour models are
+  learnt from the image itself (a first pass with generic priors, then a second pass with Gaussian
+  models fitted on both sides of the first path), so clouds, glare and haze do not break the line.
+
+Per-column confidence: where the pixels above the line do not look like sky, the pixels below do not
+look like ground, or the edge is too weak (a person, a pole, a panorama without sky), the column is
+missing (NaN), never guessed.  Masked azimuth ranges are missing too.
+
+Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
+the edge position.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from appliance.errors import ConfigError, InputError
+from appliance.skyline import Skyline
+from appliance.vision.panorama import Panorama
+
+
+class Method(enum.Enum):
+    DP = "dp"
+    GRADIENT = "gradient"
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    """Tunables of skyline detection (units in the names; intensities on a 0..1 scale)."""
+
+    method: Method = Method.DP
+    smooth_sigma_px: float = 1.5  # vertical Gaussian smoothing before the gradient
+    gradient_threshold: float = 0.06  # gradient method: minimum downward drop (0..1 intensity)
+    min_elevation_deg: float = -45.0  # rows outside this elevation window are not searched
+    max_elevation_deg: float = 60.0
+    max_jump_px: int = 3  # dp: largest vertical step between neighbouring columns
+    max_steep_run_px: int = 4  # dp: a path climbing at max_jump_px longer than this is an occluder
+    jump_cost: float = 0.08  # dp: cost per row of vertical step
+    band_px: int = 12  # dp: rows above/below a candidate whose sky/ground likeness is scored
+    edge_weight: float = 3.0  # dp: weight of the edge term against the region term
+    min_edge: float = 0.02  # confidence: weakest acceptable downward drop (0..1 intensity)
+    min_confidence: float = 0.5  # columns below this confidence are missing
+    step_deg: float = 1.0  # azimuth sampling of the output skyline
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.method, Method):
+            object.__setattr__(self, "method", Method(self.method))
+        if self.smooth_sigma_px <= 0:
+            raise ConfigError(f"skyline.smooth_sigma_px must be positive, got {self.smooth_sigma_px}")
+        if self.max_jump_px < 1:
+            raise ConfigError(f"skyline.max_jump_px must be at least 1, got {self.max_jump_px}")
+        if not 0 < self.step_deg <= 10:
+            raise ConfigError(f"skyline.step_deg must be in (0, 10], got {self.step_deg}")
+        if self.min_elevation_deg >= self.max_elevation_deg:
+            raise ConfigError(
+                f"skyline: min_elevation_deg {self.min_elevation_deg} >= max_elevation_deg {self.max_elevation_deg}"
+            )
+
+
+@dataclass(frozen=True)
+class ColumnSkyline:
+    """The skyline per panorama column: fractional row, elevation (deg, NaN = missing), confidence."""
+
+    azimuth_deg: np.ndarray
+    row: np.ndarray
+    elevation_deg: np.ndarray
+    confidence: np.ndarray
+
+
+# ----------------------------------------------------------------------------- azimuth masks
+
+
+def parse_mask(text: str) -> list[tuple[float, float]]:
+    """Parse ``"10-30,350-5"`` (degrees, clockwise from north; a range may wrap through north)."""
+    ranges: list[tuple[float, float]] = []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        lo, sep, hi = part.partition(":") if ":" in part else _split_range(part)
+        try:
+            a, b = float(lo), float(hi)
+        except ValueError:
+            raise InputError(f"mask range {part!r}: expected START-END in degrees, e.g. 120-135") from None
+        if not sep or not (math.isfinite(a) and math.isfinite(b)):
+            raise InputError(f"mask range {part!r}: expected START-END in degrees, e.g. 120-135")
+        ranges.append((a % 360.0, b % 360.0))
+    return ranges
+
+
+def _split_range(part: str) -> tuple[str, str, str]:
+    # a leading minus belongs to the first number: "-10-20" is -10..20
+    idx = part.find("-", 1)
+    if idx < 0:
+        return part, "", ""
+    return part[:idx], "-", part[idx + 1 :]
+
+
+def in_mask(azimuth_deg: np.ndarray, ranges: list[tuple[float, float]]) -> np.ndarray:
+    """True where an azimuth lies within one of the (start, end) ranges (clockwise from start)."""
+    az = np.mod(np.asarray(azimuth_deg, dtype=np.float64), 360.0)
+    out = np.zeros(az.shape, dtype=bool)
+    for a, b in ranges:
+        width = (b - a) % 360.0
+        out |= np.mod(az - a, 360.0) <= width
+    return out
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def _to_float(image: np.ndarray) -> np.ndarray:
+    return image.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
+def _luma(bgr: np.ndarray) -> np.ndarray:
+    """A blue-weighted intensity: the sky/ground contrast is strongest in blue."""
+    return np.asarray(0.5 * bgr[..., 0] + 0.35 * bgr[..., 1] + 0.15 * bgr[..., 2], dtype=np.float32)
+
+
+def _downward_drop(lum: np.ndarray) -> np.ndarray:
+    """Intensity of the row above minus the row below (positive where bright sky is above)."""
+    drop = np.zeros_like(lum)
+    drop[1:-1] = lum[:-2] - lum[2:]
+    return drop
+
+
+def _texture(lum: np.ndarray) -> np.ndarray:
+    gx = cv2.Sobel(lum, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(lum, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.abs(gx) + np.abs(gy)
+    return np.asarray(cv2.blur(mag, (5, 5)) * np.float32(0.125), dtype=np.float32)
+
+
+def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
+    """Generic sky likeness in [-1, 1]: smooth and bright.
+
+    Smooth is relative to the image's own noise floor (its 10th percentile of texture, usually
+    sky), so the prior adapts to sensor noise and compression.  Colour is left to the models
+    learnt per image: hazy terrain may be bluer than the sky above it.
+    """
+    floor = max(float(np.percentile(texture[::4, ::4], 10)), 1e-4)
+    smooth = np.clip(1.0 - (texture - 1.5 * floor) / (3.0 * floor), 0.0, 1.0)
+    v = np.maximum(np.maximum(bgr[..., 0], bgr[..., 1]), bgr[..., 2])
+    bright = np.clip((v - 0.3) / 0.25, 0.0, 1.0)
+    return np.asarray(2.0 * smooth * bright - 1.0, dtype=np.float32)
+
+
+def _features(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
+    tex = np.minimum(texture, np.float32(0.2))[..., None] * np.float32(3.0)
+    return np.concatenate([bgr, tex], axis=-1).reshape(-1, 4)
+
+
+def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.ndarray | None:
+    """Log-likelihood ratio sky vs ground of each feature row, from Gaussian models; clipped to +-4."""
+    if sky.shape[0] < 50 or ground.shape[0] < 50:
+        return None
+    out = np.zeros(feats.shape[0], dtype=np.float32)
+    for sign, sample in ((1.0, sky), (-1.0, ground)):
+        mu = sample.mean(axis=0, dtype=np.float64)
+        cov = np.cov(sample, rowvar=False) + np.eye(sample.shape[1]) * 1e-4
+        # Mahalanobis distance as a squared norm: with inv(cov) = L L^T, |(x - mu) L|^2
+        chol = np.linalg.cholesky(np.linalg.inv(cov)).astype(np.float32)
+        d = feats - mu.astype(np.float32)
+        maha = np.zeros(feats.shape[0], dtype=np.float32)
+        for j in range(chol.shape[1]):  # |d L|^2 column by column: no BLAS threads on a small product
+            y = d[:, 0] * chol[0, j]
+            for k in range(1, chol.shape[0]):
+                y += d[:, k] * chol[k, j]
+            maha += y * y
+        logdet = float(np.linalg.slogdet(cov)[1])
+        out -= np.float32(sign * 0.5) * (maha + np.float32(logdet))
+    return np.clip(out / np.float32(4.0), -4.0, 4.0)
+
+
+# ----------------------------------------------------------------------------- dynamic programming
+
+
+@numba.njit(cache=True)
+def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:  # pragma: no cover - jit
+    """Row per column minimising sum(cost_t[c, row]) + jump_cost * sum |row step|; cost_t is WxH."""
+    w, h = cost_t.shape
+    acc = np.empty(h, dtype=np.float64)
+    new = np.empty(h, dtype=np.float64)
+    back = np.empty((w, h), dtype=np.int32)
+    for r in range(h):
+        acc[r] = cost_t[0, r]
+        back[0, r] = r
+    for c in range(1, w):
+        for r in range(h):
+            lo = max(0, r - max_jump)
+            hi = min(h - 1, r + max_jump)
+            best = np.inf
+            arg = r
+            for q in range(lo, hi + 1):
+                v = acc[q] + jump_cost * abs(q - r)
+                if v < best:
+                    best = v
+                    arg = q
+            new[r] = best + cost_t[c, r]
+            back[c, r] = arg
+        for r in range(h):
+            acc[r] = new[r]
+    path = np.empty(w, dtype=np.int32)
+    best = np.inf
+    arg = 0
+    for r in range(h):
+        if acc[r] < best:
+            best = acc[r]
+            arg = r
+    path[w - 1] = arg
+    for c in range(w - 1, 0, -1):
+        path[c - 1] = back[c, path[c]]
+    return path
+
+
+def _band_sums(score: np.ndarray, band: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the sum of ``score`` over the ``band`` rows above it and over it and the rows below."""
+    h = score.shape[0]
+    cs = np.zeros((h + 1,) + score.shape[1:], dtype=np.float32)
+    np.cumsum(score, axis=0, out=cs[1:])
+    idx = np.arange(h)
+    top = np.clip(idx - band, 0, h)
+    bot = np.clip(idx + band, 0, h)
+    above = cs[idx] - cs[top]
+    below = cs[bot] - cs[idx]
+    return above, below
+
+
+def _path_cost(
+    edge: np.ndarray, llr: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, edge_weight: float
+) -> np.ndarray:
+    above, below = _band_sums(np.clip(llr, -1.0, 1.0).astype(np.float32), cfg.band_px)
+    region = (below - above) / np.float32(cfg.band_px)  # -2 (sky above, ground below) .. +2
+    cost = region - np.float32(edge_weight) * np.clip(edge / np.float32(0.1), 0.0, 1.0)
+    cost[:, masked] = 0.0
+    return np.ascontiguousarray(cost.T, dtype=np.float64)
+
+
+def _run_dp(cost_t: np.ndarray, cfg: DetectionConfig, wrap: bool) -> np.ndarray:
+    w = cost_t.shape[0]
+    if not wrap:
+        return np.asarray(_dp_path(cost_t, cfg.max_jump_px, cfg.jump_cost))
+    # a full circle: run over a copy extended on both sides so that no seam sits at column 0
+    pad = min(w, 200)
+    ext = np.concatenate([cost_t[-pad:], cost_t, cost_t[:pad]], axis=0)
+    return np.asarray(_dp_path(ext, cfg.max_jump_px, cfg.jump_cost))[pad : pad + w]
+
+
+# ----------------------------------------------------------------------------- detection
+
+
+def _search_rows(pano: Panorama, cfg: DetectionConfig) -> tuple[int, int]:
+    r_top = float(pano.elevation_to_row(min(cfg.max_elevation_deg, 89.0)))
+    r_bot = float(pano.elevation_to_row(max(cfg.min_elevation_deg, -89.0)))
+    top = max(0, int(math.floor(r_top)))
+    bot = min(pano.height, int(math.ceil(r_bot)) + 1)
+    if bot - top < 8:
+        raise InputError(
+            f"panorama: the elevation window {cfg.min_elevation_deg}..{cfg.max_elevation_deg} deg"
+            f" covers only {max(bot - top, 0)} rows of {pano.height}"
+        )
+    return top, bot
+
+
+def _refine(drop: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Sub-pixel edge position: the drop's local maximum near each row, by a parabola fit."""
+    h, w = drop.shape
+    cols = np.arange(w)
+    r = np.clip(rows, 1, h - 2).astype(np.int64)
+    # move to the strongest drop within +-2 rows
+    cand = np.stack([np.clip(r + k, 1, h - 2) for k in (-2, -1, 0, 1, 2)])
+    vals = drop[cand, cols[None, :]]
+    r = cand[np.argmax(vals, axis=0), cols]
+    y0, y1, y2 = drop[r - 1, cols], drop[r, cols], drop[r + 1, cols]
+    den = y0 - 2 * y1 + y2
+    off = np.where(den < -1e-9, 0.5 * (y0 - y2) / np.where(den < -1e-9, den, -1.0), 0.0)
+    return r + np.clip(off, -0.5, 0.5)
+
+
+def detect_columns(
+    pano: Panorama, cfg: DetectionConfig | None = None, mask: list[tuple[float, float]] | None = None
+) -> ColumnSkyline:
+    """The skyline in every column of the panorama (row, elevation, confidence); NaN = missing."""
+    cfg = cfg or DetectionConfig()
+    top, bot = _search_rows(pano, cfg)
+    cols = np.arange(pano.width, dtype=np.float64)
+    az = pano.column_azimuth_deg(cols)
+    masked = in_mask(az, mask or [])
+    img8 = np.ascontiguousarray(pano.image[top:bot])
+    weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
+    lum = cv2.transform(img8.astype(np.float32), weights)
+    lum = cv2.GaussianBlur(lum, (0, 0), sigmaX=0.7, sigmaY=cfg.smooth_sigma_px)
+    drop = _downward_drop(lum)
+    if cfg.method is Method.GRADIENT:
+        rows_local, conf = _gradient_rows(drop, cfg)
+    else:
+        rows_local, conf = _dp_rows(img8, drop, cfg, masked, wrap=pano.full_circle)
+    valid = np.isfinite(rows_local) & (conf >= cfg.min_confidence) & ~masked
+    rows = np.where(valid, rows_local + top, np.nan)
+    el = np.where(valid, pano.row_elevation_deg(np.where(valid, rows, 0.0)), np.nan)
+    return ColumnSkyline(az, rows, el, np.where(masked, 0.0, conf))
+
+
+def _gradient_rows(drop: np.ndarray, cfg: DetectionConfig) -> tuple[np.ndarray, np.ndarray]:
+    above = drop > cfg.gradient_threshold
+    found = above.any(axis=0)
+    first = np.argmax(above, axis=0)
+    rows = _refine(drop, first)
+    return np.where(found, rows, np.nan), found.astype(np.float64)
+
+
+def _dp_rows(
+    img8: np.ndarray, drop: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, wrap: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    h, w = drop.shape
+    # the region terms are computed at half resolution: they are band averages anyway
+    hs, ws = max(2, h // 2), max(2, w // 2)
+    small = _to_float(cv2.resize(img8, (ws, hs), interpolation=cv2.INTER_AREA))
+    small_sm = cv2.GaussianBlur(small, (0, 0), sigmaX=0.5, sigmaY=max(0.5, cfg.smooth_sigma_px / 2))
+    drop_small = _downward_drop(_luma(small_sm)) * np.float32(2.0)
+    texture = _texture(_luma(small))
+    prior = _sky_prior(small_sm, texture)
+    mask_small = cv2.resize(masked.astype(np.uint8)[None, :], (ws, 1), interpolation=cv2.INTER_NEAREST)[0] > 0
+    # the first pass trusts the regions more than the edges: near ridges have the strongest edges
+    path_small = _run_dp(_path_cost(drop_small, prior, cfg, mask_small, cfg.edge_weight * 0.5), cfg, wrap)
+    # learn sky and ground colours on both sides of the first path, then run again at full size
+    llr_small = _learn_llr(small_sm, texture, path_small, cfg, mask_small)
+    llr_small = prior if llr_small is None else 0.5 * llr_small + 0.5 * prior
+    llr = cv2.resize(llr_small, (w, h), interpolation=cv2.INTER_LINEAR)
+    path = _run_dp(_path_cost(drop, llr, cfg, masked, cfg.edge_weight), cfg, wrap)
+    rows = _refine(drop, path)
+    conf = _confidence(drop, llr, path, cfg)
+    return rows, conf
+
+
+def _learn_llr(
+    sm: np.ndarray, texture: np.ndarray, path: np.ndarray, cfg: DetectionConfig, masked: np.ndarray
+) -> np.ndarray | None:
+    h, w = texture.shape
+    rr = np.arange(h)[:, None]
+    margin, band = 2, max(4, cfg.band_px)
+    use = ~masked[None, :]
+    sky_sel = (rr < path[None, :] - margin) & (rr >= path[None, :] - band) & use
+    gnd_sel = (rr > path[None, :] + margin) & (rr <= path[None, :] + band) & use
+    feats = _features(sm, texture)
+    step = max(1, int(sky_sel.sum() // 20000))
+    sky = feats[sky_sel.ravel()][::step]
+    step = max(1, int(gnd_sel.sum() // 20000))
+    gnd = feats[gnd_sel.ravel()][::step]
+    llr = _gaussian_llr(feats, sky, gnd)
+    return None if llr is None else llr.reshape(h, w).astype(np.float32)
+
+
+def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
+    """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge."""
+    h, w = drop.shape
+    cols = np.arange(w)
+    gap, depth = 2, 8
+    offs = np.arange(gap, gap + depth)
+    up = np.clip(path[None, :] - offs[:, None], 0, h - 1)
+    dn = np.clip(path[None, :] + offs[:, None], 0, h - 1)
+    sky_above = np.clip(llr[up, cols[None, :]], -1, 1).mean(axis=0)
+    ground_below = -np.clip(llr[dn, cols[None, :]], -1, 1).mean(axis=0)
+    edge = drop[np.clip(path, 0, h - 1), cols]
+    # a path glued to the window's border found nothing
+    inside = (path > gap) & (path < h - 1 - gap)
+    c_region = np.clip(0.5 + 0.5 * np.minimum(sky_above, ground_below), 0.0, 1.0)
+    c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
+    conf = np.where(inside, np.minimum(c_region, c_edge), 0.0)
+    return np.where(_steep_runs(path, cfg), 0.0, conf)
+
+
+def _steep_runs(path: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
+    """Columns where the path climbs or falls at its largest step for a run of columns.
+
+    Terrain seen from afar rarely rises that steeply; the sides of a person, a pole or a rock close
+    to the camera do, and the path cannot follow them, so those columns are not to be trusted.
+    """
+    step = np.abs(np.diff(path.astype(np.int64)))
+    at_max = np.concatenate([[False], step >= cfg.max_jump_px])
+    out = np.zeros(path.size, dtype=bool)
+    run = cfg.max_steep_run_px
+    if path.size <= run:
+        return out
+    # runs of at least `run` consecutive steep steps, widened by `run` columns on both sides
+    counts = np.convolve(at_max.astype(np.int64), np.ones(run, dtype=np.int64), mode="same")
+    core = counts >= run
+    if core.any():
+        widened = np.convolve(core.astype(np.int64), np.ones(2 * run + 1, dtype=np.int64), mode="same") > 0
+        out |= widened
+    return out
+
+
+def resample(columns: ColumnSkyline, pano: Panorama, step_deg: float) -> Skyline:
+    """The skyline at azimuths ``0, step, 2 step...`` from the columns, by linear interpolation.
+
+    An azimuth whose two neighbouring columns are not both valid is missing; so is any azimuth a
+    partial panorama does not cover.
+    """
+    n = int(round(360.0 / step_deg))
+    out_az = np.arange(n) * step_deg
+    colf = pano.azimuth_to_column(out_az)
+    el = np.full(n, np.nan)
+    ok = np.isfinite(colf)
+    c = np.where(ok, colf, 0.0)
+    w = pano.width
+    c0 = np.floor(c).astype(np.int64)
+    frac = c - c0
+    if pano.full_circle:
+        i0, i1 = np.mod(c0, w), np.mod(c0 + 1, w)
+    else:
+        i0, i1 = np.clip(c0, 0, w - 1), np.clip(c0 + 1, 0, w - 1)
+    e0, e1 = columns.elevation_deg[i0], columns.elevation_deg[i1]
+    val = e0 * (1 - frac) + e1 * frac
+    el = np.where(ok & np.isfinite(e0) & np.isfinite(e1), val, np.nan)
+    return Skyline(out_az, el)
+
+
+def detect_skyline(
+    pano: Panorama, cfg: DetectionConfig | None = None, mask: list[tuple[float, float]] | None = None
+) -> Skyline:
+    """The skyline of the panorama, sampled every ``cfg.step_deg`` degrees of azimuth from north."""
+    cfg = cfg or DetectionConfig()
+    return resample(detect_columns(pano, cfg, mask), pano, cfg.step_deg)
+
+
+def draw_overlay(pano: Panorama, columns: ColumnSkyline, thickness_px: int = 1) -> np.ndarray:
+    """A copy of the panorama with the detected skyline drawn in red (missing columns not drawn)."""
+    out = pano.image.copy()
+    h = pano.height
+    rows = columns.row
+    ok = np.isfinite(rows)
+    cols = np.arange(pano.width)
+    for k in range(-thickness_px + 1, thickness_px):
+        r = np.clip(np.round(rows[ok]).astype(np.int64) + k, 0, h - 1)
+        out[r, cols[ok]] = (0, 0, 255)
+    return out
