@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomlkit
 
 from appliance.cli.main import main
 from appliance.errors import CalibrationError
@@ -194,9 +195,7 @@ def test_cli_writes_compass_table_and_keeps_the_file(tmp_path: Path, capsys) -> 
     assert out["magnitude_spread_after"] < 0.006
     text = cal.read_text()
     assert text.startswith(head)
-    import tomllib
-
-    table = tomllib.loads(text)["compass"]
+    table = tomlkit.parse(text).unwrap()["compass"]
     assert table["offset"] == pytest.approx(out["offset"], rel=1e-6)
     assert len(table["matrix"]) == 9 and table["mounting_offset_deg"] == pytest.approx(
         out["mounting_offset_deg"], abs=1e-4
