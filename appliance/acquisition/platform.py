@@ -1,0 +1,99 @@
+"""What the procedures need from the platform: small protocols over the devices, and their records.
+
+The tilt sensor and the compass ride on the pan head with the camera, so their readings are in the
+camera's frame: ``roll_deg`` positive when the right-hand side of the image goes down, ``pitch_deg``
+positive nose up (as :mod:`appliance.vision.camera`), the magnetic field's ``x`` along the optical
+axis (forward), ``y`` to the right, ``z`` down.  Stage angles are degrees clockwise seen from
+above.  Times are UTC nanoseconds.  Every device call may raise :class:`DeviceError` (unplugged,
+stalled); the session degrades instead of dying.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from appliance.drivers.gps import GpsFix
+from appliance.vision.intrinsics import CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class TiltReading:
+    time_ns: int
+    roll_deg: float
+    pitch_deg: float
+
+
+@dataclass(frozen=True)
+class FieldReading:
+    """Magnetic field in the head's frame (x forward, y right, z down), any consistent unit."""
+
+    time_ns: int
+    x: float
+    y: float
+    z: float
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame: HxWx3 uint8 BGR."""
+
+    time_ns: int
+    image: np.ndarray
+
+
+class Clock(Protocol):
+    def now_ns(self) -> int: ...
+
+    def monotonic_s(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+class TiltSensor(Protocol):
+    def read_tilt(self) -> TiltReading: ...
+
+
+class Compass(Protocol):
+    def read_field(self) -> FieldReading: ...
+
+
+class Stage(Protocol):
+    def move_to(self, angle_deg: float) -> float:
+        """Command an absolute angle; return the angle the stage reports when it stopped."""
+        ...
+
+
+class Camera(Protocol):
+    @property
+    def intrinsics(self) -> CameraIntrinsics: ...
+
+    def capture(self) -> Frame: ...
+
+
+class GpsSource(Protocol):
+    def poll(self) -> list[GpsFix]:
+        """Fixes completed since the last call (may be empty)."""
+        ...
+
+
+class Leveller(Protocol):
+    """Whoever adjusts the tripod: a person reading the guidance, or a motorised leveller."""
+
+    def instruct(self, instruction: str) -> None: ...
+
+
+@dataclass
+class Platform:
+    """The devices of one appliance; None for a device that is absent."""
+
+    clock: Clock
+    tilt: TiltSensor | None
+    compass: Compass | None
+    stage: Stage | None
+    camera: Camera | None
+    gps: GpsSource | None
+    leveller: Leveller | None
+    camera_height_m: float = 1.5

@@ -1,0 +1,442 @@
+"""One field session: level, compass, ground truth, capture, onboard estimate, all into one MCAP log.
+
+A failing device degrades the session (the procedure is marked degraded or failed, the reason is
+logged on ``/log`` and ``/session/procedure``) instead of ending it; a full disk ends it cleanly
+with the log sealed; a stop request (SIGTERM in the daemon) is honoured between captures and the
+log is closed properly.  :func:`run_field_session` is the whole simulated session of the demo.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from appliance.acquisition import onboard, procedures
+from appliance.acquisition.platform import Platform
+from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
+from appliance.config import Config
+from appliance.errors import DeviceError, EstimationError, InputError, ViperError
+from appliance.logbook import messages as m
+from appliance.logbook import topics as t
+from appliance.logbook.summary import great_circle_m
+from appliance.logbook.writer import Logbook, LogbookFullError
+from appliance.skyline import Skyline
+
+
+class StopRequestedError(Exception):
+    """Raised inside a session when a stop was requested; the session closes its log and returns."""
+
+
+@dataclass
+class SessionResult:
+    log_path: Path
+    session_id: str
+    status: Status = Status.OK
+    outcomes: dict[str, str] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    truth: procedures.TruthResult | None = None
+    estimate: onboard.EstimateResult | None = None
+    error_m: float | None = None
+    frames: int = 0
+    stopped: bool = False
+    disk_full: bool = False
+    panorama: Any = None
+    skyline: Skyline | None = None
+
+
+def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:
+    """Declination (deg, east positive) of the World Magnetic Model at a place and time."""
+    from pygeomag import GeoMag
+
+    year = when.year + (when.timetuple().tm_yday - 0.5) / 365.25
+    return float(GeoMag().calculate(glat=lat_deg, glon=lon_deg, alt=0.0, time=year).d)
+
+
+def _utc(ns: int) -> dt.datetime:
+    return dt.datetime.fromtimestamp(ns / 1e9, tz=dt.timezone.utc)
+
+
+class Session:
+    """Runs the procedures on a platform and writes everything into ``logbook``."""
+
+    def __init__(
+        self,
+        platform: Platform,
+        logbook: Logbook,
+        config: Config,
+        estimator: onboard.PositionEstimator | None,
+        result: SessionResult,
+        should_stop: Callable[[], bool] = lambda: False,
+        on_status: Callable[[str], None] = lambda s: None,
+        region: list[tuple[float, float]] | None = None,
+        approx_position: tuple[float, float] | None = None,
+    ) -> None:
+        self.p, self.log, self.cfg = platform, logbook, config
+        self.estimator, self.result = estimator, result
+        self.should_stop, self.on_status = should_stop, on_status
+        self.region = region
+        self.approx = approx_position
+
+    # -------------------------------------------------------------------------------- helpers
+    def now(self) -> int:
+        return self.p.clock.now_ns()
+
+    def say(self, level: str, text: str) -> None:
+        self.log.write_proto(t.LOG, m.log_message(self.now(), level, text, "session"), self.now())
+        if level in ("warning", "error"):
+            self.result.problems.append(text)
+
+    def outcome(self, name: str, status: Status, reason: str = "", **extra: Any) -> None:
+        self.result.outcomes[name] = status.value
+        if status is not Status.OK and self.result.status is Status.OK:
+            self.result.status = Status.DEGRADED
+        payload = {"procedure": name, "status": status.value, "reason": reason, **extra}
+        self.log.write_json(t.PROCEDURE, "viper.Procedure", payload, self.now())
+        if reason:
+            self.say("warning" if status is not Status.OK else "info", f"{name}: {reason}")
+        self.log.flush()
+
+    def check_stop(self) -> None:
+        if self.should_stop():
+            raise StopRequestedError()
+
+    # ----------------------------------------------------------------------------- the session
+    def run(self) -> SessionResult:
+        r = self.result
+        try:
+            self.log.write_json(t.SESSION, "viper.Session", {"session_id": r.session_id}, self.now())
+            if self.region:
+                feats = [m.polygon_feature(self.region, "search region")]
+                self.log.write_proto(t.REGION, m.geojson(feats), self.now())
+            if self.p.camera is not None:
+                intr = self.p.camera.intrinsics
+                self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
+            self.say("info", f"session {r.session_id} started")
+            self.log.flush()
+            self.step("level", self.do_level)
+            compass = self.step("compass", self.do_compass)
+            truth = self.step("truth", self.do_truth)
+            frames = self.step("capture", lambda: self.do_capture(compass, truth)) or []
+            self.step("estimate", lambda: self.do_estimate(frames, truth))
+            self.say("info", f"session {r.session_id} finished: {r.status.value}")
+        except StopRequestedError:
+            r.stopped = True
+            r.status = Status.DEGRADED
+            self.say("warning", "session stopped on request; log closed with everything captured so far")
+        except LogbookFullError as exc:
+            r.disk_full = True
+            r.status = Status.FAILED
+            r.problems.append(str(exc))
+        finally:
+            self.log.close()
+        return r
+
+    def step(self, name: str, action: Callable[[], Any]) -> Any:
+        self.check_stop()
+        self.on_status(f"{name}...")
+        try:
+            return action()
+        except (StopRequestedError, LogbookFullError):
+            raise
+        except (DeviceError, EstimationError, InputError) as exc:
+            self.outcome(name, Status.FAILED, str(exc))
+            return None
+        except ViperError as exc:
+            self.outcome(name, Status.FAILED, f"{type(exc).__name__}: {exc}")
+            return None
+
+    def do_level(self) -> procedures.LevelResult | None:
+        if self.p.tilt is None:
+            self.outcome("level", Status.DEGRADED, "no inclinometer: residual tilt unknown")
+            return None
+
+        def on_reading(reading: Any) -> None:
+            payload = {"roll_deg": reading.roll_deg, "pitch_deg": reading.pitch_deg}
+            self.log.write_json(t.TILT_RAW, "viper.TiltRaw", payload, reading.time_ns)
+
+        res = procedures.level(self.p.tilt, self.p.leveller, self.p.clock, self.cfg.session, on_reading)
+        for text in res.instructions:
+            self.say("info", f"level: {text}")
+        self.outcome("level", res.status, res.reason, roll_deg=res.roll_deg, pitch_deg=res.pitch_deg)
+        return res
+
+    def do_compass(self) -> procedures.CompassResult | None:
+        if self.p.compass is None or self.p.stage is None:
+            self.outcome("compass", Status.FAILED, "no compass or no stage: heading unknown")
+            return None
+
+        def on_reading(reading: Any, stage_deg: float) -> None:
+            payload = {"mag_x": reading.x, "mag_y": reading.y, "mag_z": reading.z, "stage_deg": stage_deg}
+            self.log.write_json(t.HEADING_RAW, "viper.HeadingRaw", payload, reading.time_ns)
+            self.log.write_json(t.STAGE_RAW, "viper.StageRaw", {"angle_deg": stage_deg}, reading.time_ns)
+
+        res = procedures.calibrate_compass(self.p.compass, self.p.stage, self.cfg.session, on_reading)
+        extra: dict[str, Any] = {"heading_magnetic_deg": res.platform_heading_deg}
+        if res.fit is not None:
+            extra.update(hard_iron=res.fit.offset, soft_iron=res.fit.matrix, residual=res.fit.residual)
+        self.outcome("compass", res.status, res.reason, **extra)
+        return res if res.status is Status.OK else None
+
+    def do_truth(self) -> procedures.TruthResult | None:
+        if self.p.gps is None:
+            self.outcome("truth", Status.DEGRADED, "no GPS receiver: no ground truth")
+            return None
+
+        def on_fix(fix: Any) -> None:
+            self.log.write_proto(
+                t.GPS_FIX,
+                m.location_fix(fix.receive_time_ns, fix.lat_deg, fix.lon_deg, fix.alt_msl_m, fix.sigma_m),
+                fix.receive_time_ns,
+            )
+
+        res = procedures.ground_truth(self.p.gps, self.p.clock, self.cfg.session, on_fix)
+        if res.lat_deg is not None and res.lon_deg is not None:
+            fix = m.location_fix(
+                self.now(), res.lat_deg, res.lon_deg, res.alt_m, res.sigma_m, frame_id="truth"
+            )
+            self.log.write_proto(t.GPS_TRUTH, fix, self.now())
+        self.outcome(
+            "truth",
+            res.status,
+            res.reason,
+            lat=res.lat_deg,
+            lon=res.lon_deg,
+            sigma_m=res.sigma_m,
+            spread_m=res.spread_m,
+            fix_type=res.fix_type,
+            used=res.used,
+            rejected=res.rejected,
+        )
+        self.result.truth = res if res.status is Status.OK else None
+        return self.result.truth
+
+    def do_capture(
+        self, compass: procedures.CompassResult | None, truth: procedures.TruthResult | None
+    ) -> list[TaggedFrame]:
+        if self.p.camera is None or self.p.stage is None:
+            self.outcome("capture", Status.FAILED, "no camera or no stage")
+            return []
+        heading = None
+        if compass is not None and compass.platform_heading_deg is not None:
+            where = (truth.lat_deg, truth.lon_deg) if truth is not None else self.approx
+            decl = 0.0
+            if where is not None and where[0] is not None and where[1] is not None:
+                decl = magnetic_declination_deg(float(where[0]), float(where[1]), _utc(self.now()))
+            else:
+                self.say(
+                    "warning", "capture: no position for the magnetic declination; headings are magnetic"
+                )
+            heading = (compass.platform_heading_deg + decl) % 360.0
+        captured: list[TaggedFrame] = []
+
+        def on_frame(f: TaggedFrame) -> None:
+            ok, jpeg = cv2.imencode(".jpg", f.frame.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            if not ok:
+                raise InputError(f"capture {f.index}: JPEG encoding failed")
+            ns = f.frame.time_ns
+            self.log.write_proto(t.IMAGE, m.compressed_image(ns, jpeg.tobytes()), ns)
+            tag = {
+                "index": f.index,
+                "stage_deg": f.stage_deg,
+                "heading_deg": f.heading_deg,
+                "roll_deg": f.roll_deg,
+                "pitch_deg": f.pitch_deg,
+                "yaw_deg": f.heading_deg,
+            }
+            self.log.write_json(t.CAPTURE, "viper.Capture", tag, ns)
+            self.log.write_json(t.STAGE_RAW, "viper.StageRaw", {"angle_deg": f.stage_deg}, ns)
+            self.log.write_proto(t.TF, m.stage_transform(ns, f.stage_deg), ns)
+            if heading is not None:
+                self.log.write_proto(
+                    t.TF, m.attitude_transform(ns, heading, f.roll_deg or 0.0, f.pitch_deg or 0.0), ns
+                )
+            self.log.flush()
+            captured.append(f)
+            self.result.frames = len(captured)
+            self.on_status(f"capture {len(captured)}")
+            self.check_stop()
+
+        def on_problem(pr: CaptureProblem) -> None:
+            self.say("warning", f"capture {pr.index} at {pr.stage_deg:.1f} deg: {pr.reason}")
+
+        try:
+            frames, problems = procedures.capture_ring(
+                self.p.stage,
+                self.p.camera,
+                self.p.tilt,
+                self.p.clock,
+                self.cfg.session,
+                heading,
+                on_frame,
+                on_problem,
+            )
+        except DeviceError as exc:
+            self.outcome(
+                "capture",
+                Status.DEGRADED if captured else Status.FAILED,
+                f"{exc} after {len(captured)} frames",
+                frames=len(captured),
+            )
+            return captured
+        status = Status.OK if not problems else Status.DEGRADED
+        reason = f"{len(problems)} of {len(frames) + len(problems)} steps failed" if problems else ""
+        self.outcome("capture", status, reason, frames=len(frames))
+        return frames
+
+    def do_estimate(self, frames: list[TaggedFrame], truth: procedures.TruthResult | None) -> None:
+        if not frames or self.p.camera is None:
+            self.outcome("estimate", Status.FAILED, "no frames to estimate from")
+            return
+        if self.estimator is None:
+            self.outcome("estimate", Status.DEGRADED, "no estimator configured (no DEM?)")
+            return
+        from appliance.vision.skyline_detect import detect_skyline
+
+        pano = onboard.stitch_frames(frames, self.p.camera.intrinsics)
+        self.result.panorama = pano
+        ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        if ok:
+            self.log.write_proto(
+                "/camera/panorama",
+                m.compressed_image(self.now(), jpeg.tobytes(), frame_id="panorama"),
+                self.now(),
+            )
+        sky = detect_skyline(pano)
+        self.result.skyline = sky
+        self.log.write_json(
+            t.SKYLINE_DETECTED,
+            "viper.Skyline",
+            {"azimuth_deg": sky.azimuth_deg, "elevation_deg": sky.elevation_deg},
+            self.now(),
+        )
+        est = self.estimator.estimate(sky)
+        self.result.estimate = est
+        now = self.now()
+        if est.rendered is not None:
+            self.log.write_json(
+                t.SKYLINE_RENDERED,
+                "viper.Skyline",
+                {"azimuth_deg": est.rendered.azimuth_deg, "elevation_deg": est.rendered.elevation_deg},
+                now,
+            )
+        self.log.write_proto(
+            t.ESTIMATE_FIX,
+            m.location_fix(now, est.lat_deg, est.lon_deg, sigma_m=est.sigma_m, frame_id="estimate"),
+            now,
+        )
+        if est.posterior is not None and est.cell_m is not None:
+            self.log.write_proto(
+                t.POSTERIOR,
+                m.grid(now, est.posterior, (est.cell_m, est.cell_m), (0.0, 0.0), frame_id="search-grid"),
+                now,
+            )
+        record: dict[str, Any] = {
+            "lat": est.lat_deg,
+            "lon": est.lon_deg,
+            "sigma_m": est.sigma_m,
+            "heading_offset_deg": est.heading_offset_deg,
+            "rms_deg": est.rms_deg,
+            "valid_fraction": sky.valid_fraction,
+        }
+        if truth is not None and truth.lat_deg is not None and truth.lon_deg is not None:
+            err = great_circle_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg)
+            self.result.error_m = err
+            record.update(error_m=err, truth_lat=truth.lat_deg, truth_lon=truth.lon_deg)
+            self.say("info", f"estimate {est.lat_deg:.6f} {est.lon_deg:.6f}: {err:.0f} m from the GPS truth")
+        self.log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", record, now)
+        self.outcome("estimate", Status.OK)
+
+
+def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:
+    stamp = _utc(start_ns).strftime("%Y%m%dT%H%M%SZ")
+    return Path(log_dir) / f"viper-{stamp}-{session_id}.mcap"
+
+
+def run_session(
+    platform: Platform,
+    config: Config,
+    log_dir: Path,
+    estimator: onboard.PositionEstimator | None = None,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_status: Callable[[str], None] = lambda s: None,
+    region: list[tuple[float, float]] | None = None,
+    approx_position: tuple[float, float] | None = None,
+) -> SessionResult:
+    """Run one session on ``platform``; the log goes to a new file in ``log_dir``."""
+    session_id = uuid.uuid4().hex[:8]
+    path = session_log_path(log_dir, platform.clock.now_ns(), session_id)
+    lc = config.logbook
+    logbook = Logbook.create(
+        path,
+        fsync_interval_s=lc.fsync_interval_s,
+        chunk_size_bytes=lc.chunk_size_bytes,
+        compression=lc.compression,
+        reserve_bytes=lc.reserve_bytes,
+    )
+    result = SessionResult(path, session_id)
+    return Session(
+        platform, logbook, config, estimator, result, should_stop, on_status, region, approx_position
+    ).run()
+
+
+def run_field_session(
+    config: Config,
+    out_dir: str | Path,
+    seed: int | None = None,
+    search_radius_m: float = 900.0,
+    search_step_m: float = 150.0,
+    dem: Any = None,
+    faults: Any = None,
+) -> SessionResult:
+    """A whole simulated session on the jacksboro DEM at a random position; the log goes to ``out_dir``.
+
+    The search region is a square of half-side ``search_radius_m`` around a point drawn within half
+    of it from the true position (the operator's rough idea of where the tripod stands).
+    """
+    from appliance.acquisition.simulated import SimClock, SimFaults, SimWorld, simulated_platform
+    from appliance.terrain.dem import load_dem
+
+    rng = np.random.default_rng(seed)
+    dem = dem if dem is not None else load_dem("jacksboro")
+    lon0, lat0, lon1, lat1 = dem.bounds_lonlat()
+    margin = 0.25
+    lat = float(lat0 + (lat1 - lat0) * rng.uniform(margin, 1 - margin))
+    lon = float(lon0 + (lon1 - lon0) * rng.uniform(margin, 1 - margin))
+    clock = SimClock()
+    decl = magnetic_declination_deg(lat, lon, _utc(clock.now_ns()))
+    world = SimWorld(
+        dem,
+        lat,
+        lon,
+        heading_deg=float(rng.uniform(0, 360)),
+        declination_deg=decl,
+        camera_height_m=config.terrain.camera_height_m,
+        seed=int(rng.integers(1 << 30)),
+        faults=faults or SimFaults(),
+    )
+    platform = simulated_platform(world, clock)
+    shift = rng.uniform(-0.5, 0.5, 2) * search_radius_m
+    c_lat = lat + math.degrees(shift[0] / 6_371_008.8)
+    c_lon = lon + math.degrees(shift[1] / (6_371_008.8 * math.cos(math.radians(lat))))
+    est = onboard.GridSearchEstimator(
+        dem,
+        c_lat,
+        c_lon,
+        search_radius_m,
+        search_step_m,
+        height_m=config.terrain.camera_height_m,
+        heading_tolerance_deg=config.estimator.heading_tolerance_deg,
+    )
+    result = run_session(
+        platform, config, Path(out_dir), est, region=est.region_lonlat(), approx_position=(c_lat, c_lon)
+    )
+    result.outcomes.setdefault("true_position", f"{lat:.6f},{lon:.6f}")
+    return result
