@@ -50,9 +50,7 @@ class Panorama:
 
     def __post_init__(self) -> None:
         if self.image.ndim != 3 or self.image.shape[2] != 3 or self.image.dtype != np.uint8:
-            raise InputError(
-                f"panorama: expected an HxWx3 uint8 image, got {self.image.shape} {self.image.dtype}"
-            )
+            raise InputError(f"panorama: expected an HxWx3 uint8 image, got {self.image.shape} {self.image.dtype}")
         if not (self.px_per_rad > 0 and math.isfinite(self.px_per_rad)):
             raise InputError(f"panorama: px_per_rad must be positive, got {self.px_per_rad}")
         span = self.width / self.px_per_rad
@@ -75,9 +73,7 @@ class Panorama:
 
     def column_azimuth_deg(self, col: np.ndarray | float) -> np.ndarray:
         """Azimuth (degrees in [0, 360)) seen by (fractional) column ``col``."""
-        return np.mod(
-            self.azimuth0_deg + np.degrees(np.asarray(col, dtype=np.float64) / self.px_per_rad), 360.0
-        )
+        return np.mod(self.azimuth0_deg + np.degrees(np.asarray(col, dtype=np.float64) / self.px_per_rad), 360.0)
 
     def azimuth_to_column(self, azimuth_deg: np.ndarray | float) -> np.ndarray:
         """Fractional column of azimuth; for a partial panorama NaN outside its columns."""
@@ -186,8 +182,7 @@ def load_panorama(
             pano.height,
         ):
             raise InputError(
-                f"{side}: geometry is for {meta.get('width')}x{meta.get('height')},"
-                f" image is {pano.width}x{pano.height}"
+                f"{side}: geometry is for {meta.get('width')}x{meta.get('height')}, image is {pano.width}x{pano.height}"
             )
         if projection is not None and projection is not proj:
             raise InputError(f"{p}: --projection {projection.value} contradicts its sidecar ({proj.value})")

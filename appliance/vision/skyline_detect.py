@@ -380,9 +380,12 @@ def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: Detect
     edge = drop[np.clip(path, 0, h - 1), cols]
     # a path glued to the window's border found nothing
     inside = (path > gap) & (path < h - 1 - gap)
-    c_region = np.clip(0.5 + 0.5 * np.minimum(sky_above, ground_below), 0.0, 1.0)
+    # sky just above the skyline is often paler than the sky model: only clearly non-sky (an
+    # occluder) fails; the ground below must look like ground
+    c_sky = np.clip(sky_above + 1.0, 0.0, 1.0)
+    c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
-    conf = np.where(inside, np.minimum(c_region, c_edge), 0.0)
+    conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)
     return np.where(_steep_runs(path, cfg), 0.0, conf)
 
 

@@ -98,9 +98,7 @@ def value_noise(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, cell_deg: fl
     return np.asarray(top * (1 - fy) + bot * fy)
 
 
-def fbm(
-    azimuth_deg: np.ndarray, elevation_deg: np.ndarray, cell_deg: float, octaves: int, seed: int
-) -> np.ndarray:
+def fbm(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, cell_deg: float, octaves: int, seed: int) -> np.ndarray:
     """Fractal sum of ``octaves`` value-noise layers, halving the cell each time; values in [0, 1]."""
     total = np.zeros(np.broadcast_shapes(np.shape(azimuth_deg), np.shape(elevation_deg)))
     amp, norm = 1.0, 0.0
@@ -119,9 +117,7 @@ def dem_skyline_fn(dem: Any, lat: float, lon: float, height_m: float) -> Skyline
     from appliance.terrain.horizon import render_skyline
 
     def fn(azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h = render_skyline(
-            dem, lat, lon, height_m=height_m, azimuths_deg=np.asarray(azimuth_deg, dtype=np.float64)
-        )
+        h = render_skyline(dem, lat, lon, height_m=height_m, azimuths_deg=np.asarray(azimuth_deg, dtype=np.float64))
         return np.asarray(h.elevation_deg, dtype=np.float64), np.asarray(h.distance_m, dtype=np.float64)
 
     return fn
@@ -137,9 +133,7 @@ def analytic_skyline_fn(seed: int = 0, mean_deg: float = 2.0, amplitude_deg: flo
 
     def fn(azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a = np.radians(np.asarray(azimuth_deg, dtype=np.float64))
-        el = mean_deg + (amps[:, None] * np.sin(harmonics[:, None] * a[None, :] + phases[:, None])).sum(
-            axis=0
-        )
+        el = mean_deg + (amps[:, None] * np.sin(harmonics[:, None] * a[None, :] + phases[:, None])).sum(axis=0)
         dist = 6000.0 + 4000.0 * np.sin(2 * a + dphase)
         return el, dist
 
@@ -192,9 +186,9 @@ def render_directions(
     t = np.clip(el / 40.0, 0.0, 1.0)[..., None] ** 0.6
     sky = _SKY_HORIZON * (1 - t) + _SKY_ZENITH * t
     sun = _scene_sun(scene_seed)
-    cos_ang = np.sin(np.radians(el)) * math.sin(math.radians(sun.elevation_deg)) + np.cos(
-        np.radians(el)
-    ) * math.cos(math.radians(sun.elevation_deg)) * np.cos(np.radians(az - sun.azimuth_deg))
+    cos_ang = np.sin(np.radians(el)) * math.sin(math.radians(sun.elevation_deg)) + np.cos(np.radians(el)) * math.cos(
+        math.radians(sun.elevation_deg)
+    ) * np.cos(np.radians(az - sun.azimuth_deg))
     ang = np.degrees(np.arccos(np.clip(cos_ang, -1.0, 1.0)))
     glow = 0.45 * np.exp(-ang / 2.5) + 0.12 * np.exp(-ang / 15.0)
     sky = sky + glow[..., None] * np.array([1.0, 0.95, 0.85])
@@ -330,9 +324,7 @@ def render_panorama(
         px_per_rad = full / (2 * math.pi)  # exact closure: the columns span exactly 360 degrees
     width = full if width_px is None else min(width_px, full)
     row0 = height_px * 0.6 if horizon_row is None else horizon_row
-    geom = Panorama(
-        np.zeros((1, width, 3), np.uint8), projection, px_per_rad, azimuth0_deg, row0, width == full
-    )
+    geom = Panorama(np.zeros((1, width, 3), np.uint8), projection, px_per_rad, azimuth0_deg, row0, width == full)
     cols = np.arange(width, dtype=np.float64)
     rows = np.arange(height_px, dtype=np.float64)
     az_col = geom.column_azimuth_deg(cols)
