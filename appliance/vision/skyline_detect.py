@@ -322,7 +322,7 @@ def _gradient_rows(drop: np.ndarray, cfg: DetectionConfig) -> tuple[np.ndarray, 
     found = above.any(axis=0)
     first = np.argmax(above, axis=0)
     rows = _refine(drop, first)
-    return np.where(found, rows, np.nan), found.astype(np.float64)
+    return np.asarray(np.where(found, rows, np.nan)), np.asarray(found, dtype=np.float64)
 
 
 def _dp_rows(
