@@ -112,3 +112,28 @@ def opt_latlon(value: str, hemisphere: str, what: str) -> float | None:
     if float(m.group(2)) >= 60.0 or deg > limit:
         raise ProtocolError(f"{what}: out of range {value!r}")
     return -deg if hemisphere in ("S", "W") else deg
+
+
+_SENTENCE = re.compile(
+    r"^[$!](?P<address>[A-Z0-9]{2}[A-Z]{3}|P[A-Z0-9]{3,})(?P<data>(,[^*]*)?)\*(?P<cs>[0-9A-Fa-f]{2})$"
+)
+
+
+def split_checked(text: str) -> tuple[str, list[str]]:
+    """Address (``HCHDG``, ``PTNTHTM``) and fields of one sentence, its checksum enforced.
+
+    For sentence types pynmea2 does not know (``THS``, TNT's ``HTM``): the generic half of a
+    decoder whose per-type grammar is a data table.
+    """
+    m = _SENTENCE.match(text)
+    if not m:
+        if "*" not in text:
+            raise ProtocolError(f"checksum: missing: {text[:40]!r}")
+        raise ProtocolError(f"malformed sentence: {text[:40]!r}")
+    body = text[1 : text.index("*")]
+    expected = pynmea2.NMEASentence.checksum(body)
+    got = int(m.group("cs"), 16)
+    if got != expected:
+        raise ProtocolError(f"checksum: {got:02X} != {expected:02X}: {text[:40]!r}")
+    data = m.group("data")
+    return m.group("address"), [f.strip() for f in data[1:].split(",")] if data else []
