@@ -102,10 +102,10 @@ class Panorama:
     def geometry(self) -> dict[str, object]:
         return {
             "projection": self.projection.value,
-            "px_per_rad": self.px_per_rad,
-            "azimuth0_deg": self.azimuth0_deg,
-            "horizon_row": self.horizon_row,
-            "full_circle": self.full_circle,
+            "px_per_rad": float(self.px_per_rad),
+            "azimuth0_deg": float(self.azimuth0_deg),
+            "horizon_row": float(self.horizon_row),
+            "full_circle": bool(self.full_circle),
             "width": self.width,
             "height": self.height,
         }

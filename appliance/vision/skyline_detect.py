@@ -35,6 +35,9 @@ from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
 
 
+MAX_NOISE_TEXTURE = 0.006  # a texture floor above this is not sky: the image has none
+
+
 class Method(enum.Enum):
     DP = "dp"
     GRADIENT = "gradient"
@@ -154,7 +157,7 @@ def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
     sky), so the prior adapts to sensor noise and compression.  Colour is left to the models
     learnt per image: hazy terrain may be bluer than the sky above it.
     """
-    floor = max(float(np.percentile(texture[::4, ::4], 10)), 1e-4)
+    floor = min(max(float(np.percentile(texture[::4, ::4], 10)), 1e-4), MAX_NOISE_TEXTURE)
     smooth = np.clip(1.0 - (texture - 1.5 * floor) / (3.0 * floor), 0.0, 1.0)
     v = np.maximum(np.maximum(bgr[..., 0], bgr[..., 1]), bgr[..., 2])
     bright = np.clip((v - 0.3) / 0.25, 0.0, 1.0)
@@ -346,6 +349,10 @@ def _dp_rows(
     path = _run_dp(_path_cost(drop, llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     rows = _refine(drop, path)
     conf = _confidence(drop, llr, path, cfg)
+    # the generic prior vetoes a "sky" that is textured (an image without sky)
+    prior_full = cv2.resize(prior, (w, h), interpolation=cv2.INTER_LINEAR)
+    # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
+    conf = np.minimum(conf, np.clip((_mean_above(prior_full, path, gap=10) + 1.0) / 0.3, 0.0, 1.0))
     return rows, conf
 
 
@@ -367,6 +374,14 @@ def _learn_llr(
     return None if llr is None else llr.reshape(h, w).astype(np.float32)
 
 
+def _mean_above(score: np.ndarray, path: np.ndarray, gap: int = 2, depth: int = 8) -> np.ndarray:
+    """Mean of ``score`` (clipped to [-1, 1]) over the ``depth`` rows starting ``gap`` rows above the path."""
+    h, w = score.shape
+    offs = np.arange(gap, gap + depth)
+    up = np.clip(path[None, :] - offs[:, None], 0, h - 1)
+    return np.asarray(np.clip(score[up, np.arange(w)[None, :]], -1, 1).mean(axis=0))
+
+
 def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge."""
     h, w = drop.shape
@@ -382,7 +397,7 @@ def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: Detect
     inside = (path > gap) & (path < h - 1 - gap)
     # sky just above the skyline is often paler than the sky model: only clearly non-sky (an
     # occluder) fails; the ground below must look like ground
-    c_sky = np.clip(sky_above + 1.0, 0.0, 1.0)
+    c_sky = np.clip(sky_above + 1.2, 0.0, 1.0)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
     conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)

@@ -31,6 +31,7 @@ from appliance.vision.panorama import Panorama, Projection, full_circle_width
 
 MIN_PEAK_RESPONSE = 0.03  # phase-correlation peak below which two images are taken not to overlap
 MIN_OVERLAP_PX = 16
+MIN_CORRELATION = 0.5  # normalised correlation of a registered overlap below which images do not match
 
 
 @dataclass(frozen=True)
@@ -136,9 +137,14 @@ def _register(a: _Strip, b: _Strip, nominal_px: float, names: tuple[str, str]) -
         return np.asarray(p[2] * warped.ravel() + p[3] - target, dtype=np.float64)
 
     fit = least_squares(residual, x0=np.array([-dx, -dy, 1.0, 0.0]), method="lm", diff_step=1e-3)
-    if not fit.success or abs(fit.x[0] + dx) > 2.0:
-        return s + dx
-    return float(s - fit.x[0])
+    p = fit.x if fit.success and abs(fit.x[0] + dx) <= 2.0 else np.array([-dx, -dy, 1.0, 0.0])
+    warped = cv2.remap(pb, xs + np.float32(p[0]), ys + np.float32(p[1]), cv2.INTER_LINEAR).ravel()
+    ncc = float(np.corrcoef(warped, target)[0, 1])
+    if not ncc >= MIN_CORRELATION:
+        raise InputError(
+            f"{names[0]} and {names[1]}: their overlap does not match (correlation {ncc:.2f} after registration)"
+        )
+    return float(s - p[0])
 
 
 def stitch(

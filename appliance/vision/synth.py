@@ -196,7 +196,7 @@ def render_directions(
         el_c = el * 2.5  # clouds are flatter than they are wide
         density = fbm(az, el_c, 12.0, 5, scene_seed + 11)
         cover = np.clip((density - 0.48) / 0.12, 0.0, 1.0)[..., None]
-        shade = 0.62 + 0.35 * fbm(az, el_c, 4.0, 3, scene_seed + 13)[..., None]
+        shade = 0.62 + 0.35 * fbm(az, el_c, 6.0, 2, scene_seed + 13)[..., None]
         sky = sky * (1 - cover) + cover * shade * np.array([1.0, 1.0, 1.0])
     # terrain
     tex = fbm(az, el, 1.5, 6, scene_seed + 17)

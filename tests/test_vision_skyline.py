@@ -1,0 +1,90 @@
+"""Skyline detection against synthetic panoramas whose true skyline is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from appliance.errors import InputError
+from appliance.vision.panorama import Panorama, Projection
+from appliance.vision.skyline_detect import (
+    DetectionConfig,
+    Method,
+    detect_columns,
+    detect_skyline,
+    in_mask,
+    parse_mask,
+)
+from appliance.vision.synth import analytic_skyline_fn, render_panorama
+
+FN = analytic_skyline_fn(5)
+
+
+def _errors(
+    weather: str, method: Method, seed: int = 3, px_per_rad: float = 300.0, height_px: int = 160
+) -> tuple[np.ndarray, float]:
+    sp = render_panorama(
+        FN, np.random.default_rng(seed), px_per_rad=px_per_rad, height_px=height_px, weather=weather, scene_seed=seed
+    )
+    cols = detect_columns(sp.panorama, DetectionConfig(method=method))
+    err = cols.elevation_deg - sp.truth.elevation_deg
+    return err, float(np.isfinite(err).mean())
+
+
+@pytest.mark.parametrize("method", [Method.DP, Method.GRADIENT])
+def test_clean_panorama_within_a_tenth_of_a_degree(method: Method) -> None:
+    err, valid = _errors("clear", method)
+    assert valid >= 0.95
+    assert np.sqrt(np.nanmean(err**2)) <= 0.1
+
+
+def test_clouds_and_haze_within_three_tenths() -> None:
+    # the issue's panorama size: 300 rows, 0.1 degree per pixel
+    err, valid = _errors("mixed", Method.DP, px_per_rad=557.0, height_px=300)
+    # columns where a cloud sits on the skyline may be dropped as unconfident (missing, not wrong);
+    # bench/vision_skyline.py records the fraction against the 90 % target over several scenes
+    assert valid >= 0.85
+    assert np.sqrt(np.nanmean(err**2)) <= 0.3
+
+
+def test_output_sampling_and_mask() -> None:
+    sp = render_panorama(FN, np.random.default_rng(1), px_per_rad=300.0, height_px=160)
+    sky = detect_skyline(sp.panorama, DetectionConfig(step_deg=1.0), mask=parse_mask("100-120,350-5"))
+    np.testing.assert_allclose(sky.azimuth_deg, np.arange(360.0))
+    masked = in_mask(sky.azimuth_deg, [(100.0, 120.0), (350.0, 5.0)])
+    assert np.all(np.isnan(sky.elevation_deg[masked]))
+    truth, _ = FN(sky.azimuth_deg)
+    good = ~masked & sky.valid
+    assert good.sum() >= 300
+    assert np.sqrt(np.mean((sky.elevation_deg[good] - truth[good]) ** 2)) <= 0.1
+
+
+def test_parse_mask() -> None:
+    assert parse_mask("10-30, 350-5") == [(10.0, 30.0), (350.0, 5.0)]
+    assert parse_mask("") == []
+    with pytest.raises(InputError):
+        parse_mask("abc")
+    with pytest.raises(InputError):
+        parse_mask("12")
+    assert list(in_mask(np.array([0.0, 4.0, 6.0, 351.0]), [(350.0, 5.0)])) == [True, True, False, True]
+
+
+def test_no_sky_gives_missing_columns_not_a_made_up_line() -> None:
+    # textured ground everywhere: no column may report a skyline
+    rng = np.random.default_rng(0)
+    img = rng.integers(40, 110, (160, 1885, 3), dtype=np.uint8)
+    pano = Panorama(img, Projection.CYLINDRICAL, 1885 / (2 * np.pi), 0.0, 80.0, True)
+    cols = detect_columns(pano)
+    assert np.isfinite(cols.elevation_deg).mean() < 0.02
+
+
+def test_occluder_is_skipped() -> None:
+    # a dark post rising well above the skyline: its columns are missing or on the true skyline
+    sp = render_panorama(FN, np.random.default_rng(2), px_per_rad=300.0, height_px=160)
+    img = sp.panorama.image.copy()
+    img[10:, 600:630] = (30, 30, 60)
+    pano = Panorama(img, sp.panorama.projection, sp.panorama.px_per_rad, 0.0, sp.panorama.horizon_row, True)
+    cols = detect_columns(pano)
+    err = cols.elevation_deg[590:640] - sp.truth.elevation_deg[590:640]
+    assert np.all(np.isnan(err) | (np.abs(err) < 0.3))
+    assert np.isnan(err[10:40]).all()
