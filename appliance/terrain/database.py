@@ -235,8 +235,11 @@ def plan_grids(
 
     cx0, cy0, cx1, cy1 = box(sw, ss, se, sn)
     tx0, ty0, tx1, ty1 = box(west, south, east, north)
-    tx0, ty0 = max(tx0, cx0 - reach), max(ty0, cy0 - reach)
-    tx1, ty1 = min(tx1, cx1 + reach), min(ty1, cy1 + reach)
+    if not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
+        tx0, ty0, tx1, ty1 = -np.inf, -np.inf, np.inf, np.inf
+    # the terrain grid holds the candidates and the horizon's reach around them, within the map
+    tx0, ty0 = min(max(tx0, cx0 - reach), cx0), min(max(ty0, cy0 - reach), cy0)
+    tx1, ty1 = max(min(tx1, cx1 + reach), cx1), max(min(ty1, cy1 + reach), cy1)
 
     def cols(lo: float, hi: float, o: float, d: float) -> tuple[int, int]:
         return math.ceil((lo - o) / d - 1e-9), math.floor((hi - o) / d + 1e-9)

@@ -84,9 +84,24 @@ class Dem:
         x, y = affine_apply(self.transform, np.asarray(col, float) + 0.5, np.asarray(row, float) + 0.5)
         return np.asarray(x), np.asarray(y)
 
+    @cached_property
+    def wraps_around(self) -> bool:
+        """True for a global map whose columns close the full 360 degrees of longitude."""
+        rows, cols = self.shape
+        xs, ys = affine_apply(self.transform, np.array([0.5, 1.5]), np.array([rows / 2, rows / 2]))
+        lon, _ = self.xy_to_lonlat(xs, ys)
+        step = (float(lon[1] - lon[0]) + 180.0) % 360.0 - 180.0
+        return abs(abs(step) * cols - 360.0) < 0.5 * abs(step)
+
+    @cached_property
+    def _wrapped(self) -> np.ndarray:
+        return np.hstack([self.elevation_m, self.elevation_m[:, :1]])
+
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height (m) at CRS coordinates; NaN off the map or next to nodata."""
         col, row = self.xy_to_pixel(x, y)
+        if self.wraps_around:
+            return bilinear(self._wrapped, np.mod(col, self.shape[1]), row)
         return bilinear(self.elevation_m, col, row)
 
     def sample_lonlat(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
@@ -116,10 +131,8 @@ class Dem:
         """Ground size (m) of one pixel along x and y at the map's centre."""
         rows, cols = self.shape
         c, r = cols / 2.0, rows / 2.0
-        x0, y0 = self.transform * (c, r)
-        x1, y1 = self.transform * (c + 1, r)
-        x2, y2 = self.transform * (c, r + 1)
-        lon, lat = self.xy_to_lonlat(np.array([x0, x1, x2]), np.array([y0, y1, y2]))
+        xs, ys = affine_apply(self.transform, np.array([c, c + 1, c]), np.array([r, r, r + 1]))
+        lon, lat = self.xy_to_lonlat(xs, ys)
         _, _, dx = self.geod.inv(lon[0], lat[0], lon[1], lat[1])
         _, _, dy = self.geod.inv(lon[0], lat[0], lon[2], lat[2])
         return float(dx), float(dy)

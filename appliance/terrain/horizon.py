@@ -61,11 +61,8 @@ def render_skyline(
     ground = float(dem.sample_lonlat(np.array([lon]), np.array([lat]))[0])
     if not np.isfinite(ground):
         raise DemError(f"{dem.source}: viewpoint {lat:.6f}, {lon:.6f} is off the map or on nodata")
-    res = min(dem.resolution_m())
-    step = res / 2.0 if step_m is None else float(step_m)
     reach = min(max_range, _farthest_corner_m(dem, lat, lon))
-    dist = np.arange(1, int(np.ceil(reach / step)) + 1) * step
-    dist = dist[dist <= reach + 1e-9]
+    dist = ray_distances(min(dem.resolution_m()), reach, step_m)
     r_eff = dem.body.effective_radius_m(refraction)
     z_eye = ground + height_m
     to_dem = Transformer.from_crs(local_aeqd(dem, lat, lon), dem.crs, always_xy=True)
@@ -88,6 +85,23 @@ def render_skyline(
         elev[start : start + chunk] = np.where(any_valid, e, np.nan)
         far[start : start + chunk] = np.where(any_valid, dist[best], np.nan)
     return Horizon(az, elev, far, ground)
+
+
+def ray_distances(cell_m: float, reach_m: float, step_m: float | None = None) -> np.ndarray:
+    """Sample distances (m) along a ray: a quarter cell out to 64 cells, half a cell out to 512 cells,
+    a cell beyond (or a uniform ``step_m``).  Near terrain needs the fine steps: a metre of height
+    at 100 m is half a degree."""
+    if step_m is not None:
+        d = np.arange(1, int(np.ceil(reach_m / step_m)) + 1) * float(step_m)
+    else:
+        q = cell_m / 4.0
+        near = np.arange(1, 257) * q
+        mid = near[-1] + np.arange(1, 897) * (2 * q)
+        far_start = mid[-1]
+        n_far = max(0, int(np.ceil((reach_m - far_start) / cell_m)))
+        far = far_start + np.arange(1, n_far + 1) * cell_m
+        d = np.concatenate([near, mid, far])
+    return d[d <= reach_m + 1e-9]
 
 
 def _farthest_corner_m(dem: Dem, lat: float, lon: float) -> float:

@@ -1,0 +1,152 @@
+"""The skyline database: contents against the renderer, identity checks, atomic writes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from appliance.cli.main import main
+from appliance.errors import DatabaseError, InputError
+from appliance.terrain.database import build_database, load_database, quantize
+from appliance.terrain.dem import load_dem
+from appliance.terrain.horizon import render_skyline
+from tests.conftest import data_file
+
+# A window of jacksboro: small enough for a quick build, with the whole map around it for the horizon.
+WINDOW = (-84.30, 36.55, -84.24, 36.60)
+
+
+@pytest.fixture(scope="module")
+def jacksboro_db(tmp_path_factory):
+    dem = load_dem("jacksboro")
+    path = tmp_path_factory.mktemp("db") / "jacksboro.viperdb"
+    build_database(dem, path, search_bounds=WINDOW, progress=None)
+    return dem, load_database(path, dem)
+
+
+def test_header_records_identity_and_grid(jacksboro_db):
+    dem, db = jacksboro_db
+    h = db.header
+    assert h["dem_sha256"] == dem.sha256
+    assert h["format_version"] == 1 and h["n_azimuths"] == 360 and h["height_m"] == 1.5
+    assert h["body"] == "earth" and h["refraction"] == pytest.approx(0.13)
+    # nodes are the DEM's own grid nodes inside the window
+    lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(np.arange(db.grid.n_nodes)))
+    assert lon.min() >= WINDOW[0] and lon.max() <= WINDOW[2]
+    assert lat.min() >= WINDOW[1] and lat.max() <= WINDOW[3]
+    col, row = dem.xy_to_pixel(lon, lat)
+    assert np.allclose(col, np.round(col), atol=1e-6) and np.allclose(row, np.round(row), atol=1e-6)
+    assert np.allclose(db.ground_m, dem.elevation_m[np.round(row).astype(int), np.round(col).astype(int)])
+    # one byte per azimuth
+    assert db.codes.dtype == np.uint8 and db.codes.shape == (db.grid.n_nodes, 360)
+
+
+def test_database_skylines_follow_the_renderer(jacksboro_db):
+    dem, db = jacksboro_db
+    rng = np.random.default_rng(11)
+    errors = []
+    for i in rng.choice(db.grid.n_nodes, 12, replace=False):
+        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(i))
+        exact = render_skyline(dem, float(lat), float(lon), azimuths_deg=db.azimuths_deg).elevation_deg
+        errors.append(db.skylines_deg(i) - exact)
+    e = np.concatenate(errors)
+    # The sweep gives each node the horizon of a line at most a quarter row beside it beyond two
+    # columns; nearer terrain is sampled on the exact ray.
+    assert np.sqrt(np.mean(e**2)) < 0.35
+    assert np.median(np.abs(e)) < 0.15
+
+
+def test_terrain_outside_the_search_bounds_shapes_the_horizon(jacksboro_db, tmp_path):
+    dem, db = jacksboro_db
+    small = tmp_path / "small.viperdb"
+    build_database(dem, small, search_bounds=(-84.27, 36.57, -84.265, 36.575), progress=None)
+    sdb = load_database(small)
+    x, y = sdb.grid.node_xy(0)
+    r, c = db.grid.xy_to_rc(x, y)
+    j = int(round(float(r))) * db.grid.n_cols + int(round(float(c)))
+    assert np.nanmax(np.abs(sdb.skylines_deg(0) - db.skylines_deg(j))) <= 0.1 + 1e-4  # one quantisation step
+    assert np.isfinite(sdb.skylines_deg(0)).all()
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(-30, 60), st.floats(0.0, 25.4), st.integers(0, 2**31 - 1))
+def test_quantisation_error_at_most_005_deg(base, span, seed):
+    rng = np.random.default_rng(seed)
+    el = base + rng.uniform(0, 1, (3, 360)) * span
+    el[0, rng.integers(0, 360, 20)] = np.nan
+    codes, off, step = quantize(el)
+    decoded = np.where(codes == 255, np.nan, off[:, None] + step[:, None] * codes)
+    assert np.array_equal(np.isnan(decoded), np.isnan(el))
+    assert np.nanmax(np.abs(decoded - el)) <= 0.05 + 1e-4
+
+
+def test_database_of_another_dem_or_version_is_refused(jacksboro_db, tmp_path):
+    _, db = jacksboro_db
+    other = load_dem(data_file("dem_geotiff/gmted2010_clips/matterhorn.tiff"))
+    with pytest.raises(DatabaseError, match="built from DEM"):
+        load_database(db.path, other)
+    raw = bytearray(open(db.path, "rb").read())
+    header = raw[12 : 12 + int(np.frombuffer(bytes(raw[8:12]), np.uint32)[0])]
+    patched = header.replace(b'"format_version": 1', b'"format_version": 9')
+    bad = tmp_path / "v9.viperdb"
+    bad.write_bytes(bytes(raw[:12]) + patched + bytes(raw[12 + len(header):]))
+    with pytest.raises(DatabaseError, match="format version 9"):
+        load_database(bad)
+    junk = tmp_path / "junk.viperdb"
+    junk.write_bytes(b"hello")
+    with pytest.raises(DatabaseError, match="not a Viper skyline database"):
+        load_database(junk)
+
+
+def test_interrupted_build_leaves_nothing(tmp_path):
+    dem = load_dem("jacksboro")
+    out = tmp_path / "x.viperdb"
+
+    def interrupt(done, total, label):
+        if done == 40:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_database(dem, out, search_bounds=WINDOW, progress=interrupt)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_search_bounds_outside_the_dem(tmp_path, capsys):
+    dem = load_dem("jacksboro")
+    with pytest.raises(InputError, match="outside the DEM"):
+        build_database(dem, tmp_path / "x.viperdb", search_bounds=(10, 10, 11, 11), progress=None)
+    assert main(["precompute", "jacksboro", "--out", str(tmp_path / "y.viperdb"),
+                 "--search-bounds", "10,10,11,11"]) == 2
+    assert "outside the DEM" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("rel", [
+    "dem_usgs_ascii/SainteHelens.dem",
+    "dem_geotiff/msh00_MountStHelens_2000_webmerc.tif",
+    "dem_planetary/LDEM_4.LBL",
+    "dem_other/topobathy.npz",
+])
+def test_precompute_cli_on_other_maps(rel, tmp_path, capsys):
+    dem = load_dem(data_file(rel))
+    w, s, e, n = dem.bounds_lonlat()
+    cx, cy = (w + e) / 2, (s + n) / 2
+    half = 0.01 if dem.body.name.value == "earth" else 0.3
+    if "topobathy" in rel:
+        half = 0.1
+    out = tmp_path / "db.viperdb"
+    bounds = f"{cx - half},{cy - half},{cx + half},{cy + half}"
+    assert main(["precompute", str(data_file(rel)), "--out", str(out), f"--search-bounds={bounds}",
+                 "--max-range", "20000"]) == 0
+    db = load_database(out, dem)
+    assert db.header["body"] == dem.body.name.value
+    i = int(np.nonzero(db.valid_nodes)[0][len(np.nonzero(db.valid_nodes)[0]) // 2])
+    lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(i))
+    exact = render_skyline(dem, float(lat), float(lon), azimuths_deg=db.azimuths_deg, max_range_m=20000)
+    e_ = db.skylines_deg(i) - exact.elevation_deg
+    assert np.sqrt(np.nanmean(e_**2)) < 0.5
+    assert json.loads(json.dumps(db.header))["n_azimuths"] == 360

@@ -1,0 +1,137 @@
+"""DEM ingest against the facts of the real files in ../shared/data (MANIFEST.md)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from appliance.cli.main import main
+from appliance.errors import DemError
+from appliance.terrain.dem import load_dem
+from tests.conftest import data_file
+
+# file, body, shape, elevation range (m), nodata cells, CRS
+CASES = [
+    ("dem_usgs_ascii/SainteHelens.dem", "earth", (468, 327), (682.0, 2543.0), 4151, "EPSG:26710"),
+    ("dem_usgs_ascii/sanfranciscos.dem", "earth", (466, 371), (0.0, 1314 * 0.3048), None, "EPSG:26710"),
+    ("dem_usgs_ascii/San_Fran_North.dem", "earth", (466, 370), (0.0, 343.0), None, "EPSG:26710"),
+    ("dem_srtm_hgt/N43E006.hgt", "earth", (1201, 1201), (-12.0, 1923.0), 0, "EPSG:4326"),
+    ("dem_srtm_hgt/N43E007.hgt", "earth", (1201, 1201), (-16.0, 2060.0), 4, "EPSG:4326"),
+    ("dem_srtm_hgt/N44W072.hgt", "earth", (1201, 1201), (115.0, 1908.0), 0, "EPSG:4326"),
+    ("dem_geotiff/N43E006_pyhgtmap.tiff", "earth", (1201, 1201), (-12.0, 1923.0), 0, "EPSG:4326"),
+    ("dem_geotiff/msh00_MountStHelens_2000_webmerc.tif", "earth", (446, 307), (1361.8, 2538.1), 3154, "EPSG:3857"),
+    ("dem_geotiff/gmted2010_clips/everest.tiff", "earth", (48, 48), (4983.0, 8718.0), 0, "EPSG:4326"),
+    ("dem_geotiff/gmted2010_clips/matterhorn.tiff", "earth", (19, 24), (2046.0, 3595.0), 0, "EPSG:4326"),
+    ("dem_geotiff/gmted2010_clips/denali.tiff", "earth", (96, 240), (1274.0, 6085.0), 0, "EPSG:4326"),
+    ("dem_other/jacksboro_fault_dem.npz", "earth", (344, 403), (236.0, 1076.0), 0, "EPSG:4326"),
+    ("dem_other/msh00_83_MountStHelens_2000.e00", "earth", (442, 303), (1361.8, 2538.1), 0, "EPSG:26910"),
+    ("dem_planetary/LDEM_4.LBL", "moon", (720, 1440), (-8878.5, 10504.0), 0, None),
+    ("dem_planetary/LDEM_4.IMG", "moon", (720, 1440), (-8878.5, 10504.0), 0, None),
+]
+
+
+@pytest.mark.parametrize("rel,body,shape,zrange,nodata,crs", CASES, ids=[c[0] for c in CASES])
+def test_real_dems_read_with_their_facts(rel, body, shape, zrange, nodata, crs):
+    dem = load_dem(data_file(rel))
+    info = dem.info()
+    assert info["body"] == body
+    assert tuple(info["shape"]) == shape
+    assert info["elevation_min_m"] == pytest.approx(zrange[0], abs=0.2)
+    assert info["elevation_max_m"] == pytest.approx(zrange[1], abs=0.2)
+    if nodata is not None:
+        assert info["nodata_cells"] == nodata
+    if crs is not None:
+        assert info["crs"] == crs
+
+
+def test_srtm_void_is_missing_not_zero():
+    dem = load_dem(data_file("dem_srtm_hgt/N43E007.hgt"))
+    raw = np.fromfile(data_file("dem_srtm_hgt/N43E007.hgt"), ">i2").reshape(1201, 1201)
+    voids = raw == -32768
+    assert voids.sum() == 4
+    assert np.isnan(dem.elevation_m[voids]).all()
+    assert np.array_equal(dem.elevation_m[~voids], raw[~voids].astype(float))
+
+
+def test_hgt_and_geotiff_of_the_same_tile_agree():
+    a = load_dem(data_file("dem_srtm_hgt/N43E006.hgt"))
+    b = load_dem(data_file("dem_geotiff/N43E006_pyhgtmap.tiff"))
+    assert np.array_equal(a.elevation_m, b.elevation_m)
+    assert a.transform.almost_equals(b.transform)
+
+
+def test_mount_washington_is_the_highest_point_of_N44W072():
+    dem = load_dem(data_file("dem_srtm_hgt/N44W072.hgt"))
+    r, c = np.unravel_index(np.nanargmax(dem.elevation_m), dem.shape)
+    assert (r, c) == (875, 836)
+    lon, lat = dem.xy_to_lonlat(*dem.pixel_to_xy(c, r))
+    assert lat == pytest.approx(44.271, abs=0.001)
+    assert lon == pytest.approx(-71.303, abs=0.001)
+
+
+def test_usgs_feet_are_converted_to_metres():
+    dem = load_dem(data_file("dem_usgs_ascii/sanfranciscos.dem"))
+    assert dem.metadata["units"] == "ft"
+    # 1314 ft is the quadrangle's highest point
+    assert np.nanmax(dem.elevation_m) == pytest.approx(1314 * 0.3048, abs=0.5)
+
+
+def test_lola_apollo_15_height_above_the_sphere():
+    dem = load_dem(data_file("dem_planetary/LDEM_4.IMG"))
+    assert dem.body.radius_m == 1_737_400.0
+    x, y = dem.lonlat_to_xy(3.6285, 26.1323)
+    col, row = dem.xy_to_pixel(x, y)
+    assert dem.elevation_m[int(round(float(row))), int(round(float(col)))] == pytest.approx(-1924.5, abs=0.6)
+
+
+def test_jacksboro_swapped_y_labels_put_north_up():
+    dem = load_dem("jacksboro")
+    west, south, east, north = dem.bounds_lonlat()
+    assert (west, south, east, north) == pytest.approx((-84.41375, 36.44625, -84.07792, 36.73292), abs=1e-4)
+    assert dem.transform.e < 0
+
+
+def test_dem_info_json_cli(capsys):
+    path = data_file("dem_srtm_hgt/N44W072.hgt")
+    assert main(["dem", "info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert set(info) >= {"crs", "body", "shape", "resolution_m", "bounds_lonlat", "elevation_min_m",
+                         "elevation_max_m", "nodata_cells"}
+    assert info["resolution_m"][1] == pytest.approx(92.6, abs=0.2)  # 3 arc-seconds of latitude
+    assert info["bounds_lonlat"] == pytest.approx([-72.0004167, 43.9995833, -70.9995833, 45.0004167], abs=1e-6)
+
+
+@pytest.mark.parametrize("content", [b"", b"not a dem at all\n" * 10, b"\x00" * 4096])
+def test_corrupt_dem_is_one_line_error(tmp_path, content):
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(content)
+    with pytest.raises(DemError, match="bad.tif"):
+        load_dem(bad)
+    proc = subprocess.run([sys.executable, "-m", "appliance.cli.main", "dem", "info", str(bad)],
+                          capture_output=True, text=True)
+    assert proc.returncode != 0
+    assert proc.stderr.count("\n") == 1 and "bad.tif" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_all_nodata_and_missing_crs_are_refused(tmp_path):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = tmp_path / "empty.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
+                       crs="EPSG:32632", transform=from_origin(0, 40, 10, 10), nodata=-9999) as ds:
+        ds.write(np.full((1, 4, 4), -9999, np.float32))
+    with pytest.raises(DemError, match="nodata"):
+        load_dem(path)
+    nocrs = tmp_path / "nocrs.tif"
+    with rasterio.open(nocrs, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
+                       transform=from_origin(0, 40, 10, 10)) as ds:
+        ds.write(np.ones((1, 4, 4), np.float32))
+    with pytest.raises(DemError, match="no CRS"):
+        load_dem(nocrs)
+    assert load_dem(nocrs, crs="EPSG:32632").crs.to_epsg() == 32632
