@@ -98,12 +98,137 @@ class SessionConfig:
 
 
 @dataclass(frozen=True)
+class GpsDeviceConfig:
+    """The GPS receiver: ``source`` is a device path, a pyserial URL or a recorded log ("" = none)."""
+
+    source: str = ""
+    baudrate: int = 9600
+    read_timeout_s: float = 0.5
+    reconnect_initial_s: float = 0.1
+    reconnect_max_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class CompassConfig:
+    """The compass: an I2C HMC5883L (``kind = "hmc5883l"``) or NMEA HDG/HDM/HDT/PTNTHTM (``"nmea"``)."""
+
+    kind: str = "hmc5883l"
+    i2c_bus: int = 1
+    i2c_address: int = 0x1E
+    gain: int = 1  # HMC5883L gain code 0..7
+    nmea_source: str = ""  # device path or pyserial URL of an NMEA compass
+    baudrate: int = 4800
+    tnt_angle_scale_deg: float = 1.0  # degrees per unit of a TNT compass's $PTNTHTM angles
+    hard_iron_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # tesla
+    soft_iron_matrix: tuple[float, float, float, float, float, float, float, float, float] = (
+        1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0,
+    )
+
+
+@dataclass(frozen=True)
+class InclinometerConfig:
+    """The inclinometer: an I2C ADXL345 (``kind = "adxl345"``) or NMEA XDR pitch/roll (``"nmea"``)."""
+
+    kind: str = "adxl345"
+    i2c_bus: int = 1
+    i2c_address: int = 0x53
+    samples: int = 16  # readings averaged per tilt
+    pitch_offset_deg: float = 0.0  # what the sensor reads when the head is level
+    roll_offset_deg: float = 0.0
+    nmea_source: str = ""
+    baudrate: int = 4800
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """The pan stage (FLIR/Directed Perception PTU) on a serial port or pyserial URL ("" = none)."""
+
+    source: str = ""
+    baudrate: int = 9600
+    timeout_s: float = 2.0
+    move_timeout_s: float = 30.0
+    speed_deg_s: float = 30.0
+    position_tolerance: int = 0  # positions a move may end from its target before it counts as missed
+
+
+@dataclass(frozen=True)
+class CameraDeviceConfig:
+    """The camera, through OpenCV's V4L2 backend."""
+
+    device: str = "/dev/video0"
+    width: int = 1280
+    height: int = 720
+    exposure: float = 100.0  # V4L2 exposure_time_absolute, units of 100 us
+    gain: float = 0.0
+    flush_frames: int = 4  # frames read and dropped before each still
+    intrinsics_file: Path | None = None  # camera calibration TOML
+
+
+@dataclass(frozen=True)
+class DevicesConfig:
+    """The devices of the hardware platform (``[platform] kind = "hardware"``)."""
+
+    gps: GpsDeviceConfig = field(default_factory=GpsDeviceConfig)
+    compass: CompassConfig = field(default_factory=CompassConfig)
+    inclinometer: InclinometerConfig = field(default_factory=InclinometerConfig)
+    stage: StageConfig = field(default_factory=StageConfig)
+    camera: CameraDeviceConfig = field(default_factory=CameraDeviceConfig)
+
+
+@dataclass(frozen=True)
+class SimFaultsConfig:
+    """Faults the simulated twins inject (rates are per sentence; times in simulated seconds)."""
+
+    gps_unplug_at_s: float | None = None
+    gps_replug_after_s: float = 2.0
+    gps_garbage_rate: float = 0.0  # probability of a burst of binary garbage before a sentence
+    gps_bad_checksum_rate: float = 0.0
+    gps_stuck_at_s: float | None = None  # the receiver repeats its last position from then on
+    gps_drift_m_per_s: float = 0.0  # the reported position walks north at this speed
+    compass_stuck: bool = False  # the magnetometer repeats its first reading
+    compass_drift_deg_per_s: float = 0.0  # the field turns slowly (a nearby magnet moving)
+    inclinometer_stuck: bool = False
+    inclinometer_absent: bool = False  # no chip answers at the address
+    stage_miss_step_every: int = 0  # every Nth move ends short (0 = never)
+    stage_miss_positions: int = 20
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated world and twins (``[platform] kind = "sim"``)."""
+
+    dem: str = "jacksboro"
+    lat_deg: float = 36.6
+    lon_deg: float = -84.25
+    ground_elevation_m: float | None = None  # None: from the DEM at the position
+    mast_height_m: float = 1.5
+    geoid_separation_m: float = -30.0
+    heading_deg: float = 30.0
+    tilt_north_deg: float = 1.0
+    tilt_east_deg: float = -0.5
+    hard_iron_t: tuple[float, float, float] = (8e-6, -5e-6, 3e-6)
+    soft_iron: tuple[float, float, float, float, float, float, float, float, float] = (
+        1.08, 0.03, 0.0, 0.03, 0.94, 0.0, 0.0, 0.0, 1.0,
+    )
+    start_utc: str = "2026-06-01T12:00:00Z"
+    time_rate: float = 1.0  # simulated seconds per real second
+    gps_sigma_m: float = 2.0
+    gps_hdop: float = 0.9
+    gps_satellites: int = 9
+    gps_rate_hz: float = 1.0
+    seed: int = 0
+    faults: SimFaultsConfig = field(default_factory=SimFaultsConfig)
+
+
+@dataclass(frozen=True)
 class Config:
     terrain: TerrainConfig = field(default_factory=TerrainConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     platform: PlatformConfig = field(default_factory=PlatformConfig)
     logbook: LogbookConfig = field(default_factory=LogbookConfig)
     session: SessionConfig = field(default_factory=SessionConfig)
+    devices: DevicesConfig = field(default_factory=DevicesConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
 
 
 def _type_name(tp: Any) -> str:
