@@ -34,7 +34,6 @@ from appliance.errors import ConfigError, InputError
 from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
 
-
 MAX_NOISE_TEXTURE = 0.006  # a texture floor above this is not sky: the image has none
 
 
