@@ -11,13 +11,17 @@ The chip's axes are taken as the body FLU axes (x forward, y left, z up); at res
 from __future__ import annotations
 
 import enum
+import logging
 from dataclasses import dataclass
 
 from appliance.drivers.attitude import Vec3, tilt_from_accel
 from appliance.drivers.i2c import I2cBus, checked
 from appliance.errors import CalibrationError, DeviceError
 
+log = logging.getLogger(__name__)
 ADXL345_ADDRESS = 0x53
+#: A real sensor's noise makes this many bit-identical 3-axis readings in a row implausible.
+STUCK_MIN_SAMPLES = 4
 ADXL345_DEVID = 0xE5
 ADXL345_FULL_RES_G_PER_LSB = 0.0039
 STANDARD_GRAVITY_M_S2 = 9.80665
@@ -101,7 +105,12 @@ class Adxl345:
         return decode_adxl345_data(list(block))
 
     def read_tilt(self, samples: int = 16, offset: TiltOffset = TiltOffset()) -> Tilt:
-        return average_tilt([self.read_g() for _ in range(samples)], offset)
+        """Averaged tilt; ``samples`` (>= 4) bit-identical readings mean a stuck sensor: DeviceError."""
+        readings = [self.read_g() for _ in range(samples)]
+        if samples >= STUCK_MIN_SAMPLES and len(set(readings)) == 1:
+            log.warning("ADXL345 at 0x%02X: %d identical readings %s (stuck)", self.address, samples, readings[0])
+            raise DeviceError(f"ADXL345 at 0x{self.address:02X}: {samples} identical readings, sensor stuck")
+        return average_tilt(readings, offset)
 
 
 def calibrate_level_offset(samples_g: list[Vec3]) -> TiltOffset:

@@ -115,7 +115,10 @@ class PanTiltUnit:
             self.stream.write(cmd.encode("ascii") + b" ")
         except OSError as exc:
             raise DeviceError(f"PTU: cannot send {cmd!r}: {exc}") from None
-        reply = parse_reply(self._readline(timeout_s or self.timeout_s))
+        line = self._readline(timeout_s or self.timeout_s).strip()
+        if line.upper().startswith(cmd.upper().encode("ascii")):
+            line = line[len(cmd) :]  # the unit's echo, before ED takes effect
+        reply = parse_reply(line)
         if not reply.ok:
             raise DeviceError(f"PTU refused {cmd!r}: {reply.value}")
         return reply
