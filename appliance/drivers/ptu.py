@@ -135,8 +135,12 @@ class PanTiltUnit:
             raise DeviceError(f"PTU: speed {speed_deg_s} deg/s is not positive")
         self.command(f"PS{n}")
 
-    def move_to_deg(self, pan_deg: float) -> float:
-        """Move, wait for completion, check the position reached; return it (deg)."""
+    def move_to_deg(self, pan_deg: float, strict: bool = True) -> float:
+        """Move, wait for completion, check the position reached; return it (deg).
+
+        A move that ends off its target (missed steps) is logged; it raises :class:`DeviceError`
+        when ``strict``, else the position actually reached is returned for the caller to judge.
+        """
         target = self.limits.to_position(pan_deg)
         if not self.limits.min_position <= target <= self.limits.max_position:
             raise DeviceError(
@@ -149,6 +153,8 @@ class PanTiltUnit:
         if abs(reached - target) > self.position_tolerance:
             self.missed_moves += 1
             log.warning("PTU: sent to position %d, stopped at %d (missed steps)", target, reached)
+            if not strict:
+                return self.limits.to_deg(reached)
             raise DeviceError(f"PTU: sent to position {target}, stopped at {reached} (missed steps)")
         return self.limits.to_deg(reached)
 

@@ -1,0 +1,99 @@
+"""The simulated platform: one :class:`SimWorld`, its twins started, and the real drivers on them.
+
+Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary folder; the I2C
+twins (HMC5883L, ADXL345) sit on one :class:`FakeI2cBus`; the camera is a :class:`SimVideoCapture`
+driven by the real :class:`V4l2Camera` driver.  Faults come from ``[sim.faults]``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+import shutil
+import tempfile
+from pathlib import Path
+
+from appliance.config import Config, SimConfig
+from appliance.drivers.camera import V4l2Camera
+from appliance.drivers.factory import Devices, build_devices
+from appliance.errors import ConfigError
+from appliance.sim.camera_twin import SimVideoCapture
+from appliance.sim.i2c_chips import FakeI2cBus, SimAdxl345, SimHmc5883l
+from appliance.sim.nmea_twins import GpsTwin, NmeaCompassTwin
+from appliance.sim.ptu_twin import PtuTwin
+from appliance.sim.pty_port import PtyPort
+from appliance.sim.world import SimClock, SimWorld
+
+log = logging.getLogger(__name__)
+
+
+def make_world(sim: SimConfig, dem: object | None = None) -> SimWorld:
+    try:
+        start = dt.datetime.fromisoformat(sim.start_utc.replace("Z", "+00:00"))
+    except ValueError:
+        raise ConfigError(f"sim.start_utc: not an ISO 8601 time: {sim.start_utc!r}") from None
+    ground = sim.ground_elevation_m
+    if ground is None:
+        if dem is None:
+            raise ConfigError("sim.ground_elevation_m: needed when no DEM is loaded")
+        ground = float(dem.sample_lonlat(sim.lon_deg, sim.lat_deg))  # type: ignore[attr-defined]
+        if not math.isfinite(ground):
+            raise ConfigError(f"sim: position {sim.lat_deg}, {sim.lon_deg} is outside the DEM {sim.dem!r}")
+    return SimWorld(sim.lat_deg, sim.lon_deg, ground, sim.mast_height_m, sim.geoid_separation_m, sim.heading_deg,
+                    sim.tilt_north_deg, sim.tilt_east_deg, sim.hard_iron_t, sim.soft_iron,
+                    SimClock(start, sim.time_rate))
+
+
+def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
+    sim, faults = config.sim, config.sim.faults
+    dem = None
+    if with_camera or sim.ground_elevation_m is None:
+        from appliance.terrain.dem import load_dem
+
+        dem = load_dem(sim.dem)
+    world = make_world(sim, dem)
+    folder = Path(tempfile.mkdtemp(prefix="viper-sim-"))
+    stops: list = []
+    gps_port = PtyPort(folder / "gps")
+    gps_twin = GpsTwin(world, gps_port, sim, faults)
+    ptu_port = PtyPort(folder / "ptu")
+    ptu_twin = PtuTwin(world, ptu_port, min_position=-7000, max_position=7000,
+                       miss_step_every=faults.stage_miss_step_every, miss_positions=faults.stage_miss_positions)
+    compass_src = ""
+    if "nmea" in (config.devices.compass.kind, config.devices.inclinometer.kind):
+        c_port = PtyPort(folder / "compass")
+        c_twin = NmeaCompassTwin(world, c_port)
+        c_twin.start()
+        stops += [c_twin.stop, c_port.close]
+        compass_src = str(c_port.path)
+    gps_twin.start()
+    ptu_twin.start()
+    stops += [gps_twin.stop, gps_port.close, ptu_twin.stop, ptu_port.close]
+    bus = FakeI2cBus()
+    bus.attach(config.devices.compass.i2c_address,
+               SimHmc5883l(world, seed=sim.seed, stuck=faults.compass_stuck,
+                           drift_deg_per_s=faults.compass_drift_deg_per_s))
+    if not faults.inclinometer_absent:
+        bus.attach(config.devices.inclinometer.i2c_address,
+                   SimAdxl345(world, seed=sim.seed, stuck=faults.inclinometer_stuck))
+    camera = None
+    if with_camera:
+        from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
+
+        cam_cfg = config.devices.camera
+        intr = (load_intrinsics(cam_cfg.intrinsics_file) if cam_cfg.intrinsics_file is not None
+                else CameraIntrinsics.from_fov(cam_cfg.width, cam_cfg.height, 60.0))
+        camera = V4l2Camera(cam_cfg, intr, lambda *_: SimVideoCapture(world, intr, dem=dem, seed=sim.seed))
+    try:
+        devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
+                                world.clock)
+    except BaseException:
+        for s in reversed(stops):
+            s()
+        shutil.rmtree(folder, ignore_errors=True)
+        raise
+    devices.camera_height_m = sim.mast_height_m
+    devices._closers[:0] = [lambda: shutil.rmtree(folder, ignore_errors=True), *stops]
+    devices.world = world  # type: ignore[attr-defined]
+    return devices
