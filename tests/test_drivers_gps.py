@@ -207,3 +207,26 @@ def test_replay_raw_sentence_record_is_frozen() -> None:
     s = RawSentence("$GPGGA", 5)
     with pytest.raises(AttributeError):
         s.text = "x"  # type: ignore[misc]
+
+
+def test_cli_prints_one_json_fix_per_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from appliance.cli.main import main
+
+    path = data_file("nmea_gps/quectel-L70.log")
+    assert main(["gps", str(path), "--json"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 16
+    first = json.loads(lines[0])
+    assert first == {
+        "time": "2022-03-09T15:01:19.000Z", "lat": pytest.approx(51.068098333), "lon": pytest.approx(-114.095645),
+        "alt_msl_m": 1102.4, "alt_ellipsoid_m": pytest.approx(1084.9), "quality": "dgps", "satellites": 8,
+        "hdop": 0.94, "sigma_m": pytest.approx(9.9035, abs=1e-4),
+    }
+
+
+def test_cli_missing_port_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    from appliance.cli.main import main
+
+    assert main(["gps", "/dev/nonexistent-gps"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot open serial port" in err[0]

@@ -86,3 +86,26 @@ def test_unknown_compass_kind_is_a_config_error() -> None:
     cfg = from_mapping(Config, {"devices": {"compass": {"kind": "fluxgate"}}})
     with pytest.raises(ConfigError, match="devices.compass.kind"):
         open_platform(cfg)
+
+
+def test_nmea_compass_as_heading_and_inclinometer() -> None:
+    cfg = from_mapping(Config, {
+        "devices": {"compass": {"kind": "nmea"}, "inclinometer": {"kind": "nmea"}},
+        "sim": {"time_rate": 20.0},
+    })
+    from appliance.sim.platform import open_sim_platform
+
+    with open_sim_platform(cfg, with_camera=False) as p:
+        w = p.world
+        end = time.monotonic() + 2.0
+        h = tilt = None
+        while time.monotonic() < end and (h is None or tilt is None):
+            try:
+                h = p.heading.read_heading()
+                tilt = p.tilt.read_tilt()
+            except Exception:  # noqa: BLE001 - no sentence yet
+                time.sleep(0.05)
+        assert h is not None and tilt is not None
+        assert h.magnetic_deg == pytest.approx((w.head_heading_deg - w.declination_deg) % 360.0, abs=0.1)
+        pitch, roll = w.head_tilt()
+        assert tilt.pitch_deg == pytest.approx(pitch, abs=0.01) and tilt.roll_deg == pytest.approx(roll, abs=0.01)
