@@ -1,0 +1,93 @@
+"""``viper estimate DB SKYLINE...``: position from measured skylines."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from appliance.config import load_config
+from appliance.errors import InputError
+from appliance.position import Move, locate, locate_sequence
+from appliance.skyline import read_skyline_csv
+from appliance.terrain.database import load_database
+
+
+def _pair(text: str, what: str, n: int) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"{what} {text!r}: expected {n} comma-separated numbers") from None
+    if len(vals) != n:
+        raise InputError(f"{what} {text!r}: expected {n} comma-separated numbers")
+    return vals
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("estimate", help="estimate the position from skyline CSVs and a skyline database")
+    p.add_argument("db", help="skyline database from viper precompute")
+    p.add_argument("skylines", nargs="+", help="skyline CSVs (azimuth_deg,elevation_deg)")
+    head = p.add_mutually_exclusive_group()
+    head.add_argument("--heading-tolerance", type=float, help="compass error bound beta (deg; default from config)")
+    head.add_argument("--unknown-heading", action="store_true", help="no compass: search every heading")
+    p.add_argument("--sigma", help="sigma interval LO,HI in degrees (default: [estimator] sigma_deg)")
+    p.add_argument("--config", help="configuration TOML")
+    p.add_argument("--json", action="store_true", help="one JSON object per skyline, one per line")
+    p.add_argument("--fuse", action="store_true",
+                   help="fuse the skylines as a sequence of stations (needs one --move per gap)")
+    p.add_argument("--move", action="append", default=[], metavar="E,N,SIGMA",
+                   help="displacement to the next station: metres east, north and its 1-sigma (repeat)")
+    p.add_argument("--truth", action="append", default=[], metavar="LAT,LON",
+                   help="true position of each skyline's station, for the error and the picture")
+    p.add_argument("--report", metavar="DIR",
+                   help="write per skyline a PNG, the posteriors as GeoTIFF and the region as GeoJSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config).estimator
+    sigma = cfg.sigma_deg if args.sigma is None else _pair(args.sigma, "--sigma", 2)
+    if not 0 < sigma[0] <= sigma[1]:
+        raise InputError(f"--sigma {sigma[0]},{sigma[1]}: expected 0 < LO <= HI")
+    tolerance = None if args.unknown_heading else (
+        cfg.heading_tolerance_deg if args.heading_tolerance is None else args.heading_tolerance)
+    if tolerance is not None and not 0 <= tolerance <= 180:
+        raise InputError(f"--heading-tolerance {tolerance}: expected 0..180 degrees")
+    truths = [_pair(t, "--truth", 2) for t in args.truth]
+    if truths and len(truths) != len(args.skylines):
+        raise InputError(f"{len(args.skylines)} skylines but {len(truths)} --truth values")
+    moves = [Move(*_pair(m, "--move", 3)) for m in args.move]
+    if args.fuse and len(moves) != len(args.skylines) - 1:
+        raise InputError(f"--fuse with {len(args.skylines)} skylines needs {len(args.skylines) - 1} --move values")
+    if moves and not args.fuse:
+        raise InputError("--move is only used with --fuse")
+    skylines = [(s, read_skyline_csv(s)) for s in args.skylines]
+    db = load_database(args.db)
+    if args.fuse:
+        positions = locate_sequence(db, skylines, moves, sigma, tolerance)
+    else:
+        positions = [locate(db, sky, sigma, tolerance, source=name) for name, sky in skylines]
+    report = Path(args.report) if args.report else None
+    if report is not None:
+        report.mkdir(parents=True, exist_ok=True)
+    for i, (pos, (name, sky)) in enumerate(zip(positions, skylines)):
+        truth = truths[i] if truths else None
+        record = pos.to_json(db, truth)
+        if report is not None:
+            from appliance.outputs import write_geojson, write_geotiff, write_png
+
+            stem = f"{i + 1:02d}-{Path(name).stem}"
+            write_png(db, pos, sky, report / f"{stem}.png", truth)
+            write_geotiff(db, pos, report / f"{stem}-posterior.tif")
+            write_geojson(db, pos, report / f"{stem}-region.geojson")
+        if args.json:
+            print(json.dumps(record), flush=True)
+        else:
+            err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
+            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  heading correction {pos.result.heading_correction_deg:+.1f} deg"
+                  f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
+                  f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
+            for note in pos.result.notes:
+                print(f"  {note}", file=sys.stderr)
+    return 0

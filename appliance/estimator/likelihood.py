@@ -1,0 +1,96 @@
+"""Interval-valued Gaussian likelihood and the lower and upper posteriors (paper sections 4.2-4.4).
+
+A measured skyline m (n valid azimuths) and the skyline s(theta) rendered at candidate theta give
+
+    L(theta; sigma) = prod_i N(m_i; s_i(theta), sigma^2) = (2 pi sigma^2)^(-n/2) exp(-SSD / (2 sigma^2)),
+
+the n-sample form.  The paper's Expression (1) normalises once, (2 pi sigma^2)^(-1/2); with one
+sigma for every candidate the factor cancels in the posterior, but once sigma ranges over an
+interval [sigma_l, sigma_u] it does not: the factor sigma^(-n) is what makes a small sigma pay for
+large residuals, and without it the extremes over sigma would always sit at the interval's ends.
+
+For each candidate, log L over sigma has one stationary point, sigma* = sqrt(SSD / n), a maximum;
+so the upper likelihood is at sigma* clamped into the interval and the lower at whichever end is
+worse.  With the likelihood of each candidate free within [L_l, L_u] and prior p, the posteriors
+are (the closed form after the paper's Expression (2)):
+
+    lower(theta) = L_l p / (L_l p + sum_{theta' != theta} L_u p)
+    upper(theta) = L_u p / (L_u p + sum_{theta' != theta} L_l p)
+
+All of it in log space: 360 samples make the plain exponentials underflow.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+def log_likelihood(ssd: np.ndarray, n: int, sigma_deg: float) -> np.ndarray:
+    """log L for squared-residual sums ``ssd`` (deg^2) over ``n`` samples at one sigma (deg)."""
+    s2 = sigma_deg * sigma_deg
+    return -0.5 * n * (LOG_2PI + math.log(s2)) - ssd / (2.0 * s2)
+
+
+def log_likelihood_bounds(ssd: np.ndarray, n: int, sigma_lo: float, sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper log-likelihood over sigma in [sigma_lo, sigma_hi] (deg)."""
+    if not 0 < sigma_lo <= sigma_hi:
+        raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
+    star = np.sqrt(np.maximum(ssd, 0.0) / max(n, 1))
+    s_best = np.clip(star, sigma_lo, sigma_hi)
+    upper = -0.5 * n * (LOG_2PI + 2.0 * np.log(s_best)) - ssd / (2.0 * s_best**2)
+    lower = np.minimum(log_likelihood(ssd, n, sigma_lo), log_likelihood(ssd, n, sigma_hi))
+    return lower, upper
+
+
+def _logsumexp(a: np.ndarray) -> float:
+    m = float(np.max(a))
+    if not math.isfinite(m):
+        return m
+    return m + math.log(float(np.sum(np.exp(a - m))))
+
+
+def _log_rest(log_w: np.ndarray) -> np.ndarray:
+    """log(sum_{j != i} w_j) for every i, without cancellation at the largest term."""
+    total = _logsumexp(log_w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rest = total + np.log1p(-np.exp(np.minimum(log_w - total, 0.0)))
+    top = int(np.argmax(log_w))
+    others = np.delete(log_w, top)
+    rest[top] = _logsumexp(others) if others.size else -np.inf
+    return rest
+
+
+@dataclass(frozen=True)
+class PosteriorBounds:
+    """Log lower and upper posteriors of every candidate (same shape as the likelihoods)."""
+
+    log_lower: np.ndarray
+    log_upper: np.ndarray
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.exp(self.log_lower)
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.exp(self.log_upper)
+
+
+def posterior_bounds(log_lo: np.ndarray, log_up: np.ndarray, log_prior: np.ndarray | None = None) -> PosteriorBounds:
+    """Lower and upper posteriors from lower and upper log-likelihoods (and a log prior)."""
+    lo = log_lo.astype(np.float64).ravel()
+    up = log_up.astype(np.float64).ravel()
+    if log_prior is not None:
+        lp = np.broadcast_to(log_prior, log_lo.shape).astype(np.float64).ravel()
+        lo = lo + lp
+        up = up + lp
+    rest_up = _log_rest(up)
+    rest_lo = _log_rest(lo)
+    log_lower = lo - np.logaddexp(lo, rest_up)
+    log_upper = up - np.logaddexp(up, rest_lo)
+    return PosteriorBounds(log_lower.reshape(log_lo.shape), log_upper.reshape(log_lo.shape))

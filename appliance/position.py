@@ -1,0 +1,138 @@
+"""From a skyline database and measured skylines to positions in the map's coordinates.
+
+The glue between the database file (terrain) and the pure estimator: builds the estimator's
+arrays, runs single estimates or a fused sequence, and turns results into coordinates and the
+JSON record that ``viper estimate --json`` prints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from appliance.estimator import EstimateResult, SkylineGrid, estimate, transport_prior
+from appliance.skyline import Skyline
+from appliance.terrain.database import SkylineDatabase
+
+MAX_REGION_CELLS_IN_JSON = 20_000
+
+
+@dataclass(frozen=True)
+class Move:
+    """Dead-reckoned displacement between two stations: metres east and north, 1-sigma metres."""
+
+    east_m: float
+    north_m: float
+    sigma_m: float
+
+
+@dataclass(frozen=True)
+class Position:
+    """An estimate placed on the map."""
+
+    result: EstimateResult
+    lat: float
+    lon: float
+    x: float
+    y: float
+    crs: str
+    cell_size_m: tuple[float, float]
+    source: str = ""
+
+    def region_lonlat(self, db: SkylineDatabase) -> tuple[np.ndarray, np.ndarray]:
+        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(self.result.region_nodes))
+        return np.atleast_1d(lon), np.atleast_1d(lat)
+
+    def to_json(self, db: SkylineDatabase, truth: tuple[float, float] | None = None) -> dict:
+        r = self.result
+        lon, lat = self.region_lonlat(db)
+        cells = [[round(float(a), 7), round(float(b), 7)] for a, b in zip(lat, lon)]
+        out: dict = {
+            "skyline": self.source,
+            "lat": round(self.lat, 8),
+            "lon": round(self.lon, 8),
+            "x": round(self.x, 3) if abs(self.x) > 1000 else self.x,
+            "y": round(self.y, 3) if abs(self.y) > 1000 else self.y,
+            "crs": self.crs,
+            "heading_correction_deg": round(r.heading_correction_deg, 3),
+            "lower": r.lower,
+            "upper": r.upper,
+            "region": {
+                "area_m2": round(r.region_area_m2, 1),
+                "cell_size_m": [round(v, 3) for v in self.cell_size_m],
+                "n_cells": int(r.region_nodes.size),
+                "cells": cells[:MAX_REGION_CELLS_IN_JSON],
+                "cells_truncated": len(cells) > MAX_REGION_CELLS_IN_JSON,
+            },
+            "ambiguous": r.ambiguous,
+            "rms_residual_deg": round(r.rms_residual_deg, 4),
+            "valid_azimuths": r.n_valid,
+            "sigma_deg": list(r.sigma_deg),
+            "candidates": r.candidates,
+            "elapsed_ms": round(r.elapsed_s * 1e3, 2),
+            "notes": r.notes,
+        }
+        if truth is not None:
+            geod = db.grid.crs.get_geod()
+            if geod is not None:
+                _, _, d = geod.inv(self.lon, self.lat, truth[1], truth[0])
+                out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(float(d), 2)}
+        return out
+
+
+def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
+    g = db.grid
+    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m)
+
+
+def crs_name(db: SkylineDatabase) -> str:
+    epsg = db.grid.crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else db.grid.crs.to_proj4()
+
+
+def place(db: SkylineDatabase, result: EstimateResult, source: str = "") -> Position:
+    x, y = db.grid.rc_to_xy(result.row, result.col)
+    lon, lat = db.grid.xy_to_lonlat(x, y)
+    return Position(result, float(lat), float(lon), float(x), float(y), crs_name(db),
+                    (db.grid.dx_m, db.grid.dy_m), source)
+
+
+def locate(
+    db: SkylineDatabase,
+    skyline: Skyline,
+    sigma_deg: tuple[float, float],
+    heading_tolerance_deg: float | None,
+    log_prior: np.ndarray | None = None,
+    source: str = "",
+    grid: SkylineGrid | None = None,
+) -> Position:
+    g = skyline_grid(db) if grid is None else grid
+    res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior)
+    return place(db, res, source)
+
+
+def locate_sequence(
+    db: SkylineDatabase,
+    skylines: list[tuple[str, Skyline]],
+    moves: list[Move],
+    sigma_deg: tuple[float, float],
+    heading_tolerance_deg: float | None,
+) -> list[Position]:
+    """Fuse a sequence: each skyline's prior is the previous posterior moved by ``moves[i-1]``.
+
+    Every position is reported where the platform stood for that skyline.
+    """
+    if len(moves) != len(skylines) - 1:
+        raise ValueError(f"{len(skylines)} skylines need {len(skylines) - 1} moves, got {len(moves)}")
+    g = skyline_grid(db)
+    out: list[Position] = []
+    prior = None
+    for i, (name, sky) in enumerate(skylines):
+        pos = locate(db, sky, sigma_deg, heading_tolerance_deg, prior, name, g)
+        out.append(pos)
+        if i < len(moves):
+            mv = moves[i]
+            prior = transport_prior(pos.result.posterior_map, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
+                                    mv.east_m, mv.north_m, mv.sigma_m)
+    return out
