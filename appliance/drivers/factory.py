@@ -80,12 +80,14 @@ def build_devices(
 ) -> Devices:
     """Wire the drivers to the given sources (shared by the hardware and the simulated platform)."""
     d = config.devices
+    clock_ns = clock.now_ns
     closers: list[Callable[[], None]] = []
     backoff = Backoff(d.gps.reconnect_initial_s, d.gps.reconnect_max_s)
     try:
         gps = None
         if gps_source:
-            gps = open_gps(gps_source, GpsSourceOptions(d.gps.baudrate, d.gps.read_timeout_s), backoff=backoff)
+            gps = open_gps(gps_source, GpsSourceOptions(d.gps.baudrate, d.gps.read_timeout_s), backoff=backoff,
+                           clock_ns=clock_ns)
             closers.append(gps.close)
         tilt: Any = None
         compass: Any = None
@@ -93,7 +95,8 @@ def build_devices(
         if d.inclinometer.kind == "adxl345" and bus is not None:
             try:
                 tilt = AccelTilt(Adxl345(bus, d.inclinometer.i2c_address), d.inclinometer.samples,
-                                 TiltOffset(d.inclinometer.pitch_offset_deg, d.inclinometer.roll_offset_deg))
+                                 TiltOffset(d.inclinometer.pitch_offset_deg, d.inclinometer.roll_offset_deg),
+                                 clock_ns)
             except DeviceError as exc:
                 log.warning("inclinometer absent: %s", exc)
         nmea_compass = None
@@ -102,11 +105,11 @@ def build_devices(
             stream = ReconnectingStream(lambda: open_serial(src, d.compass.baudrate, 0.05), backoff, name=src,
                                         initial=open_serial(src, d.compass.baudrate, 0.05))
             closers.append(stream.close)
-            nmea_compass = NmeaCompass(stream, d.compass.tnt_angle_scale_deg)
+            nmea_compass = NmeaCompass(stream, d.compass.tnt_angle_scale_deg, clock_ns)
         if d.compass.kind == "hmc5883l" and bus is not None:
             try:
                 compass = MagnetometerCompass(Hmc5883l(bus, d.compass.i2c_address, d.compass.gain),
-                                              calibration_of(config), tilt)
+                                              calibration_of(config), tilt, clock_ns)
                 heading = compass
             except DeviceError as exc:
                 log.warning("magnetometer absent: %s", exc)

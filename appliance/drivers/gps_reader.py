@@ -87,11 +87,12 @@ def open_gps(
     options: GpsSourceOptions = GpsSourceOptions(),
     policy: ErrorPolicy = ErrorPolicy.LOG,
     backoff: Backoff | None = None,
+    clock_ns: Callable[[], int] = time.time_ns,
 ) -> GpsReader:
     """A reader on a log file path, a device path or a pyserial URL (reopened when unplugged)."""
     if is_log_file(source):
         replay = LogReplay(source)
-        return GpsReader(replay, policy, delay_cookie=replay.delay_cookie)
+        return GpsReader(replay, policy, delay_cookie=replay.delay_cookie, clock_ns=clock_ns)
     def opener() -> ByteStream:
         return open_serial(source, options.baudrate, options.read_timeout_s)
 
@@ -99,4 +100,4 @@ def open_gps(
     stream: ByteStream = (
         ReconnectingStream(opener, backoff, name=source, initial=first) if options.reconnect else first
     )
-    return GpsReader(stream, policy)
+    return GpsReader(stream, policy, clock_ns=clock_ns)

@@ -84,7 +84,8 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
         cam_cfg = config.devices.camera
         intr = (load_intrinsics(cam_cfg.intrinsics_file) if cam_cfg.intrinsics_file is not None
                 else CameraIntrinsics.from_fov(cam_cfg.width, cam_cfg.height, 60.0))
-        camera = V4l2Camera(cam_cfg, intr, lambda *_: SimVideoCapture(world, intr, dem=dem, seed=sim.seed))
+        camera = V4l2Camera(cam_cfg, intr, lambda *_: SimVideoCapture(world, intr, dem=dem, seed=sim.seed),
+                            world.clock.now_ns)
     try:
         devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
                                 world.clock)
