@@ -176,3 +176,19 @@ def test_ptu_reply_parser() -> None:
     assert not parse_reply(b"!P").ok
     with pytest.raises(ProtocolError):
         parse_reply(b"\x8f\x02garbage")
+
+
+def test_compass_drift_fault_turns_the_heading_with_time() -> None:
+    w = world(clock=SimClock(START, 1000.0))  # 1000 simulated seconds per real second
+    bus = FakeI2cBus()
+    chip = SimHmc5883l(w, noise_t=0.0, drift_deg_per_s=0.5)
+    bus.attach(0x1E, chip)
+    mag = Hmc5883l(bus)
+    pitch, roll = w.head_tilt()
+    cal = perfect_calibration()
+    h0 = tilt_compensated_heading(cal.apply(mag.read_tesla()), pitch, roll)
+    import time
+
+    time.sleep(0.02)  # >= 20 simulated seconds: >= 10 degrees of drift
+    h1 = tilt_compensated_heading(cal.apply(mag.read_tesla()), pitch, roll)
+    assert abs((h1 - h0 + 180.0) % 360.0 - 180.0) > 5.0
