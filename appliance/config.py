@@ -95,6 +95,8 @@ class SessionConfig:
     settle_s: float = 0.5  # wait after every stage move before capturing
     stage_tolerance_deg: float = 1.0  # stage considered stalled if it ends farther than this
     black_frame_max_mean: float = 8.0  # a frame whose mean grey level is below this is rejected
+    search_radius_m: float = 900.0  # onboard estimate: half-side of the searched square around the prior
+    search_step_m: float = 150.0  # onboard estimate: spacing of the candidate positions
 
 
 @dataclass(frozen=True)

@@ -90,9 +90,7 @@ def skyline_rms_deg(
     observed: Skyline, rendered_az_deg: np.ndarray, rendered_el_deg: np.ndarray, offset_deg: float
 ) -> float:
     """RMS difference (deg) of the observed skyline against a rendered one shifted by ``offset_deg``."""
-    ref = np.interp(
-        (observed.azimuth_deg + offset_deg) % 360.0, rendered_az_deg, rendered_el_deg, period=360.0
-    )
+    ref = np.interp((observed.azimuth_deg + offset_deg) % 360.0, rendered_az_deg, rendered_el_deg, period=360.0)
     diff = observed.elevation_deg - ref
     ok = np.isfinite(diff)
     if ok.sum() < 3:
@@ -162,9 +160,7 @@ class GridSearchEstimator:
         if not np.isfinite(rms).any():
             raise EstimationError("grid search: no candidate could be compared with the skyline")
         bi, bj = (int(v) for v in np.unravel_index(int(np.argmin(rms)), rms.shape))
-        post = np.exp(
-            -0.5 * (np.where(np.isfinite(rms), rms, 1e9) ** 2 - rms[bi, bj] ** 2) / self.sigma_deg**2
-        )
+        post = np.exp(-0.5 * (np.where(np.isfinite(rms), rms, 1e9) ** 2 - rms[bi, bj] ** 2) / self.sigma_deg**2)
         post /= post.sum()
         yy, xx = np.meshgrid(ks * self.step_m, ks * self.step_m, indexing="ij")
         my, mx = float((post * yy).sum()), float((post * xx).sum())

@@ -29,9 +29,7 @@ from appliance.config import SessionConfig
 from appliance.drivers.gps import FixQuality, GpsFix
 from appliance.errors import CalibrationError, DeviceError
 
-GOOD_QUALITIES = frozenset(
-    {FixQuality.GPS, FixQuality.DGPS, FixQuality.PPS, FixQuality.RTK, FixQuality.FLOAT_RTK}
-)
+GOOD_QUALITIES = frozenset({FixQuality.GPS, FixQuality.DGPS, FixQuality.PPS, FixQuality.RTK, FixQuality.FLOAT_RTK})
 EARTH_RADIUS_M = 6_371_008.8
 
 
@@ -299,9 +297,7 @@ def capture_ring(
         reached = stage.move_to(float(target))
         error = abs((reached - target + 180.0) % 360.0 - 180.0)
         if error > cfg.stage_tolerance_deg:
-            p = CaptureProblem(
-                i, float(target), f"stage stalled at {reached:.1f} deg (commanded {target:.1f})"
-            )
+            p = CaptureProblem(i, float(target), f"stage stalled at {reached:.1f} deg (commanded {target:.1f})")
             problems.append(p)
             on_problem(p)
             continue

@@ -199,9 +199,7 @@ class Session:
 
         res = procedures.ground_truth(self.p.gps, self.p.clock, self.cfg.session, on_fix)
         if res.lat_deg is not None and res.lon_deg is not None:
-            fix = m.location_fix(
-                self.now(), res.lat_deg, res.lon_deg, res.alt_m, res.sigma_m, frame_id="truth"
-            )
+            fix = m.location_fix(self.now(), res.lat_deg, res.lon_deg, res.alt_m, res.sigma_m, frame_id="truth")
             self.log.write_proto(t.GPS_TRUTH, fix, self.now())
         self.outcome(
             "truth",
@@ -231,9 +229,7 @@ class Session:
             if where is not None and where[0] is not None and where[1] is not None:
                 decl = magnetic_declination_deg(float(where[0]), float(where[1]), _utc(self.now()))
             else:
-                self.say(
-                    "warning", "capture: no position for the magnetic declination; headings are magnetic"
-                )
+                self.say("warning", "capture: no position for the magnetic declination; headings are magnetic")
             heading = (compass.platform_heading_deg + decl) % 360.0
         captured: list[TaggedFrame] = []
 
@@ -255,9 +251,7 @@ class Session:
             self.log.write_json(t.STAGE_RAW, "viper.StageRaw", {"angle_deg": f.stage_deg}, ns)
             self.log.write_proto(t.TF, m.stage_transform(ns, f.stage_deg), ns)
             if heading is not None:
-                self.log.write_proto(
-                    t.TF, m.attitude_transform(ns, heading, f.roll_deg or 0.0, f.pitch_deg or 0.0), ns
-                )
+                self.log.write_proto(t.TF, m.attitude_transform(ns, heading, f.roll_deg or 0.0, f.pitch_deg or 0.0), ns)
             self.log.flush()
             captured.append(f)
             self.result.frames = len(captured)
@@ -382,19 +376,19 @@ def run_session(
         reserve_bytes=lc.reserve_bytes,
     )
     result = SessionResult(path, session_id)
-    return Session(
-        platform, logbook, config, estimator, result, should_stop, on_status, region, approx_position
-    ).run()
+    return Session(platform, logbook, config, estimator, result, should_stop, on_status, region, approx_position).run()
 
 
 def run_field_session(
     config: Config,
     out_dir: str | Path,
     seed: int | None = None,
-    search_radius_m: float = 900.0,
-    search_step_m: float = 150.0,
+    search_radius_m: float | None = None,
+    search_step_m: float | None = None,
     dem: Any = None,
     faults: Any = None,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_status: Callable[[str], None] = lambda s: None,
 ) -> SessionResult:
     """A whole simulated session on the jacksboro DEM at a random position; the log goes to ``out_dir``.
 
@@ -404,6 +398,8 @@ def run_field_session(
     from appliance.acquisition.simulated import SimClock, SimFaults, SimWorld, simulated_platform
     from appliance.terrain.dem import load_dem
 
+    search_radius_m = config.session.search_radius_m if search_radius_m is None else search_radius_m
+    search_step_m = config.session.search_step_m if search_step_m is None else search_step_m
     rng = np.random.default_rng(seed)
     dem = dem if dem is not None else load_dem("jacksboro")
     lon0, lat0, lon1, lat1 = dem.bounds_lonlat()
@@ -436,7 +432,14 @@ def run_field_session(
         heading_tolerance_deg=config.estimator.heading_tolerance_deg,
     )
     result = run_session(
-        platform, config, Path(out_dir), est, region=est.region_lonlat(), approx_position=(c_lat, c_lon)
+        platform,
+        config,
+        Path(out_dir),
+        est,
+        should_stop,
+        on_status,
+        region=est.region_lonlat(),
+        approx_position=(c_lat, c_lon),
     )
     result.outcomes.setdefault("true_position", f"{lat:.6f},{lon:.6f}")
     return result

@@ -21,7 +21,7 @@ from appliance.drivers.gps import CovarianceType, FixQuality, GpsFix
 from appliance.errors import DeviceError
 from appliance.vision.camera import CameraPose
 from appliance.vision.intrinsics import CameraIntrinsics
-from appliance.vision.synth import dem_skyline_fn, render_photo_from
+from appliance.vision.synth import SkylineFn, dem_skyline_fn, render_photo_from
 
 
 class SimClock:
@@ -72,7 +72,9 @@ class SimWorld:
 
     def __post_init__(self) -> None:
         self.rng = np.random.default_rng(self.seed)
-        self._skyline_fn = dem_skyline_fn(self.dem, self.lat_deg, self.lon_deg, self.camera_height_m)
+        self._skyline_fn = tabulated_skyline_fn(
+            dem_skyline_fn(self.dem, self.lat_deg, self.lon_deg, self.camera_height_m)
+        )
 
     @property
     def yaw_deg(self) -> float:
@@ -89,6 +91,22 @@ class SimWorld:
         roll, pitch = self.head_tilt()
         pose = CameraPose(self.yaw_deg, pitch, roll)
         return render_photo_from(self._skyline_fn, pose, self.intrinsics, self.rng, scene_seed=self.seed)
+
+
+def tabulated_skyline_fn(fn: SkylineFn, step_deg: float = 0.05) -> SkylineFn:
+    """``fn`` rendered once every ``step_deg`` and interpolated (periodic) for every later call."""
+    az = np.arange(0.0, 360.0, step_deg)
+    el, dist = fn(az)
+    el_filled = np.where(np.isfinite(el), el, -90.0)
+    dist_filled = np.where(np.isfinite(dist), dist, np.nan)
+
+    def tabulated(azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(azimuth_deg, dtype=np.float64) % 360.0
+        e = np.interp(a, az, el_filled, period=360.0)
+        d = np.interp(a, az, np.nan_to_num(dist_filled, nan=0.0), period=360.0)
+        return e, np.where(d > 0, d, np.nan)
+
+    return tabulated
 
 
 class SimTilt:
@@ -148,9 +166,7 @@ class SimCamera:
         n = w.captures
         w.captures += 1
         if n in w.faults.black_frames:
-            return Frame(
-                self.clock.now_ns(), np.zeros((w.intrinsics.height, w.intrinsics.width, 3), np.uint8)
-            )
+            return Frame(self.clock.now_ns(), np.zeros((w.intrinsics.height, w.intrinsics.width, 3), np.uint8))
         return Frame(self.clock.now_ns(), w.render())
 
 

@@ -1,0 +1,114 @@
+"""The session daemon: sessions on a schedule, systemd readiness and watchdog, a clean SIGTERM.
+
+One process, one thread.  It notifies READY=1, then runs a session every ``session.interval_s``
+seconds (the first at once), pinging the watchdog and updating STATUS= as the session progresses
+and while it waits.  SIGTERM (or SIGINT) sets a flag the session checks between steps and between
+captures: the current log is closed with everything captured, STOPPING=1 is sent and the daemon
+exits 0.  Sessions, from the daemon or from ``viper capture``, hold an exclusive lock in the log
+directory so two never drive the devices at once.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import FrameType
+
+from appliance.acquisition.notify import Notifier
+from appliance.acquisition.session import SessionResult, run_field_session
+from appliance.config import Config
+from appliance.errors import ConfigError, LogError
+
+
+@contextmanager
+def session_lock(log_dir: Path) -> Iterator[None]:
+    """Exclusive lock on ``log_dir/.session.lock``; raises LogError if another session holds it."""
+    try:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(log_dir / ".session.lock", os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    except OSError as exc:
+        raise LogError(f"{log_dir}: cannot use the log directory: {exc.strerror}") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise LogError(f"{log_dir}: another session is running (lock held)") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def run_one_session(
+    config: Config,
+    log_dir: Path,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_status: Callable[[str], None] = lambda s: None,
+    seed: int | None = None,
+) -> SessionResult:
+    """One session on the configured platform, under the session lock."""
+    if config.platform.kind != "sim":
+        raise ConfigError(
+            "platform.kind = 'hardware': the session needs the hardware drivers of the platform "
+            "(tilt, compass, stage, camera) wired into appliance.acquisition.platform.Platform; "
+            "use platform.kind = 'sim' for the simulated platform"
+        )
+    with session_lock(log_dir):
+        return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status)
+
+
+class SessionDaemon:
+    def __init__(
+        self, config: Config, log_dir: Path, notifier: Notifier, sleep: Callable[[float], None] | None = None
+    ) -> None:
+        import threading
+
+        self.config, self.log_dir, self.notifier = config, log_dir, notifier
+        self._stop = threading.Event()
+        self._sleep = sleep
+        self.results: list[SessionResult] = []
+
+    def request_stop(self, signum: int | None = None, frame: FrameType | None = None) -> None:
+        self._stop.set()
+
+    def install_signal_handlers(self) -> None:
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+
+    def _status(self, text: str) -> None:
+        self.notifier.notify(STATUS=text, WATCHDOG=1)
+
+    def _wait(self, seconds: float) -> None:
+        """Wait, pinging the watchdog; returns early on a stop request."""
+        step = self.notifier.watchdog_interval_s or 5.0
+        remaining = seconds
+        while remaining > 0 and not self._stop.is_set():
+            self._stop.wait(min(step, remaining))
+            remaining -= step
+            self.notifier.watchdog()
+
+    def run(self) -> int:
+        cfg = self.config.session
+        self.notifier.ready(status=f"ready; a session every {cfg.interval_s:.0f} s, logs in {self.log_dir}")
+        n = 0
+        while not self._stop.is_set():
+            n += 1
+            self._status(f"session {n} starting")
+            try:
+                result = run_one_session(self.config, self.log_dir, self._stop.is_set, self._status)
+            except LogError as exc:
+                self._status(f"session {n} skipped: {exc}")
+            else:
+                self.results.append(result)
+                err = "n/a" if result.error_m is None else f"{result.error_m:.0f} m"
+                self._status(
+                    f"session {n} {result.status.value} ({result.frames} frames, error {err}): {result.log_path.name}"
+                )
+            if cfg.max_sessions and n >= cfg.max_sessions:
+                break
+            self._wait(cfg.interval_s)
+        self.notifier.stopping(status="stopping")
+        return 0

@@ -1,0 +1,34 @@
+"""``viper capture``: one session now (level, compass, GPS truth, capture, onboard estimate)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from appliance.acquisition.daemon import run_one_session
+from appliance.config import load_config
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("capture", help="run one field session now and write its MCAP log")
+    p.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--log-dir", metavar="DIR", help="override logbook.log_dir")
+    p.add_argument("--seed", type=int, help="seed of the simulated platform (platform.kind = 'sim')")
+    p.set_defaults(func=_capture)
+
+
+def _capture(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
+    result = run_one_session(config, log_dir, seed=args.seed, on_status=lambda s: None)
+    print(f"log: {result.log_path}")
+    print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
+    for name, outcome in result.outcomes.items():
+        print(f"  {name}: {outcome}")
+    for problem in result.problems:
+        print(f"  problem: {problem}")
+    if result.estimate is not None:
+        e = result.estimate
+        err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
+        print(f"estimate: lat {e.lat_deg:.6f} lon {e.lon_deg:.6f} (sigma {e.sigma_m:.0f} m), {err}")
+    return 0 if result.status.value != "failed" else 1
