@@ -64,7 +64,7 @@ def test_hgt_and_geotiff_of_the_same_tile_agree():
     assert a.transform.almost_equals(b.transform)
 
 
-def test_mount_washington_is_the_highest_point_of_N44W072():
+def test_mount_washington_is_the_highest_point_of_n44w072():
     dem = load_dem(data_file("dem_srtm_hgt/N44W072.hgt"))
     r, c = np.unravel_index(np.nanargmax(dem.elevation_m), dem.shape)
     assert (r, c) == (875, 836)

@@ -14,7 +14,7 @@ from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
 
-def _pair(text: str, what: str, n: int) -> tuple[float, ...]:
+def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
     try:
         vals = tuple(float(v) for v in text.split(","))
     except ValueError:
@@ -22,6 +22,11 @@ def _pair(text: str, what: str, n: int) -> tuple[float, ...]:
     if len(vals) != n:
         raise InputError(f"{what} {text!r}: expected {n} comma-separated numbers")
     return vals
+
+
+def _pair(text: str, what: str) -> tuple[float, float]:
+    a, b = _numbers(text, what, 2)
+    return a, b
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,17 +52,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config).estimator
-    sigma = cfg.sigma_deg if args.sigma is None else _pair(args.sigma, "--sigma", 2)
+    sigma = cfg.sigma_deg if args.sigma is None else _pair(args.sigma, "--sigma")
     if not 0 < sigma[0] <= sigma[1]:
         raise InputError(f"--sigma {sigma[0]},{sigma[1]}: expected 0 < LO <= HI")
     tolerance = None if args.unknown_heading else (
         cfg.heading_tolerance_deg if args.heading_tolerance is None else args.heading_tolerance)
     if tolerance is not None and not 0 <= tolerance <= 180:
         raise InputError(f"--heading-tolerance {tolerance}: expected 0..180 degrees")
-    truths = [_pair(t, "--truth", 2) for t in args.truth]
+    truths = [_pair(t, "--truth") for t in args.truth]
     if truths and len(truths) != len(args.skylines):
         raise InputError(f"{len(args.skylines)} skylines but {len(truths)} --truth values")
-    moves = [Move(*_pair(m, "--move", 3)) for m in args.move]
+    moves = [Move(*_numbers(m, "--move", 3)) for m in args.move]
     if args.fuse and len(moves) != len(args.skylines) - 1:
         raise InputError(f"--fuse with {len(args.skylines)} skylines needs {len(args.skylines) - 1} --move values")
     if moves and not args.fuse:
@@ -85,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(record), flush=True)
         else:
             err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
-            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  heading correction {pos.result.heading_correction_deg:+.1f} deg"
+            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}"
+                  f"  heading correction {pos.result.heading_correction_deg:+.1f} deg"
                   f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
             for note in pos.result.notes:

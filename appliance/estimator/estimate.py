@@ -27,7 +27,7 @@ import numpy as np
 
 from appliance.errors import EstimationError, InputError
 from appliance.estimator.likelihood import log_likelihood_bounds, posterior_bounds
-from appliance.estimator.search import ssd_all_shifts, ssd_for_shifts
+from appliance.estimator.search import box_decimate, ssd_all_shifts, ssd_for_shifts
 
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
@@ -80,6 +80,7 @@ class EstimateResult:
     heading_correction_deg: float
     lower: float
     upper: float
+    log_lower: float
     region_nodes: np.ndarray
     region_area_m2: float
     log_lower_map: np.ndarray  # (n_nodes,) log lower posterior of each node's best heading
@@ -97,8 +98,9 @@ class EstimateResult:
 def resample_to_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, n_az: int) -> np.ndarray:
     """Measured skyline on the azimuth grid j * 360 / n_az; NaN where missing.
 
-    Linear interpolation between the two nearest valid samples on the circle, provided they are at
-    most two grid steps apart; otherwise missing (never guessed across a gap).
+    Samples already on the grid are placed as they are.  Others are interpolated linearly between
+    the two nearest valid samples on the circle, provided they are at most two grid steps apart;
+    otherwise missing (never guessed across a gap).
     """
     step = 360.0 / n_az
     az = np.mod(np.asarray(azimuth_deg, float), 360.0)
@@ -110,9 +112,11 @@ def resample_to_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, n_az: i
     order = np.argsort(a)
     a, e = a[order], e[order]
     grid = np.arange(n_az) * step
-    if a.size == n_az and np.allclose(a, grid[np.round(a / step).astype(int) % n_az], atol=1e-9):
+    k = np.round(a / step).astype(int) % n_az
+    if np.allclose(np.mod(a - k * step + 180.0, 360.0) - 180.0, 0.0, atol=1e-6):
+        # already on the grid: place the samples, leave the others missing
         out = np.full(n_az, np.nan)
-        out[np.round(a / step).astype(int) % n_az] = e
+        out[k] = e
         return out
     a_ext = np.concatenate([a[-1:] - 360.0, a, a[:1] + 360.0])
     e_ext = np.concatenate([e[-1:], e, e[:1]])
@@ -169,46 +173,56 @@ def estimate(
     else:
         coarse_best = np.full(n_nodes, np.inf, dtype=np.float64)
         coarse_arg = np.zeros(n_nodes, dtype=np.int64)
-        mc = m.copy()
-        mc[np.arange(n_az) % COARSE_STRIDE != 0] = np.nan
-        scale = n / max(int(np.isfinite(mc).sum()), 1)
-        for start, block in ssd_all_shifts(grid.codes, grid.offset_deg, grid.step_deg, mc):
+        scale = n / max(int(np.isfinite(box_decimate(m, COARSE_STRIDE)).sum()), 1)
+        for start, block in ssd_all_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, COARSE_STRIDE):
             stop = start + block.shape[0]
             coarse_arg[start:stop] = np.argmin(block, axis=1)
             coarse_best[start:stop] = np.min(block, axis=1) * scale
-        band = np.arange(-2, 3)
-        node_shifts = (coarse_arg[:, None] + band[None, :]) % n_az
+        # the coarse shift is good to half a coarse step: search a band of fine shifts around it
+        half = COARSE_STRIDE // 2 + 1
+        band = np.arange(-half, half + 1)
+        node_shifts = (coarse_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
         coarse = np.repeat(coarse_best[:, None], band.size, axis=1).astype(np.float32)
 
-    # first pass -> plausible nodes -> rescored on every azimuth
-    c_lo, c_up = log_likelihood_bounds(coarse.astype(np.float64), n, sig_lo, sig_hi)
-    lp = 0.0 if log_prior is None else log_prior[:, None]
+    # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
+    # the residual grows, so each node's best first-pass shift decides for the node.
+    cmin = np.min(coarse, axis=1).astype(np.float64)
+    c_lo, c_up = log_likelihood_bounds(cmin, n, sig_lo, sig_hi)
+    lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
+    node_up = c_up + lp
     best_lo = float(np.max(c_lo + lp))
-    node_up = np.max(c_up + lp, axis=1)
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
-        rescore = np.argsort(-node_up)[:MIN_RESCORE]
-    ssd = coarse.astype(np.float64)
-    fine = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore)
-    ssd[rescore] = fine
-    if not np.isfinite(ssd).any():
+        rescore = np.sort(np.argsort(-node_up)[:MIN_RESCORE])
+    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore)
+    ssd_r = ssd_r.astype(np.float64)
+    if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
 
-    log_lo, log_up = log_likelihood_bounds(ssd, n, sig_lo, sig_hi)
-    post = posterior_bounds(log_lo, log_up, None if log_prior is None else np.broadcast_to(lp, log_lo.shape))
+    # Exact posteriors over the rescored candidates.  The others lie hundreds of nats below the
+    # best: their share of the sums is nil, and their own posteriors are their likelihood over the
+    # (unchanged) sum of the rest.
+    lp_r = lp[rescore, None]
+    lo_r, up_r = log_likelihood_bounds(ssd_r, n, sig_lo, sig_hi)
+    post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
-    best_node, best_k = divmod(best_flat, ssd.shape[1])
+    best_r, best_k = divmod(best_flat, ssd_r.shape[1])
+    best_node = int(rescore[best_r])
     best_lower_log = float(post.log_lower.ravel()[best_flat])
-    node_lower = np.max(post.log_lower, axis=1)
-    node_upper = np.max(post.log_upper, axis=1)
+    log_sum_up = float(np.logaddexp.reduce((up_r + lp_r).ravel()))
+    log_sum_lo = float(np.logaddexp.reduce((lo_r + lp_r).ravel()))
+    node_lower = c_lo + lp - log_sum_up
+    node_upper = node_up - log_sum_lo
+    node_lower[rescore] = np.max(post.log_lower, axis=1)
+    node_upper[rescore] = np.max(post.log_upper, axis=1)
     region = np.nonzero(node_upper >= best_lower_log)[0]
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     mid = 0.5 * (sig_lo + sig_hi)
-    ll_mid = -ssd / (2.0 * mid * mid) + (0.0 if log_prior is None else lp)
-    ll_mid = np.where(np.isfinite(ll_mid), ll_mid, -np.inf)
-    node_mid = np.logaddexp.reduce(ll_mid, axis=1)
-    node_mid -= np.logaddexp.reduce(node_mid)
+    node_mid = np.full(n_nodes, -np.inf)
+    ll_mid = -ssd_r / (2.0 * mid * mid) + lp_r
+    node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
+    node_mid -= np.logaddexp.reduce(node_mid[rescore])
     posterior_mid = np.exp(node_mid)
 
     shift_steps = float(node_shifts[best_node, best_k])
@@ -216,16 +230,17 @@ def estimate(
         shift_steps -= n_az
     row, col = divmod(best_node, grid.n_cols)
     frow, fcol, heading = float(row), float(col), shift_steps * step
-    rms = math.sqrt(float(ssd[best_node, best_k]) / n)
+    rms = math.sqrt(float(ssd_r[best_r, best_k]) / n)
     if refine:
         from appliance.estimator.refine import refine_subcell
 
         # refine the most likely nodes of the region (the best first) and keep the closest fit
-        order = np.argsort(-node_lower[region])[:REFINE_NODES]
-        tries = [best_node] + [int(v) for v in region[order] if int(v) != best_node]
+        scored = region[np.isin(region, rescore)]
+        order = np.argsort(-node_lower[scored])[:REFINE_NODES]
+        tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
         best_fit = (math.inf, frow, fcol, heading)
         for cand in tries:
-            k_c = int(np.argmax(post.log_lower[cand]))
+            k_c = int(np.argmin(ssd_r[np.searchsorted(rescore, cand)]))
             sh = float(node_shifts[cand, k_c])
             if sh > n_az / 2:
                 sh -= n_az
@@ -251,8 +266,9 @@ def estimate(
     return EstimateResult(
         row=frow, col=fcol, node=best_node, heading_correction_deg=heading,
         lower=float(np.exp(best_lower_log)), upper=float(np.exp(post.log_upper.ravel()[best_flat])),
+        log_lower=best_lower_log,
         region_nodes=region, region_area_m2=area, log_lower_map=node_lower, log_upper_map=node_upper,
         posterior_map=posterior_mid, rms_residual_deg=rms, n_valid=n, sigma_deg=(sig_lo, sig_hi),
-        ambiguous=ambiguous, candidates=int(np.isfinite(ssd).sum()), elapsed_s=time.perf_counter() - t0,
-        notes=notes,
+        ambiguous=ambiguous, candidates=int(np.isfinite(cmin).sum()) * node_shifts.shape[1],
+        elapsed_s=time.perf_counter() - t0, notes=notes,
     )

@@ -44,8 +44,8 @@ def refine_subcell(
     # positions on a fine lattice within the neighbourhood, bilinear blend of the node skylines
     fr = np.clip(row + FRACTIONS, r0, r1)
     fc = np.clip(col + FRACTIONS, c0, c1)
-    PR, PC = np.meshgrid(fr, fc, indexing="ij")
-    PR, PC = PR.ravel(), PC.ravel()
+    grid_r, grid_c = np.meshgrid(fr, fc, indexing="ij")
+    PR, PC = grid_r.ravel(), grid_c.ravel()
     i0 = np.minimum(np.floor(PR - r0).astype(int), max(r1 - r0 - 1, 0))
     j0 = np.minimum(np.floor(PC - c0).astype(int), max(c1 - c0 - 1, 0))
     i1 = np.minimum(i0 + 1, r1 - r0)

@@ -32,23 +32,24 @@ def _ssd_shifts(
     codes: np.ndarray,
     offset: np.ndarray,
     step: np.ndarray,
-    m: np.ndarray,
-    w: np.ndarray,
+    jj: np.ndarray,
+    mj: np.ndarray,
     rows: np.ndarray,
     shifts: np.ndarray,
-    stride: int,
     out: np.ndarray,
 ) -> None:
-    """out[r, k] = SSD of node rows[r] at shift shifts[r, k], over every ``stride``-th azimuth."""
+    """out[r, k] = sum_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
+
+    Works in each node's code units, (m - offset) / step against the uint8 codes, so a skyline is
+    never decoded; azimuths where the node has no terrain are left out and the sum rescaled.
+    """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
-    n_meas = 0.0
-    for j in range(0, n_az, stride):
-        n_meas += w[j]
+    n_t = jj.size
     n_rows = rows.size
     n_blocks = (n_rows + BLOCK - 1) // BLOCK
     for b in numba.prange(n_blocks):
-        buf = np.empty(2 * n_az, dtype=np.float32)
+        mt = np.empty(n_t, dtype=np.float32)
         for r in range(b * BLOCK, min(n_rows, (b + 1) * BLOCK)):
             i = rows[r]
             o = offset[i]
@@ -57,33 +58,29 @@ def _ssd_shifts(
                     out[r, k] = np.inf
                 continue
             st = step[i]
-            missing = 0
-            for j in range(n_az):
-                c = codes[i, j]
-                if c == MISSING_CODE:
-                    missing += 1
-                v = np.float32(o + st * c)
-                buf[j] = v
-                buf[j + n_az] = v
+            inv = np.float32(1.0 / st)
+            for t in range(n_t):
+                mt[t] = (mj[t] - o) * inv
+            scale = np.float32(st * st)
             for k in range(n_shift):
                 sh = shifts[r, k] % n_az
                 acc = np.float32(0.0)
-                if missing == 0:
-                    for j in range(0, n_az, stride):
-                        d = m[j] - buf[sh + j]
-                        acc += w[j] * d * d
-                    out[r, k] = acc
+                cnt = 0
+                for t in range(n_t):
+                    idx = jj[t] + sh
+                    if idx >= n_az:
+                        idx -= n_az
+                    c = codes[i, idx]
+                    if c != MISSING_CODE:
+                        d = mt[t] - np.float32(c)
+                        acc += d * d
+                        cnt += 1
+                if cnt == n_t:
+                    out[r, k] = acc * scale
+                elif cnt < (1.0 - MAX_MISSING_FRACTION) * n_t:
+                    out[r, k] = np.inf
                 else:
-                    cnt = 0.0
-                    for j in range(0, n_az, stride):
-                        if w[j] > 0 and codes[i, (sh + j) % n_az] != MISSING_CODE:
-                            d = m[j] - buf[sh + j]
-                            acc += w[j] * d * d
-                            cnt += w[j]
-                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas:
-                        out[r, k] = np.inf
-                    else:
-                        out[r, k] = acc * n_meas / cnt
+                    out[r, k] = acc * scale * n_t / cnt
 
 
 def ssd_for_shifts(
@@ -103,20 +100,34 @@ def ssd_for_shifts(
     that cannot be candidates (nodata, or too many azimuths without terrain).
     """
     valid = np.isfinite(measured_deg)
-    m = np.where(valid, measured_deg, 0.0).astype(np.float32)
-    w = valid.astype(np.float32)
+    used = valid & (np.arange(measured_deg.size) % stride == 0)
+    jj = np.nonzero(used)[0].astype(np.int64)
+    mj = np.asarray(measured_deg)[jj].astype(np.float32)
     idx = np.arange(codes.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     sh = np.asarray(shifts, dtype=np.int64)
     if sh.ndim == 1:
         sh = np.broadcast_to(sh, (idx.size, sh.size))
     sh = np.ascontiguousarray(sh)
     out = np.empty((idx.size, sh.shape[1]), dtype=np.float32)
-    _ssd_shifts(codes, offset_deg, step_deg, m, w, idx, sh, int(stride), out)
+    _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out)
     if stride > 1:
-        n_full = float(w.sum())
-        n_coarse = float(w[::stride].sum())
-        out *= n_full / max(n_coarse, 1.0)
+        out *= float(valid.sum()) / max(float(jj.size), 1.0)
     return out
+
+
+def box_decimate(values: np.ndarray, factor: int) -> np.ndarray:
+    """Mean of each run of ``factor`` azimuths (NaN-aware; all-missing runs stay NaN), last axis."""
+    if factor == 1:
+        return values
+    n = values.shape[-1]
+    if n % factor:
+        raise ValueError(f"{n} azimuths are not a multiple of {factor}")
+    blocks = values.reshape(values.shape[:-1] + (n // factor, factor))
+    ok = np.isfinite(blocks)
+    cnt = ok.sum(axis=-1)
+    total = np.where(ok, blocks, 0.0).sum(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
 
 
 def ssd_all_shifts(
@@ -124,45 +135,64 @@ def ssd_all_shifts(
     offset_deg: np.ndarray,
     step_deg: np.ndarray,
     measured_deg: np.ndarray,
-    chunk: int = 16384,
+    decimate: int = 1,
+    chunk: int = 32768,
 ):
-    """Yield (start, SSD block of shape (rows, n_az)) for every shift by FFT, in node chunks.
+    """Yield (start, SSD block of shape (rows, n_az / decimate)) for every shift, by FFT, in chunks.
 
-    Block column k is the shift of k azimuth steps.  Nodes on nodata, or missing more than a
-    tenth of the measured azimuths, are inf.
+    Block column k is the shift of k * decimate azimuth steps.  With ``decimate`` > 1 both skylines
+    are first averaged over runs of that many azimuths: a coarse, cheap pass.  Sums are scaled to
+    the measured count; nodes on nodata, or missing more than a tenth of the measured azimuths, are
+    inf.
     """
     import scipy.fft
 
     n_nodes, n_az = codes.shape
-    valid = np.isfinite(measured_deg)
-    w = valid.astype(np.float64)
-    wm = np.where(valid, measured_deg, 0.0)
-    n_meas = w.sum()
-    const = float(np.sum(wm * wm))
+    m = box_decimate(np.asarray(measured_deg, float), decimate)
+    valid = np.isfinite(m)
+    w = valid.astype(np.float32)
+    wm = np.where(valid, m, 0.0).astype(np.float32)
+    n_meas = float(w.sum())
+    n_dec = m.size
     f_wm = np.conj(scipy.fft.rfft(wm))
     f_w = np.conj(scipy.fft.rfft(w))
+    f_wm2 = np.conj(scipy.fft.rfft(wm * wm))
+    const = float(np.sum(wm * wm))
+    def correlate(sk: np.ndarray, present: np.ndarray | None) -> np.ndarray:
+        # circular cross-correlations: corr(k) = sum_j a_j b_{j+k}
+        fs = scipy.fft.rfft(sk, axis=-1, workers=2)
+        fs2 = scipy.fft.rfft(sk * sk, axis=-1, workers=2)
+        cross = scipy.fft.irfft(fs * f_wm, n=n_dec, axis=-1, workers=2)
+        sq = scipy.fft.irfft(fs2 * f_w, n=n_dec, axis=-1, workers=2)
+        if present is None:
+            return np.maximum(const - 2.0 * cross + sq, 0.0)
+        fp = scipy.fft.rfft(present.astype(np.float32), axis=-1, workers=2)
+        cnt = np.rint(scipy.fft.irfft(fp * f_w, n=n_dec, axis=-1, workers=2))
+        const_k = scipy.fft.irfft(fp * f_wm2, n=n_dec, axis=-1, workers=2)
+        out = np.maximum(const_k - 2.0 * cross + sq, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(cnt >= (1.0 - MAX_MISSING_FRACTION) * n_meas, out * n_meas / np.maximum(cnt, 1), np.inf)
+
     for start in range(0, n_nodes, chunk):
         c = np.asarray(codes[start : start + chunk])
-        off = np.asarray(offset_deg[start : start + chunk], dtype=np.float64)
-        st = np.asarray(step_deg[start : start + chunk], dtype=np.float64)
+        off = np.asarray(offset_deg[start : start + chunk], dtype=np.float32)
+        st = np.asarray(step_deg[start : start + chunk], dtype=np.float32)
+        ssd = np.full((c.shape[0], n_dec), np.inf, dtype=np.float32)
         miss = c == MISSING_CODE
-        s = off[:, None] + st[:, None] * c
-        s[miss] = 0.0
-        present = (~miss).astype(np.float64)
-        # cross-correlations over the circle: corr(k) = sum_j a_j b_{j+k}
-        fs = scipy.fft.rfft(np.stack([s, s * s, present]), axis=-1, workers=2)
-        cross = scipy.fft.irfft(fs[0] * f_wm, n=n_az, axis=-1, workers=2)
-        sq = scipy.fft.irfft(fs[1] * f_w, n=n_az, axis=-1, workers=2)
-        cnt = scipy.fft.irfft(fs[2] * f_w, n=n_az, axis=-1, workers=2)
-        cnt = np.rint(cnt)
-        if miss.any():
-            # the measured sum of squares only over azimuths where the node has terrain
-            const_k = scipy.fft.irfft(scipy.fft.rfft(present, axis=-1) * np.conj(scipy.fft.rfft(wm * wm)),
-                                      n=n_az, axis=-1)
-        else:
-            const_k = const
-        ssd = np.maximum(const_k - 2.0 * cross + sq, 0.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ssd = np.where(cnt >= (1.0 - MAX_MISSING_FRACTION) * n_meas, ssd * n_meas / np.maximum(cnt, 1), np.inf)
-        ssd[~np.isfinite(off)] = np.inf
+        partial = miss.any(axis=1) & np.isfinite(off)
+        whole = ~miss.any(axis=1) & np.isfinite(off)
+        if whole.any():
+            # decoding is linear: average the codes first (integer sums), then decode
+            cw = c[whole]
+            if decimate > 1:
+                cw = cw.reshape(cw.shape[0], n_dec, decimate).sum(axis=-1, dtype=np.uint16)
+            sk = off[whole, None] + (st[whole] / decimate)[:, None] * cw.astype(np.float32)
+            ssd[whole] = correlate(sk, None)
+        if partial.any():
+            sk = off[partial, None] + st[partial, None] * c[partial].astype(np.float32)
+            sk[miss[partial]] = np.nan
+            sk = box_decimate(sk, decimate).astype(np.float32)
+            present = np.isfinite(sk)
+            ssd[partial] = correlate(np.where(present, sk, np.float32(0.0)), present)
+        ssd[~np.isfinite(ssd)] = np.inf
         yield start, ssd
