@@ -64,16 +64,17 @@ def _sweep_canonical(
     height_m: float,
     r_eff: float,
     delay: int,
+    spacing: float,
 ) -> None:
-    """Lines v = k/2 + u*tau (0 <= tau <= 1) over W[v, u]; ahead is increasing u.
+    """Lines v = k*spacing + u*tau (0 <= tau <= 1) over W[v, u]; ahead is increasing u.
 
-    A node takes its far-field horizon from the nearest line (at most a quarter row away) and only
+    A node takes its far-field horizon from the nearest line (at most spacing/2 rows away) and only
     from terrain at least ``delay`` columns ahead: the line's points enter the hull ``delay``
     columns late, leaving the near field to the exact ray samples of :func:`_near_field`.
     """
     nv, nu = W.shape
-    kmin = int(math.floor(-2.0 * (nu - 1) * tau)) - 2
-    kmax = 2 * nv + 2
+    kmin = int(math.floor(-(nu - 1) * tau / spacing)) - 2
+    kmax = int(math.ceil(nv / spacing)) + 2
     inv2r = 0.5 / r_eff
     for kk in numba.prange(kmax - kmin + 1):
         k = kmin + kk
@@ -84,7 +85,7 @@ def _sweep_canonical(
             # enter the point of column u + delay into the hull
             ui = u + delay
             if ui <= nu - 1:
-                vi = 0.5 * k + ui * tau
+                vi = spacing * k + ui * tau
                 if 0.0 <= vi <= nv - 1:
                     a = int(math.floor(vi))
                     if a >= nv - 1:
@@ -106,11 +107,11 @@ def _sweep_canonical(
                         n += 1
             if u < 0:
                 continue
-            v = 0.5 * k + u * tau
+            v = spacing * k + u * tau
             if v < -0.5:
                 break
             rn = int(math.floor(v + 0.5))
-            if rn < 0 or rn > nv - 1 or int(math.floor(2.0 * (rn - u * tau) + 0.5)) != k:
+            if rn < 0 or rn > nv - 1 or int(math.floor((rn - u * tau) / spacing + 0.5)) != k:
                 continue
             zn = W[rn, u]
             if n == 0 or math.isnan(zn):
@@ -159,6 +160,8 @@ def _near_field(
 
 NEAR_FIELD_FRACTIONS = np.array([0.25, 0.5, 1.0, 1.5, 2.0])
 NEAR_FIELD_COLUMNS = 2
+#: Rows between neighbouring sweep lines: a node is at most half of it beside its line.
+LINE_SPACING_ROWS = 0.5
 
 
 def horizon_tan_grid(
@@ -189,9 +192,13 @@ def horizon_tan_grid(
         views = [x[:, ::-1] for x in views]
     if dv < 0:
         views = [x[::-1, :] for x in views]
-    W, Wout = views
+    view_in, view_out = views
+    # the kernels march along rows of the canonical view: give them contiguous memory
+    W = np.ascontiguousarray(view_in)
+    Wout = np.full(W.shape, np.nan)
     tau = abs(dv / du)
     step = math.hypot(du_m, tau * dv_m)
-    _sweep_canonical(W, Wout, tau, step, height_m, r_eff_m, NEAR_FIELD_COLUMNS)
+    _sweep_canonical(W, Wout, tau, step, height_m, r_eff_m, NEAR_FIELD_COLUMNS, LINE_SPACING_ROWS)
     _near_field(W, Wout, tau, step, height_m, r_eff_m, NEAR_FIELD_FRACTIONS)
+    view_out[...] = Wout
     return out

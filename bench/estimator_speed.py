@@ -1,0 +1,99 @@
+"""Speed of the estimator on the SRTM tile N44W072 (1201 x 1201 nodes, 360 azimuths).
+
+- 172k candidates (the size of Viper's Pittsburgh grid: the tile's first 144 rows x 1201 columns)
+  x 360 azimuths x 9 headings (compass +-4 deg): target at most 50 ms per skyline;
+- the same with no compass (every heading): target at most 1 s;
+- the whole tile (1.44M candidates) at +-4 deg: target at most 1 s;
+- peak memory beside the database's size.
+
+The database is built once into bench/cache/.
+
+    python bench/estimator_speed.py [--repeats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import sys
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from appliance.estimator import SkylineGrid, estimate  # noqa: E402
+from appliance.position import skyline_grid  # noqa: E402
+from appliance.terrain.database import build_database, load_database  # noqa: E402
+from appliance.terrain.dem import load_dem  # noqa: E402
+
+TILE = HERE.parent.parent / "shared" / "data" / "dem_srtm_hgt" / "N44W072.hgt"
+
+
+def timed(grid: SkylineGrid, az: np.ndarray, el: np.ndarray, tol: float | None, repeats: int) -> tuple[float, float]:
+    estimate(grid, az, el, (0.3, 1.2), tol)  # warm: compile and page in
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        estimate(grid, az, el, (0.3, 1.2), tol)
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts)), float(np.min(ts))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repeats", type=int, default=7)
+    args = ap.parse_args()
+    if not TILE.exists():
+        print(f"{TILE} absent: nothing to measure")
+        return 0
+    dem = load_dem(TILE)
+    cache = HERE / "cache"
+    cache.mkdir(exist_ok=True)
+    path = cache / "n44w072-full.viperdb"
+    if not path.exists():
+        t = time.perf_counter()
+        build_database(dem, path, progress=None)
+        print(f"built {path.name} in {time.perf_counter() - t:.0f} s")
+    db = load_database(path, dem)
+    full = skyline_grid(db)
+    n_sub = 144 * full.n_cols
+    sub = SkylineGrid(full.codes[:n_sub], full.offset_deg[:n_sub], full.step_deg[:n_sub], 144, full.n_cols,
+                      full.dx_m, full.dy_m)
+    rng = np.random.default_rng(3)
+    node = 70 * full.n_cols + 600
+    truth = db.skylines_deg(node)
+    az = np.arange(360.0)
+    el = np.roll(truth, -2) + rng.normal(0, 0.2, 360)
+    el[rng.choice(360, 36, replace=False)] = np.nan
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rows = []
+    for label, grid, tol, target in (
+        ("172k candidates, compass +-4 deg (9 headings)", sub, 4.0, 0.05),
+        ("172k candidates, no compass (360 headings)", sub, None, 1.0),
+        ("1.44M candidates (whole tile), compass +-4 deg", full, 4.0, 1.0),
+    ):
+        med, best = timed(grid, az, el, tol, args.repeats)
+        print(f"{label}: median {med * 1e3:.0f} ms, best {best * 1e3:.0f} ms (target {target * 1e3:.0f} ms)")
+        rows.append(f"| {date.today()} | {label} | {med * 1e3:.0f} ms | {best * 1e3:.0f} ms | {target * 1e3:.0f} ms |"
+                    f" {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} |\n")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    db_mb = path.stat().st_size / 2**20
+    print(f"peak memory {peak:.0f} MB (before the runs {rss0:.0f} MB); database {db_mb:.0f} MB")
+    rows.append(f"| {date.today()} | peak memory | {peak:.0f} MB | | database {db_mb:.0f} MB | {platform.machine()} |\n")
+    res = HERE / "results" / "estimator_speed.md"
+    if not res.exists():
+        res.write_text("# Estimator speed (bench/estimator_speed.py)\n\n"
+                       "| date | case | median | best | target | machine |\n|---|---|---|---|---|---|\n")
+    with res.open("a") as fh:
+        fh.writelines(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
