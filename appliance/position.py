@@ -7,6 +7,7 @@ JSON record that ``viper estimate --json`` prints.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,7 @@ class Position:
             "heading_correction_deg": round(r.heading_correction_deg, 3),
             "lower": r.lower,
             "upper": r.upper,
+            "log10_lower": round(r.log_lower / math.log(10.0), 4),
             "region": {
                 "area_m2": round(r.region_area_m2, 1),
                 "cell_size_m": [round(v, 3) for v in self.cell_size_m],

@@ -85,7 +85,8 @@ def main() -> int:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     db_mb = path.stat().st_size / 2**20
     print(f"peak memory {peak:.0f} MB (before the runs {rss0:.0f} MB); database {db_mb:.0f} MB")
-    rows.append(f"| {date.today()} | peak memory | {peak:.0f} MB | | database {db_mb:.0f} MB | {platform.machine()} |\n")
+    rows.append(f"| {date.today()} | peak memory | {peak:.0f} MB | | database {db_mb:.0f} MB |"
+                f" {platform.machine()} |\n")
     res = HERE / "results" / "estimator_speed.md"
     if not res.exists():
         res.write_text("# Estimator speed (bench/estimator_speed.py)\n\n"

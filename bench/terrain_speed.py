@@ -71,7 +71,8 @@ def main() -> int:
         rate = nodes_i * n_az_i / seconds_f
         print(f"{name}: {nodes_i} nodes x {n_az_i} azimuths in {seconds_f:.1f} s (target {target:.0f} s), "
               f"{rate / 1e6:.1f} M horizon samples/s, peak {peak_mb} MB, {int(size) / nodes_i:.0f} bytes/skyline")
-        rows.append(f"| {date.today()} | {name} | {nodes_i} | {seconds_f:.1f} s | {target:.0f} s | {rate / 1e6:.1f} M/s | "
+        rows.append(f"| {date.today()} | {name} | {nodes_i} | {seconds_f:.1f} s | {target:.0f} s | "
+                    f"{rate / 1e6:.1f} M/s | "
                     f"{peak_mb} MB | {int(size) / nodes_i:.0f} | {os.cpu_count()} cores {platform.machine()}, "
                     f"load {load:.1f} |\n")
     res = HERE / "results" / "terrain_speed.md"

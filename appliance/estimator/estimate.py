@@ -37,7 +37,7 @@ MIN_RESCORE = 64
 #: A region wider than this many map cells is reported as ambiguous.
 AMBIGUOUS_CELLS = 25
 #: How many of the region's most likely nodes the sub-cell refinement examines.
-REFINE_NODES = 16
+REFINE_NODES = 6
 
 
 @dataclass(frozen=True)
@@ -238,17 +238,20 @@ def estimate(
         scored = region[np.isin(region, rescore)]
         order = np.argsort(-node_lower[scored])[:REFINE_NODES]
         tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
-        best_fit = (math.inf, frow, fcol, heading)
+        # scored like the grid: likelihood at sigma's midpoint plus the prior of the nearest node
+        best_fit = (-math.inf, rms, frow, fcol, heading)
         for cand in tries:
             k_c = int(np.argmin(ssd_r[np.searchsorted(rescore, cand)]))
             sh = float(node_shifts[cand, k_c])
             if sh > n_az / 2:
                 sh -= n_az
             r_c, c_c, h_c, rms_c = refine_subcell(grid, m, cand, sh * step, math.inf)
-            if rms_c < best_fit[0]:
-                best_fit = (rms_c, r_c, c_c, h_c)
+            near = int(round(r_c)) * grid.n_cols + int(round(c_c))
+            score = -n * rms_c * rms_c / (2.0 * mid * mid) + lp[near]
+            if score > best_fit[0]:
+                best_fit = (score, rms_c, r_c, c_c, h_c)
         if math.isfinite(best_fit[0]):
-            rms, frow, fcol, heading = best_fit
+            _, rms, frow, fcol, heading = best_fit
 
     cell_area = grid.dx_m * grid.dy_m
     area = region.size * cell_area

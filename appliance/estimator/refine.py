@@ -2,9 +2,9 @@
 
 The paper's answer was a grid node, so its error could not fall below the grid's spacing.  Here the
 skyline at a point between nodes is taken as the bilinear blend of the skylines of the nodes
-around it, the measured skyline is shifted by fractions of an azimuth step (linear interpolation
-on the circle), and the squared residual is minimised over position (+-1 cell around the best node,
-in tenths of a cell) and heading (+-1 step, in tenths), all as small matrix products.
+around it, turned by fractions of an azimuth step (linear interpolation on the circle), and the
+mean squared residual is minimised over position (+-1 cell around the node)
+and heading (+-1 step): quarters first, then twentieths around the best quarter.
 """
 
 from __future__ import annotations
@@ -17,16 +17,9 @@ import numpy as np
 if TYPE_CHECKING:
     from appliance.estimator.estimate import SkylineGrid
 
-FRACTIONS = np.linspace(-1.0, 1.0, 21)
-
-
-def shift_circular(values: np.ndarray, shift_steps: np.ndarray) -> np.ndarray:
-    """values[j + s] for fractional s, linear on the circle; NaN propagates.  Shape (len(s), n)."""
-    n = values.size
-    j = np.arange(n)[None, :] + np.asarray(shift_steps, float)[:, None]
-    j0 = np.floor(j).astype(np.intp)
-    t = j - j0
-    return values[j0 % n] * (1 - t) + values[(j0 + 1) % n] * t
+#: A first lattice of quarter cells and quarter steps over +-1, then twentieths over +-1/4.
+COARSE = np.linspace(-1.0, 1.0, 9)
+FINE = np.linspace(-0.25, 0.25, 11)
 
 
 def refine_subcell(
@@ -41,9 +34,18 @@ def refine_subcell(
     if not np.isfinite(grid.offset_deg[(rr * grid.n_cols + cc).ravel()]).all():
         return float(row), float(col), heading_deg, rms_deg
 
+    pr, pc, h, _ = _search(grid, measured, sky, (r0, r1, c0, c1), row, col, heading_deg, COARSE, COARSE)
+    return _search(grid, measured, sky, (r0, r1, c0, c1), pr, pc, h, FINE, FINE)
+
+
+def _search(
+    grid: SkylineGrid, measured: np.ndarray, sky: np.ndarray, box: tuple[int, int, int, int],
+    row: float, col: float, heading_deg: float, pos_fractions: np.ndarray, head_fractions: np.ndarray,
+) -> tuple[float, float, float, float]:
+    r0, r1, c0, c1 = box
     # positions on a fine lattice within the neighbourhood, bilinear blend of the node skylines
-    fr = np.clip(row + FRACTIONS, r0, r1)
-    fc = np.clip(col + FRACTIONS, c0, c1)
+    fr = np.clip(row + pos_fractions, r0, r1)
+    fc = np.clip(col + pos_fractions, c0, c1)
     grid_r, grid_c = np.meshgrid(fr, fc, indexing="ij")
     PR, PC = grid_r.ravel(), grid_c.ravel()
     i0 = np.minimum(np.floor(PR - r0).astype(int), max(r1 - r0 - 1, 0))
@@ -55,18 +57,24 @@ def refine_subcell(
     S = (sky[i0, j0] * (1 - ti) * (1 - tj) + sky[i0, j1] * (1 - ti) * tj
          + sky[i1, j0] * ti * (1 - tj) + sky[i1, j1] * ti * tj)  # (P, A)
 
-    # the measured skyline as it would read at each trial heading: true az = input az + heading
+    # The model is shifted, not the measurement: interpolating the noisy measurement between
+    # samples would average its noise away at fractional shifts and bias the heading towards them.
     step = grid.az_step_deg
-    trial = heading_deg + FRACTIONS * step
-    M = shift_circular(measured, -trial / step)  # (H, A): M[h, j] = measured at true az j
-    W = np.isfinite(M)
+    trial = heading_deg + head_fractions * step
     ok_s = np.isfinite(S).all(axis=0)
-    W &= ok_s[None, :]
-    M0 = np.where(W, M, 0.0)
     S0 = np.where(ok_s[None, :], S, 0.0)
-    Wf = W.astype(float)
-    n = Wf.sum(axis=1)
-    ssd = (np.sum(Wf * M0 * M0, axis=1)[:, None] - 2.0 * (M0 * Wf) @ S0.T + Wf @ (S0 * S0).T)
-    ssd = np.maximum(ssd, 0.0) / np.maximum(n, 1.0)[:, None]  # mean square, comparable across headings
+    valid = np.isfinite(measured)
+    m0 = np.where(valid, measured, 0.0)
+    n_az = measured.size
+    ssd = np.empty((trial.size, S.shape[0]))
+    for h, phi in enumerate(trial):
+        # model value at true azimuth j + phi, i.e. at input azimuth j
+        pos = np.arange(n_az) + phi / step
+        i0 = np.floor(pos).astype(np.intp)
+        t = pos - i0
+        a, b = i0 % n_az, (i0 + 1) % n_az
+        w = (valid & ok_s[a] & ok_s[b]).astype(float)
+        model = S0[:, a] * (1 - t) + S0[:, b] * t
+        ssd[h] = ((m0[None, :] - model) ** 2 * w[None, :]).sum(axis=1) / max(float(w.sum()), 1.0)
     h, p = np.unravel_index(int(np.argmin(ssd)), ssd.shape)
-    return float(PR[p]), float(PC[p]), float(trial[h]), math.sqrt(float(ssd[h, p]))
+    return float(PR[p]), float(PC[p]), float(trial[h]), math.sqrt(max(float(ssd[h, p]), 0.0))

@@ -1,0 +1,148 @@
+"""Grid search, heading search, sub-cell refinement and fusion on synthetic skyline grids."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from appliance.errors import InputError
+from appliance.estimator import SkylineGrid, estimate, resample_to_grid, transport_prior
+from appliance.estimator.search import ssd_all_shifts, ssd_for_shifts
+from appliance.terrain.database import quantize
+
+N_AZ = 360
+
+
+def skyline_field(rows: np.ndarray, cols: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Skylines whose harmonics change in amplitude across the map: (len(rows), N_AZ) degrees.
+
+    Linear in position, so the skyline between nodes is exactly the blend of its nodes'."""
+    rng = np.random.default_rng(seed)
+    az = np.radians(np.arange(N_AZ))
+    out = np.zeros((rows.size, N_AZ))
+    for k in range(1, 9):
+        amp = rng.uniform(0.5, 3.0) / k
+        fr, fc, ph = rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), rng.uniform(0, 2 * np.pi)
+        out += amp * (1.0 + fr * (rows[:, None] - 20) + fc * (cols[:, None] - 25)) * np.sin(k * az[None, :] + ph)
+    return out + 3.0
+
+
+def make_grid(n_rows: int = 40, n_cols: int = 50, seed: int = 0, cell_m: float = 30.0) -> SkylineGrid:
+    r, c = np.meshgrid(np.arange(n_rows), np.arange(n_cols), indexing="ij")
+    codes, off, step = quantize(skyline_field(r.ravel().astype(float), c.ravel().astype(float), seed))
+    return SkylineGrid(codes, off, step, n_rows, n_cols, cell_m, cell_m)
+
+
+def reading(true_el: np.ndarray, correction_deg: float, rng, noise=0.0, missing=0):
+    az = np.arange(N_AZ, dtype=float)
+    el = np.interp((az + correction_deg) % 360, az, true_el, period=360) + rng.normal(0, noise, N_AZ)
+    if missing:
+        el[rng.choice(N_AZ, missing, replace=False)] = np.nan
+    return az, el
+
+
+def test_fft_residuals_equal_the_direct_ones():
+    g = make_grid(6, 7)
+    rng = np.random.default_rng(1)
+    m = g.skylines_deg(20) + rng.normal(0, 0.3, N_AZ)
+    m[rng.choice(N_AZ, 40, replace=False)] = np.nan
+    direct = ssd_for_shifts(g.codes, g.offset_deg, g.step_deg, m, np.arange(N_AZ))
+    fft = np.vstack([b for _, b in ssd_all_shifts(g.codes, g.offset_deg, g.step_deg, m, chunk=10)])
+    assert np.allclose(fft, direct, rtol=1e-4, atol=1e-2)
+
+
+def test_node_and_heading_recovered_with_a_compass():
+    g = make_grid()
+    rng = np.random.default_rng(2)
+    node = 17 * g.n_cols + 23
+    az, el = reading(g.skylines_deg(node), 3.0, rng, noise=0.2, missing=30)
+    res = estimate(g, az, el, (0.15, 0.4), 4.0)
+    assert res.node == node
+    assert res.heading_correction_deg == pytest.approx(3.0, abs=0.25)
+    assert node in res.region_nodes
+    assert 0 <= res.lower <= res.upper <= 1
+
+
+def test_unknown_heading_is_found_anywhere_on_the_circle():
+    g = make_grid(seed=4)
+    rng = np.random.default_rng(3)
+    node = 9 * g.n_cols + 31
+    az, el = reading(g.skylines_deg(node), -137.0, rng, noise=0.3, missing=60)
+    res = estimate(g, az, el, (0.2, 0.5), None)
+    assert res.node == node
+    assert res.heading_correction_deg == pytest.approx(-137.0, abs=0.5)
+
+
+def test_sub_cell_refinement_finds_a_point_between_nodes():
+    g = make_grid(seed=5)
+    rng = np.random.default_rng(4)
+    r, c = 20.3, 14.7
+    true_el = skyline_field(np.array([r]), np.array([c]), seed=5)[0]
+    az, el = reading(true_el, 0.0, rng, noise=0.05)
+    res = estimate(g, az, el, (0.05, 0.3), 2.0)
+    assert abs(res.row - r) <= 0.15 and abs(res.col - c) <= 0.15
+    node_error = min(np.hypot(rr - r, cc - c) for rr in (20, 21) for cc in (14, 15))
+    assert np.hypot(res.row - r, res.col - c) < node_error
+
+
+def test_ambiguous_skyline_gives_a_large_region_and_says_so():
+    g = make_grid()
+    flat = np.zeros(N_AZ) + 3.0  # a skyline like none on the map: matches everything about as badly
+    res = estimate(g, np.arange(N_AZ, dtype=float), flat, (0.2, 0.6), 4.0)
+    assert res.region_nodes.size > 25
+    assert res.ambiguous
+    assert any("ambiguous" in n for n in res.notes)
+
+
+def test_mostly_missing_skyline_is_refused():
+    g = make_grid(5, 5)
+    el = np.full(N_AZ, np.nan)
+    el[:60] = 2.0
+    with pytest.raises(InputError, match="fewer than the 20%"):
+        estimate(g, np.arange(N_AZ, dtype=float), el)
+
+
+def test_resampling_keeps_grid_samples_and_never_bridges_gaps():
+    az = np.arange(0.0, 360.0, 1.0)
+    el = np.sin(np.radians(az))
+    el[100:110] = np.nan
+    out = resample_to_grid(az, el, 360)
+    assert np.array_equal(np.isnan(out), np.isnan(el))
+    half = resample_to_grid(az + 0.5, el, 360)
+    assert np.isnan(half[101:110]).all()
+    assert half[50] == pytest.approx(0.5 * (el[49] + el[50]))
+
+
+def test_transported_prior_moves_by_the_displacement():
+    post = np.zeros((30, 40))
+    post[10, 12] = 1.0
+    lp = transport_prior(post.ravel(), 30, 40, 20.0, 25.0, east_m=60.0, north_m=50.0, sigma_m=0.0)
+    peak = np.unravel_index(np.argmax(lp), (30, 40))
+    assert peak == (8, 15)  # 50 m north = 2 rows up, 60 m east = 3 columns right
+    blurred = np.exp(transport_prior(post.ravel(), 30, 40, 20.0, 25.0, 60.0, 50.0, 40.0)).reshape(30, 40)
+    assert np.unravel_index(np.argmax(blurred), (30, 40)) == (8, 15)
+    assert blurred[8, 15] < 0.2 and blurred.sum() == pytest.approx(1.0)
+
+
+def test_fusion_resolves_what_one_panorama_cannot():
+    # two identical halves: the first skyline cannot tell them apart, the prior from a second
+    # station (moved by a known step) can
+    half = make_grid(20, 20, seed=7)
+    codes = np.concatenate([half.codes.reshape(20, 20, N_AZ), half.codes.reshape(20, 20, N_AZ)], axis=1)
+    off = np.concatenate([half.offset_deg.reshape(20, 20), half.offset_deg.reshape(20, 20)], axis=1)
+    step = np.concatenate([half.step_deg.reshape(20, 20), half.step_deg.reshape(20, 20)], axis=1)
+    g = SkylineGrid(codes.reshape(-1, N_AZ), off.ravel(), step.ravel(), 20, 40, 30.0, 30.0)
+    rng = np.random.default_rng(9)
+    first = 10 * 40 + 5  # left half; its twin is 10 * 40 + 25
+    alone = estimate(g, *reading(g.skylines_deg(first), 0.0, rng, noise=0.2), (0.15, 0.4), 2.0)
+    assert {first, first + 20} <= set(alone.region_nodes.tolist())
+    # a prior that says "we came from the left half"
+    prior = np.zeros((20, 40))
+    prior[:, :20] = 1.0
+    lp = transport_prior(prior.ravel() / prior.sum(), 20, 40, 30.0, 30.0, 0.0, 0.0, 30.0)
+    fused = estimate(g, *reading(g.skylines_deg(first), 0.0, rng, noise=0.2), (0.15, 0.4), 2.0, log_prior=lp)
+    assert fused.node == first
+    assert round(fused.col) == 5
+    # alone the twins are equally likely; with the prior the twin is a billion times less so
+    assert abs(alone.log_lower_map[first] - alone.log_lower_map[first + 20]) < 1.0
+    assert fused.log_lower_map[first] - fused.log_lower_map[first + 20] > 15.0
