@@ -75,6 +75,6 @@ def _search(
         a, b = i0 % n_az, (i0 + 1) % n_az
         w = (valid & ok_s[a] & ok_s[b]).astype(float)
         model = S0[:, a] * (1 - t) + S0[:, b] * t
-        ssd[h] = ((m0[None, :] - model) ** 2 * w[None, :]).sum(axis=1) / max(float(w.sum()), 1.0)
+        ssd[ih] = ((m0[None, :] - model) ** 2 * w[None, :]).sum(axis=1) / max(float(w.sum()), 1.0)
     h, p = np.unravel_index(int(np.argmin(ssd)), ssd.shape)
     return float(PR[p]), float(PC[p]), float(trial[h]), math.sqrt(max(float(ssd[h, p]), 0.0))
