@@ -67,7 +67,7 @@ def _search(
     m0 = np.where(valid, measured, 0.0)
     n_az = measured.size
     ssd = np.empty((trial.size, S.shape[0]))
-    for h, phi in enumerate(trial):
+    for ih, phi in enumerate(trial):
         # model value at true azimuth j + phi, i.e. at input azimuth j
         pos = np.arange(n_az) + phi / step
         i0 = np.floor(pos).astype(np.intp)
@@ -76,5 +76,5 @@ def _search(
         w = (valid & ok_s[a] & ok_s[b]).astype(float)
         model = S0[:, a] * (1 - t) + S0[:, b] * t
         ssd[ih] = ((m0[None, :] - model) ** 2 * w[None, :]).sum(axis=1) / max(float(w.sum()), 1.0)
-    h, p = np.unravel_index(int(np.argmin(ssd)), ssd.shape)
-    return float(PR[p]), float(PC[p]), float(trial[h]), math.sqrt(max(float(ssd[h, p]), 0.0))
+    best_h, best_p = (int(v) for v in np.unravel_index(int(np.argmin(ssd)), ssd.shape))
+    return float(PR[best_p]), float(PC[best_p]), float(trial[best_h]), math.sqrt(max(float(ssd[best_h, best_p]), 0.0))
