@@ -65,8 +65,8 @@ class DetectionConfig:
             object.__setattr__(self, "method", Method(self.method))
         if self.smooth_sigma_px <= 0:
             raise ConfigError(f"skyline.smooth_sigma_px must be positive, got {self.smooth_sigma_px}")
-        if self.max_jump_px < 1:
-            raise ConfigError(f"skyline.max_jump_px must be at least 1, got {self.max_jump_px}")
+        if not 1 <= self.max_jump_px <= 127:
+            raise ConfigError(f"skyline.max_jump_px must be in 1..127, got {self.max_jump_px}")
         if not 0 < self.step_deg <= 10:
             raise ConfigError(f"skyline.step_deg must be in (0, 10], got {self.step_deg}")
         if self.min_elevation_deg >= self.max_elevation_deg:
@@ -164,27 +164,26 @@ def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
 
 
 def _features(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
-    tex = np.minimum(texture, np.float32(0.2))[..., None] * np.float32(3.0)
-    return np.concatenate([bgr, tex], axis=-1).reshape(-1, 4)
+    """Per pixel (HxWx4 float32): blue, green, red and the (capped, scaled) texture."""
+    tex = np.minimum(texture, np.float32(0.2)) * np.float32(3.0)
+    return np.asarray(cv2.merge([bgr[..., 0], bgr[..., 1], bgr[..., 2], tex]))
 
 
 def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.ndarray | None:
-    """Log-likelihood ratio sky vs ground of each feature row, from Gaussian models; clipped to +-4."""
+    """Log-likelihood ratio sky vs ground of each feature pixel (HxWx4), from Gaussian models; clipped to +-4."""
     if sky.shape[0] < 50 or ground.shape[0] < 50:
         return None
-    out = np.zeros(feats.shape[0], dtype=np.float32)
+    out = np.zeros(feats.shape[:2], dtype=np.float32)
+    ones = np.ones((1, feats.shape[2]), dtype=np.float32)
     for sign, sample in ((1.0, sky), (-1.0, ground)):
         mu = sample.mean(axis=0, dtype=np.float64)
         cov = np.cov(sample, rowvar=False) + np.eye(sample.shape[1]) * 1e-4
-        # Mahalanobis distance as a squared norm: with inv(cov) = L L^T, |(x - mu) L|^2
-        chol = np.linalg.cholesky(np.linalg.inv(cov)).astype(np.float32)
-        d = feats - mu.astype(np.float32)
-        maha = np.zeros(feats.shape[0], dtype=np.float32)
-        for j in range(chol.shape[1]):  # |d L|^2 column by column: no BLAS threads on a small product
-            y = d[:, 0] * chol[0, j]
-            for k in range(1, chol.shape[0]):
-                y += d[:, k] * chol[k, j]
-            maha += y * y
+        # Mahalanobis distance as a squared norm: with inv(cov) = L L^T, |L^T (x - mu)|^2, the affine
+        # map applied per pixel by cv2.transform (one pass, no temporaries per feature)
+        lt = np.linalg.cholesky(np.linalg.inv(cov)).T
+        affine = np.hstack([lt, -(lt @ mu)[:, None]]).astype(np.float32)
+        y = cv2.transform(feats, affine)
+        maha = cv2.transform(y * y, ones)
         logdet = float(np.linalg.slogdet(cov)[1])
         out -= np.float32(sign * 0.5) * (maha + np.float32(logdet))
     return np.clip(out / np.float32(4.0), -4.0, 4.0)
@@ -195,29 +194,37 @@ def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.
 
 @numba.njit(cache=True)
 def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:  # pragma: no cover - jit
-    """Row per column minimising sum(cost_t[c, row]) + jump_cost * sum |row step|; cost_t is WxH."""
+    """Row per column minimising sum(cost_t[c, row]) + jump_cost * sum |row step|; cost_t is WxH.
+
+    The inner loops run over rows for one step offset at a time (vectorisable, float32); the
+    accumulated cost is shifted by its minimum at every column, so it stays small and float32 keeps
+    its precision; back-pointers are int8 offsets (max_jump <= 127) to stay in cache.
+    """
     w, h = cost_t.shape
-    acc = np.empty(h, dtype=np.float64)
-    new = np.empty(h, dtype=np.float64)
-    back = np.empty((w, h), dtype=np.int32)
+    acc = np.empty(h, dtype=np.float32)
+    new = np.empty(h, dtype=np.float32)
+    back = np.zeros((w, h), dtype=np.int8)
     for r in range(h):
         acc[r] = cost_t[0, r]
-        back[0, r] = r
     for c in range(1, w):
+        bk = back[c]
         for r in range(h):
-            lo = max(0, r - max_jump)
-            hi = min(h - 1, r + max_jump)
-            best = np.inf
-            arg = r
-            for q in range(lo, hi + 1):
-                v = acc[q] + jump_cost * abs(q - r)
-                if v < best:
-                    best = v
-                    arg = q
-            new[r] = best + cost_t[c, r]
-            back[c, r] = arg
+            new[r] = np.inf
+        # offsets in increasing order with a strict comparison: ties go to the uppermost row
+        for d in range(-max_jump, max_jump + 1):
+            pen = np.float32(jump_cost * abs(d))
+            lo = max(0, -d)
+            hi = min(h, h - d)
+            for r in range(lo, hi):
+                v = acc[r + d] + pen
+                if v < new[r]:
+                    new[r] = v
+                    bk[r] = d
+        low = np.float32(np.inf)
         for r in range(h):
-            acc[r] = new[r]
+            low = min(low, new[r])
+        for r in range(h):
+            acc[r] = new[r] - low + cost_t[c, r]
     path = np.empty(w, dtype=np.int32)
     best = np.inf
     arg = 0
@@ -227,31 +234,46 @@ def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:
             arg = r
     path[w - 1] = arg
     for c in range(w - 1, 0, -1):
-        path[c - 1] = back[c, path[c]]
+        path[c - 1] = path[c] + back[c, path[c]]
     return path
 
 
-def _band_sums(score: np.ndarray, band: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, the sum of ``score`` over the ``band`` rows above it and over it and the rows below."""
-    h = score.shape[0]
-    cs = np.zeros((h + 1,) + score.shape[1:], dtype=np.float32)
-    np.cumsum(score, axis=0, out=cs[1:])
-    idx = np.arange(h)
-    top = np.clip(idx - band, 0, h)
-    bot = np.clip(idx + band, 0, h)
-    above = cs[idx] - cs[top]
-    below = cs[bot] - cs[idx]
-    return above, below
+@numba.njit(cache=True)
+def _cost_columns(
+    llr_t: np.ndarray, edge_t: np.ndarray, masked: np.ndarray, band: int, edge_weight: float
+) -> np.ndarray:  # pragma: no cover - jit
+    """Per column (WxH, from transposed WxH inputs): region term minus weighted edge term.
+
+    Region: (sum of clip(llr) over the ``band`` rows from the pixel down) minus (the same over the
+    ``band`` rows above it), divided by ``band``: -2 (sky above, ground below) .. +2.  Edge: the
+    downward drop, saturating at 0.1.  Masked columns cost nothing.
+    """
+    w, h = llr_t.shape
+    out = np.zeros((w, h), dtype=np.float32)
+    cs = np.empty(h + 1, dtype=np.float64)
+    inv_band = 1.0 / band
+    for c in range(w):
+        if masked[c]:
+            continue
+        cs[0] = 0.0
+        for r in range(h):
+            cs[r + 1] = cs[r] + min(max(llr_t[c, r], -1.0), 1.0)
+        for r in range(h):
+            top = max(r - band, 0)
+            bot = min(r + band, h)
+            region = ((cs[bot] - cs[r]) - (cs[r] - cs[top])) * inv_band
+            e = min(max(edge_t[c, r] * 10.0, 0.0), 1.0)
+            out[c, r] = region - edge_weight * e
+    return out
 
 
 def _path_cost(
     edge: np.ndarray, llr: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, edge_weight: float
 ) -> np.ndarray:
-    above, below = _band_sums(np.clip(llr, -1.0, 1.0).astype(np.float32), cfg.band_px)
-    region = (below - above) / np.float32(cfg.band_px)  # -2 (sky above, ground below) .. +2
-    cost = region - np.float32(edge_weight) * np.clip(edge / np.float32(0.1), 0.0, 1.0)
-    cost[:, masked] = 0.0
-    return np.ascontiguousarray(cost.T, dtype=np.float64)
+    """The DP cost, transposed (WxH float32), of every pixel of an HxW edge and sky log-likelihood map."""
+    llr_t = cv2.transpose(np.ascontiguousarray(llr, dtype=np.float32))
+    edge_t = cv2.transpose(np.ascontiguousarray(edge, dtype=np.float32))
+    return np.asarray(_cost_columns(llr_t, edge_t, np.ascontiguousarray(masked), cfg.band_px, float(edge_weight)))
 
 
 def _run_dp(cost_t: np.ndarray, cfg: DetectionConfig, wrap: bool) -> np.ndarray:
@@ -366,11 +388,10 @@ def _learn_llr(
     gnd_sel = (rr > path[None, :] + margin) & (rr <= path[None, :] + band) & use
     feats = _features(sm, texture)
     step = max(1, int(sky_sel.sum() // 20000))
-    sky = feats[sky_sel.ravel()][::step]
+    sky = feats[sky_sel][::step]
     step = max(1, int(gnd_sel.sum() // 20000))
-    gnd = feats[gnd_sel.ravel()][::step]
-    llr = _gaussian_llr(feats, sky, gnd)
-    return None if llr is None else llr.reshape(h, w).astype(np.float32)
+    gnd = feats[gnd_sel][::step]
+    return _gaussian_llr(feats, sky, gnd)
 
 
 def _mean_above(score: np.ndarray, path: np.ndarray, gap: int = 2, depth: int = 8) -> np.ndarray:

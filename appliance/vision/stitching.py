@@ -32,6 +32,7 @@ from appliance.vision.panorama import Panorama, Projection, full_circle_width
 MIN_PEAK_RESPONSE = 0.03  # phase-correlation peak below which two images are taken not to overlap
 MIN_OVERLAP_PX = 16
 MIN_CORRELATION = 0.5  # normalised correlation of a registered overlap below which images do not match
+LM_STRIDE_PX = 2  # the refinement samples the overlap every LM_STRIDE_PX rows and columns
 
 
 @dataclass(frozen=True)
@@ -73,15 +74,47 @@ def _strip_geometry(k: CameraIntrinsics, f: float) -> tuple[int, int, float]:
     return ws, height, float(horizon)
 
 
-def _warp(shot: Shot, k: CameraIntrinsics, f: float, frac: float, ws: int, h: int, horizon: float) -> _Strip:
+class _WarpMaps:
+    """Remap maps from strip pixels to photo pixels, computed once per (pitch, roll).
+
+    The camera model is evaluated on a grid one column wider than the strip, starting one column
+    to the left; a strip shifted by a fraction ``frac`` in [0, 1) of a column takes its maps by
+    linear interpolation between neighbouring grid columns.  The maps are smooth (a fraction of a
+    pixel per column of curvature), so the interpolation error is far below 1e-3 px, and every
+    strip, whether for registration or for blending, samples the photo exactly once.
+    """
+
+    def __init__(self, k: CameraIntrinsics, f: float, ws: int, h: int, horizon: float) -> None:
+        self._k, self._f, self._ws, self._h, self._horizon = k, f, ws, h, horizon
+        self._grids: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
+
+    def _grid(self, pitch_deg: float, roll_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        key = (float(pitch_deg), float(roll_deg))
+        if key not in self._grids:
+            x = np.arange(self._ws + 1, dtype=np.float64) - (self._ws - 1) / 2.0 - 1.0
+            y = np.arange(self._h, dtype=np.float64)
+            az = np.degrees(x / self._f)
+            el = np.degrees(np.arctan((self._horizon - y) / self._f))
+            azg, elg = np.meshgrid(az, el)
+            u, v = directions_to_pixels(self._k, CameraPose(0.0, pitch_deg, roll_deg), azg, elg)
+            self._grids[key] = (u, v)
+        return self._grids[key]
+
+    def maps(self, pitch_deg: float, roll_deg: float, frac: float) -> tuple[np.ndarray, np.ndarray]:
+        """Photo pixel (u, v) of every strip pixel (NaN behind the camera), strip shifted by ``frac``."""
+        u, v = self._grid(pitch_deg, roll_deg)
+        if frac == 0.0:
+            return u[:, 1:], v[:, 1:]
+        # strip column j sits at grid abscissa x_(j+1) - frac, between grid columns j and j + 1
+        a, b = np.float64(frac), np.float64(1.0 - frac)
+        return a * u[:, :-1] + b * u[:, 1:], a * v[:, :-1] + b * v[:, 1:]
+
+
+def _warp(shot: Shot, k: CameraIntrinsics, maps: _WarpMaps, frac: float) -> _Strip:
     """Warp ``shot`` onto strip columns centred on its optical axis, shifted by ``frac`` columns."""
-    x = np.arange(ws, dtype=np.float64) - (ws - 1) / 2.0 - frac
-    y = np.arange(h, dtype=np.float64)
-    az = np.degrees(x / f)
-    el = np.degrees(np.arctan((horizon - y) / f))
-    azg, elg = np.meshgrid(az, el)
-    u, v = directions_to_pixels(k, CameraPose(0.0, shot.pitch_deg, shot.roll_deg), azg, elg)
-    inside = np.isfinite(u) & (u >= 0) & (u <= k.width - 1) & (v >= 0) & (v <= k.height - 1)
+    u, v = maps.maps(shot.pitch_deg, shot.roll_deg, frac)
+    with np.errstate(invalid="ignore"):
+        inside = np.isfinite(u) & (u >= 0) & (u <= k.width - 1) & (v >= 0) & (v <= k.height - 1)
     mx = np.where(inside, u, -10).astype(np.float32)
     my = np.where(inside, v, -10).astype(np.float32)
     img = cv2.remap(shot.image.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
@@ -129,14 +162,39 @@ def _register(a: _Strip, b: _Strip, nominal_px: float, names: tuple[str, str]) -
     h, w = pa.shape
     if w - 2 * margin < MIN_OVERLAP_PX:
         return s + dx
-    ys, xs = np.mgrid[0:h, margin : w - margin].astype(np.float32)
-    target = pa[:, margin : w - margin].ravel()
+    ys, xs = np.mgrid[0:h:LM_STRIDE_PX, margin : w - margin : LM_STRIDE_PX].astype(np.float32)
+    target = pa[::LM_STRIDE_PX, margin : w - margin : LM_STRIDE_PX].ravel()
+    # pb with its horizontal and vertical derivatives (central differences), warped in one remap:
+    # the residual and its analytic Jacobian come from the same samples
+    stack = cv2.merge(
+        [
+            pb,
+            cv2.Sobel(pb, cv2.CV_32F, 1, 0, ksize=1, scale=0.5),
+            cv2.Sobel(pb, cv2.CV_32F, 0, 1, ksize=1, scale=0.5),
+        ]
+    )
+    cache: dict[tuple[float, float], np.ndarray] = {}
+
+    def sampled(p: np.ndarray) -> np.ndarray:
+        key = (float(p[0]), float(p[1]))
+        if key not in cache:
+            cache.clear()
+            cache[key] = cv2.remap(stack, xs + np.float32(p[0]), ys + np.float32(p[1]), cv2.INTER_LINEAR).reshape(-1, 3)
+        return cache[key]
 
     def residual(p: np.ndarray) -> np.ndarray:
-        warped = cv2.remap(pb, xs + np.float32(p[0]), ys + np.float32(p[1]), cv2.INTER_LINEAR)
-        return np.asarray(p[2] * warped.ravel() + p[3] - target, dtype=np.float64)
+        return np.asarray(p[2] * sampled(p)[:, 0] + p[3] - target, dtype=np.float64)
 
-    fit = least_squares(residual, x0=np.array([-dx, -dy, 1.0, 0.0]), method="lm", diff_step=1e-3)
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        smp = sampled(p)
+        jac = np.empty((smp.shape[0], 4), dtype=np.float64)
+        jac[:, 0] = p[2] * smp[:, 1]
+        jac[:, 1] = p[2] * smp[:, 2]
+        jac[:, 2] = smp[:, 0]
+        jac[:, 3] = 1.0
+        return jac
+
+    fit = least_squares(residual, x0=np.array([-dx, -dy, 1.0, 0.0]), jac=jacobian, method="lm")
     p = fit.x if fit.success and abs(fit.x[0] + dx) <= 2.0 else np.array([-dx, -dy, 1.0, 0.0])
     warped = cv2.remap(pb, xs + np.float32(p[0]), ys + np.float32(p[1]), cv2.INTER_LINEAR).ravel()
     ncc = float(np.corrcoef(warped, target)[0, 1])
@@ -170,7 +228,8 @@ def stitch(
     order = np.argsort([np.mod(s.stage_angle_deg, 360.0) for s in shots], kind="stable")
     stage = np.array([np.mod(shots[i].stage_angle_deg, 360.0) for i in order])
     n = len(shots)
-    strips = [_warp(shots[i], intrinsics, f, 0.0, ws, height, horizon) for i in order]
+    maps = _WarpMaps(intrinsics, f, ws, height, horizon)
+    strips = [_warp(shots[i], intrinsics, maps, 0.0) for i in order]
 
     # nominal gaps (deg) between neighbours; a full circle closes from the last back to the first
     gaps = np.diff(stage)
@@ -198,7 +257,7 @@ def stitch(
     yaw_sorted += float(np.mean(stage - yaw_sorted))  # keep the stage angles' mean
     yaw_sorted += heading_offset_deg
 
-    pano = _blend(shots, order, yaw_sorted, intrinsics, f, ws, height, horizon, full)
+    pano = _blend(shots, order, yaw_sorted, intrinsics, maps, f, ws, height, horizon, full)
     yaw = np.empty(n)
     yaw[order] = np.mod(yaw_sorted, 360.0)
     return StitchResult(pano, yaw, measured, misclosure)
@@ -209,6 +268,7 @@ def _blend(
     order: np.ndarray,
     yaw_sorted: np.ndarray,
     k: CameraIntrinsics,
+    maps: _WarpMaps,
     f: float,
     ws: int,
     height: int,
@@ -227,17 +287,31 @@ def _blend(
     for idx, c in zip(order, centres):
         start = c - (ws - 1) / 2.0 - origin
         first = int(math.floor(start))
-        strip = _warp(shots[idx], k, f, start - first, ws, height, horizon)
-        cols = np.arange(first, first + ws)
-        if full:
-            cols = np.mod(cols, width)
-        keep = (cols >= 0) & (cols < width)
-        wgt = strip.weight[:, keep]
-        # a strip is narrower than the panorama, so its columns are distinct even modulo the width
-        acc[:, cols[keep]] += strip.image[:, keep] * wgt[..., None]
-        wsum[:, cols[keep]] += wgt
+        strip = _warp(shots[idx], k, maps, start - first)
+        weighted = strip.image * strip.weight[..., None]
+        # the strip's columns as at most two contiguous runs of panorama columns (two where a full
+        # circle wraps); a strip is narrower than the panorama, so the runs do not overlap
+        for lo, hi, j in _column_runs(first, ws, width, full):
+            acc[:, lo:hi] += weighted[:, j : j + hi - lo]
+            wsum[:, lo:hi] += strip.weight[:, j : j + hi - lo]
     covered = wsum > 1e-6
-    out = np.where(covered[..., None], acc / np.maximum(wsum, 1e-6)[..., None], 0.0)
-    image = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    out = acc / np.maximum(wsum, np.float32(1e-6))[..., None]
+    out[~covered] = 0.0
+    image = np.clip(out + np.float32(0.5), 0, 255).astype(np.uint8)
     azimuth0 = float(np.mod(math.degrees(origin / f), 360.0))
     return Panorama(image, Projection.CYLINDRICAL, f, azimuth0, horizon, full)
+
+
+def _column_runs(first: int, ws: int, width: int, full: bool) -> list[tuple[int, int, int]]:
+    """Runs ``(lo, hi, j)``: panorama columns [lo, hi) take strip columns from ``j`` on.
+
+    The strip's columns are panorama columns ``first .. first + ws - 1``; on a full circle they
+    wrap modulo ``width`` (two runs at the seam), otherwise columns outside the panorama are dropped.
+    """
+    if full:
+        a = first % width
+        if a + ws <= width:
+            return [(a, a + ws, 0)]
+        return [(a, width, 0), (0, a + ws - width, width - a)]
+    lo, hi = max(first, 0), min(first + ws, width)
+    return [(lo, hi, lo - first)] if hi > lo else []
