@@ -175,6 +175,10 @@ class DevicesConfig:
     inclinometer: InclinometerConfig = field(default_factory=InclinometerConfig)
     stage: StageConfig = field(default_factory=StageConfig)
     camera: CameraDeviceConfig = field(default_factory=CameraDeviceConfig)
+    # calibration TOML written by `viper calibrate compass|inclinometer`: its [compass] table
+    # (hard_iron_offset in tesla, soft_iron_matrix) and [inclinometer] table (pitch_offset_deg,
+    # roll_offset_deg) replace the same keys of [devices.compass] / [devices.inclinometer]
+    calibration_file: Path | None = None
 
 
 @dataclass(frozen=True)

@@ -2,9 +2,16 @@
 
 A magnetometer reading is ``raw = S (h + ...) + b``: a hard-iron offset ``b`` and a soft-iron/scale
 distortion that turns the sphere of constant field magnitude into an ellipsoid.  The correction
-``h = W (raw - b)`` (``HardSoftIron.apply``) maps the fitted ellipsoid back onto a sphere whose
-radius is the geometric mean of the ellipsoid's semi-axes, so the corrected readings keep the
-sensor's units (gauss).
+``h = W (raw - b)`` (:class:`appliance.drivers.magnetometer.HardSoftIron`, the drivers' type) maps
+the fitted ellipsoid back onto a sphere whose radius is the geometric mean of the ellipsoid's
+semi-axes, so the corrected readings keep the sensor's units.
+
+Units: the fit works in the log's units (gauss: the ``mag_*_gauss`` columns), so
+``CompassCalibration.iron`` and the printed report are in gauss.  The file it writes is SI: the
+``[compass]`` table of the calibration TOML holds ``hard_iron_offset`` in tesla and the
+dimensionless ``soft_iron_matrix`` (row-major), the keys and units of the ``[devices.compass]``
+configuration, which is what the magnetometer driver applies to its readings in tesla
+(``CompassCalibration.iron_tesla``; see :mod:`appliance.drivers.magnetometer`).
 
 * ``mode="sphere"``: the platform was turned through (nearly) all orientations; a general quadric
   is fitted by least squares and must be an ellipsoid.
@@ -29,6 +36,12 @@ from typing import Any
 
 import numpy as np
 
+from appliance.drivers.magnetometer import (
+    CALIBRATION_TABLE,
+    GAUSS_TO_TESLA,
+    MOUNTING_KEY,
+    HardSoftIron,
+)
 from appliance.errors import CalibrationError, InputError
 from calibration.config_edit import significant, update_toml_table
 
@@ -40,31 +53,8 @@ MIN_SAMPLES = 20
 MIN_AXIS_SPREAD_RATIO = 0.05  # sphere mode: smallest / largest principal spread of the readings
 MAX_HEADING_GAP_DEG = 60.0  # level mode: the turn may leave no gap wider than this
 LEVEL_DOWN = (0.0, 0.0, -1.0)  # down in a z-up body frame
+LEGACY_KEYS = ("offset", "matrix")  # the table's keys before it held SI units (gauss offset)
 MAX_ACCEL_EXTRAPOLATION_S = 0.5  # the accelerometer log may start/end this much inside the magnetometer's
-
-
-@dataclass(frozen=True)
-class HardSoftIron:
-    """Magnetometer correction ``corrected = matrix @ (raw - offset)`` (gauss; matrix row-major)."""
-
-    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    matrix: tuple[float, float, float, float, float, float, float, float, float] = (
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-    )
-
-    def apply(self, xyz: Any) -> np.ndarray:
-        """Corrected field for one reading (3,) or many (N, 3), gauss."""
-        raw = np.asarray(xyz, dtype=np.float64)
-        W = np.asarray(self.matrix, dtype=np.float64).reshape(3, 3)
-        return (raw - np.asarray(self.offset)) @ W.T
 
 
 @dataclass(frozen=True)
@@ -85,7 +75,7 @@ class CompassCalibration:
     """The fitted correction and the figures that show what it did."""
 
     mode: str
-    iron: HardSoftIron
+    iron: HardSoftIron  # in the log's units (gauss)
     n: int
     field_gauss: float
     magnitude_spread_before: float  # std / mean of |B| (sphere) or of |B_xy| (level), raw
@@ -95,6 +85,11 @@ class CompassCalibration:
     heading_error_rms_after_deg: float | None
     mounting_offset_deg: float | None  # corrected heading + declination - known bearing
     declination_deg: float
+
+    @property
+    def iron_tesla(self) -> HardSoftIron:
+        """The correction for readings in tesla (what the driver reads and the file holds)."""
+        return self.iron.scaled(GAUSS_TO_TESLA)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -278,7 +273,7 @@ def fit_level_ellipse(xyz: np.ndarray) -> tuple[HardSoftIron, float]:
     W[:2, :2] = W2
     offset = np.array([*(centre * scale + mu), 0.0])
     iron = _iron(offset, W)
-    headings = heading_deg(iron.apply(xyz))
+    headings = heading_deg(iron.apply_array(xyz))
     gap = _largest_gap_deg(headings)
     if gap > MAX_HEADING_GAP_DEG:
         raise CalibrationError(
@@ -374,7 +369,7 @@ def calibrate_compass(
         iron, field = fit_level_ellipse(raw)
     else:
         raise InputError(f"compass mode must be 'sphere' or 'level', got {mode!r}")
-    corrected = iron.apply(raw)
+    corrected = iron.apply_array(raw)
     components = slice(0, 3) if mode == "sphere" else slice(0, 2)
     h_raw = heading_deg(raw, down)
     h_cal = heading_deg(corrected, down)
@@ -433,19 +428,26 @@ def calibrate_compass_file(
 
 
 def compass_table(result: CompassCalibration) -> dict[str, Any]:
-    """The ``[compass]`` table of the calibration file (what the magnetometer driver reads)."""
+    """The ``[compass]`` table of the calibration file, SI units: what the magnetometer driver reads.
+
+    ``hard_iron_offset`` in tesla, ``soft_iron_matrix`` (9 floats, row-major), and
+    ``mounting_offset_deg`` when a known bearing was given.
+    """
     table: dict[str, Any] = {
-        "offset": [significant(v, 8) for v in result.iron.offset],
-        "matrix": [significant(v, 8) for v in result.iron.matrix],
+        key: [significant(v, 8) for v in values] for key, values in result.iron_tesla.to_table().items()
     }
     if result.mounting_offset_deg is not None:
-        table["mounting_offset_deg"] = significant(result.mounting_offset_deg, 6)
+        table[MOUNTING_KEY] = significant(result.mounting_offset_deg, 6)
     return table
 
 
 def write_compass_calibration(path: str | Path, result: CompassCalibration) -> None:
-    """Set ``[compass]`` in the calibration TOML ``path`` (created if absent; the rest kept)."""
-    update_toml_table(path, "compass", compass_table(result), must_exist=False)
+    """Set ``[compass]`` in the calibration TOML ``path`` (created if absent; the rest kept).
+
+    The keys a previous version of this table held (``offset``/``matrix`` in gauss) are removed,
+    so the file has one calibration, in one unit.
+    """
+    update_toml_table(path, CALIBRATION_TABLE, compass_table(result), must_exist=False, remove=LEGACY_KEYS)
 
 
 def format_report(result: CompassCalibration) -> str:

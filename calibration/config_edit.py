@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +36,14 @@ def read_toml_text(path: str | Path, *, must_exist: bool = True) -> str:
         raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
 
 
-def with_table_values(text: str, table: str, values: Mapping[str, Any], *, source: str = "<toml>") -> str:
+def with_table_values(
+    text: str, table: str, values: Mapping[str, Any], *, source: str = "<toml>", remove: Iterable[str] = ()
+) -> str:
     """``text`` with ``[table]`` keys set to ``values``; everything else kept byte for byte.
 
     ``table`` may be dotted (``"compass"`` or ``"drivers.compass"``); missing tables are appended.
     Existing keys keep their position and any trailing comment; new keys are added at the table's end.
+    Keys named in ``remove`` (superseded ones) are deleted from the table when present.
     """
     try:
         doc = tomlkit.parse(text)
@@ -66,6 +69,9 @@ def with_table_values(text: str, table: str, values: Mapping[str, Any], *, sourc
                 container.item(key).trivia.comment_ws = old.trivia.comment_ws  # type: ignore[union-attr]
         else:
             container[key] = new
+    for key in remove:
+        if key in container and key not in values:
+            del container[key]
     return tomlkit.dumps(doc)
 
 
@@ -108,6 +114,7 @@ def update_toml_table(
     *,
     must_exist: bool = True,
     validate: Callable[[str], None] | None = None,
+    remove: Iterable[str] = (),
 ) -> str:
     """Set ``values`` in ``[table]`` of the TOML file ``path``, keeping the rest of it; returns the new text.
 
@@ -116,7 +123,7 @@ def update_toml_table(
     """
     p = Path(path)
     old = read_toml_text(p, must_exist=must_exist)
-    new = with_table_values(old, table, values, source=str(p))
+    new = with_table_values(old, table, values, source=str(p), remove=remove)
     if validate is not None:
         validate(new)
     try:

@@ -7,6 +7,13 @@ each sensor axis but not the sensor's zero offset, so with readings r0 and r180 
     offset = (r0 + r180) / 2        true tilt at 0 deg = (r0 - r180) / 2
 
 Corrected reading = raw reading - offset.  Several readings per position are averaged.
+
+Axes: ``tilt_x_deg`` is the inclination of the body x axis (forward; nose up positive), i.e. the
+pitch the inclinometer driver (:mod:`appliance.drivers.accelerometer`) reads before its offset;
+``tilt_y_deg`` that of the y axis (left; left side up positive), i.e. its roll.  The file written
+is the ``[inclinometer]`` table of a calibration TOML with the keys of ``[devices.inclinometer]``:
+``pitch_offset_deg`` (x) and ``roll_offset_deg`` (y), degrees, which the driver subtracts
+(:class:`appliance.drivers.accelerometer.TiltOffset`).
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from appliance.drivers.accelerometer import CALIBRATION_TABLE, TiltOffset
 from appliance.errors import CalibrationError, InputError
 from calibration.config_edit import significant, update_toml_table
 
@@ -44,6 +52,11 @@ class InclinometerCalibration:
     readings_at_0: int
     readings_at_180: int
     spread_deg: tuple[float, float]  # largest std of one axis at one position (0 with one reading)
+
+    @property
+    def tilt_offset(self) -> TiltOffset:
+        """The offsets as the inclinometer driver takes them (x axis = pitch, y axis = roll)."""
+        return TiltOffset(self.offset_deg[0], self.offset_deg[1])
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -132,17 +145,17 @@ def calibrate_reversal(
     )
 
 
+LEGACY_KEYS = ("offset_x_deg", "offset_y_deg")  # the table's keys before it used the driver's names
+
+
 def inclinometer_table(result: InclinometerCalibration) -> dict[str, float]:
-    """The ``[inclinometer]`` table of the calibration file: subtract these from the raw readings."""
-    return {
-        "offset_x_deg": significant(result.offset_deg[0], 8),
-        "offset_y_deg": significant(result.offset_deg[1], 8),
-    }
+    """The ``[inclinometer]`` table of the calibration file (degrees, subtracted from raw readings)."""
+    return {key: significant(v, 8) for key, v in result.tilt_offset.to_table().items()}
 
 
 def write_inclinometer_calibration(path: str | Path, result: InclinometerCalibration) -> None:
     """Set ``[inclinometer]`` in the calibration TOML ``path`` (created if absent; the rest kept)."""
-    update_toml_table(path, "inclinometer", inclinometer_table(result), must_exist=False)
+    update_toml_table(path, CALIBRATION_TABLE, inclinometer_table(result), must_exist=False, remove=LEGACY_KEYS)
 
 
 def format_report(result: InclinometerCalibration) -> str:

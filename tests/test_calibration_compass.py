@@ -17,9 +17,9 @@ import pytest
 import tomlkit
 
 from appliance.cli.main import main
+from appliance.drivers.magnetometer import HardSoftIron
 from appliance.errors import CalibrationError
 from calibration.compass import (
-    HardSoftIron,
     MagnetometerLog,
     calibrate_compass,
     circular_mean_deg,
@@ -62,20 +62,20 @@ def test_full_sphere_field_magnitude_becomes_constant(sphere) -> None:
     assert result.magnitude_spread_before > 0.12
     assert result.magnitude_spread_after < 0.006
     assert result.magnitude_spread_after == pytest.approx(
-        magnitude_spread(result.iron.apply(log.field_gauss))
+        magnitude_spread(result.iron.apply_array(log.field_gauss))
     )
     # A min/max estimate of the hard iron (an independent, cruder method) agrees within 10 mG.
     minmax = (log.field_gauss.max(axis=0) + log.field_gauss.min(axis=0)) / 2.0
     assert np.allclose(result.iron.offset, minmax, atol=0.01)
     assert result.field_gauss == pytest.approx(
-        np.mean(np.linalg.norm(result.iron.apply(log.field_gauss), axis=1)), rel=1e-3
+        np.mean(np.linalg.norm(result.iron.apply_array(log.field_gauss), axis=1)), rel=1e-3
     )
 
 
 def test_full_sphere_dip_angle_consistent_with_accelerometer(sphere) -> None:
     log, down, result = sphere
     before = _dip_deg(log.field_gauss, down)
-    after = _dip_deg(result.iron.apply(log.field_gauss), down)
+    after = _dip_deg(result.iron.apply_array(log.field_gauss), down)
     # angle down-to-field: 24.6 deg (inclination about 65 deg, central Europe); std 7.2 -> 2.8 deg
     assert np.std(before) > 6.0
     assert np.std(after) < 3.2
@@ -87,7 +87,7 @@ def test_roll_and_tilt_headings_hold_while_rolling(sphere) -> None:
     _, _, result = sphere
     log, down = _log("roll-and-tilt-at-45-90")
     pitch = np.degrees(np.arcsin(np.clip(down[:, 0], -1.0, 1.0)))
-    corrected = result.iron.apply(log.field_gauss)
+    corrected = result.iron.apply_array(log.field_gauss)
     assert magnitude_spread(log.field_gauss) > 0.12 and magnitude_spread(corrected) < 0.02
     means = []
     # rolls about x at the ~45 deg and ~90 deg headings (times read off the log; pitch kept < 30 deg)
@@ -142,7 +142,7 @@ def test_sphere_fit_recovers_synthetic_ellipsoid() -> None:
     raw = 0.5 * directions @ distortion.T + true_offset
     iron, field = fit_ellipsoid(raw)
     assert iron.offset == pytest.approx(tuple(true_offset), abs=1e-9)
-    corrected = iron.apply(raw)
+    corrected = iron.apply_array(raw)
     assert np.allclose(np.linalg.norm(corrected, axis=1), field, rtol=1e-9)
     # the correction undoes the distortion up to a rotation and a uniform scale
     P = np.asarray(iron.matrix).reshape(3, 3) @ distortion
@@ -187,7 +187,7 @@ def test_cli_writes_compass_table_and_keeps_the_file(tmp_path: Path, capsys) -> 
     mag = data_file(f"{SET2}/full-sphere/hmc5883l_compass.csv")
     acc = data_file(f"{SET2}/full-sphere/mpu6050_accelerometer.csv")
     cal = tmp_path / "calibration.toml"
-    head = "# sensor calibration\n[inclinometer]\noffset_x_deg = 0.1\noffset_y_deg = -0.2\n"
+    head = "# sensor calibration\n[inclinometer]\npitch_offset_deg = 0.1\nroll_offset_deg = -0.2\n"
     cal.write_text(head)
     argv = ["calibrate", "compass", str(mag), "--accel", str(acc), "--accel-measures", "down"]
     assert main([*argv, "--known-bearing-deg", "0", "--output", str(cal), "--json"]) == 0
@@ -196,8 +196,11 @@ def test_cli_writes_compass_table_and_keeps_the_file(tmp_path: Path, capsys) -> 
     text = cal.read_text()
     assert text.startswith(head)
     table = tomlkit.parse(text).unwrap()["compass"]
-    assert table["offset"] == pytest.approx(out["offset"], rel=1e-6)
-    assert len(table["matrix"]) == 9 and table["mounting_offset_deg"] == pytest.approx(
+    # the file is SI: the offset the fit reports in gauss is written in tesla, the matrix as is
+    assert table["hard_iron_offset"] == pytest.approx([v * 1e-4 for v in out["offset"]], rel=1e-6)
+    assert table["soft_iron_matrix"] == pytest.approx(out["matrix"], rel=1e-6)
+    assert "offset" not in table and "matrix" not in table
+    assert len(table["soft_iron_matrix"]) == 9 and table["mounting_offset_deg"] == pytest.approx(
         out["mounting_offset_deg"], abs=1e-4
     )
 

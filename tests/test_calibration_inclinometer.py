@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomlkit
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -67,7 +68,7 @@ def test_cli_writes_offsets_keeping_other_tables(tmp_path: Path, capsys) -> None
         "stage_deg,tilt_x_deg,tilt_y_deg\n0,0.35,-0.08\n0,0.37,-0.10\n180,-0.25,0.32\n180,-0.23,0.30\n"
     )
     cal = tmp_path / "calibration.toml"
-    head = "[compass]\noffset = [0.0, 0.0, 0.0]  # gauss\n"
+    head = "[compass]\nhard_iron_offset = [0.0, 0.0, 0.0]  # tesla\n"
     cal.write_text(head)
     assert main(["calibrate", "inclinometer", str(csv), "--output", str(cal), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
@@ -78,6 +79,9 @@ def test_cli_writes_offsets_keeping_other_tables(tmp_path: Path, capsys) -> None
     )
     text = cal.read_text()
     assert text.startswith(head) and "[inclinometer]" in text
+    # the driver's keys: x axis = pitch, y axis = roll
+    table = tomlkit.parse(text).unwrap()["inclinometer"]
+    assert table == pytest.approx({"pitch_offset_deg": 0.06, "roll_offset_deg": 0.11})
 
     before = cal.read_bytes()
     csv.write_text("stage_deg,tilt_x_deg,tilt_y_deg\n0,0.35,-0.08\n0,0.37,-0.10\n")

@@ -6,13 +6,27 @@ DATAX0..DATAZ1 little-endian int16.  In full resolution the scale is 3.9 mg/LSB 
 The chip's axes are taken as the body FLU axes (x forward, y left, z up); at rest level it reads
 +1 g on z.  Tilt is averaged over ``samples`` readings and corrected by a :class:`TiltOffset`
 (the readings of the mounted sensor on a level reference).
+
+Pitch is the inclination of the x axis (nose up positive), roll that of the y axis (left side up,
+i.e. right side down, positive), both in degrees.  ``viper calibrate inclinometer``
+(:mod:`calibration.inclinometer`, reversal method) writes the offsets as the ``[inclinometer]``
+table of a calibration TOML, with the keys of the ``[devices.inclinometer]`` configuration section::
+
+    [inclinometer]
+    pitch_offset_deg = 0.06    # the reversal's x axis (tilt_x_deg)
+    roll_offset_deg = 0.11     # the reversal's y axis (tilt_y_deg)
+
+``[devices] calibration_file`` points the platform at that file (:meth:`TiltOffset.from_table`).
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from appliance.drivers.attitude import Vec3, tilt_from_accel
 from appliance.drivers.i2c import I2cBus, checked
@@ -41,12 +55,37 @@ DATA_FORMAT_RANGE_16G = 0x03
 BW_RATE_100HZ = 0x0A
 
 
+#: The table of a calibration TOML that holds the inclinometer's offsets, and its keys.
+CALIBRATION_TABLE = "inclinometer"
+PITCH_KEY = "pitch_offset_deg"
+ROLL_KEY = "roll_offset_deg"
+
+
 @dataclass(frozen=True)
 class TiltOffset:
     """Pitch and roll (deg) the sensor reads when the platform is level; subtracted from readings."""
 
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
+
+    def to_table(self) -> dict[str, float]:
+        """The keys of an ``[inclinometer]`` calibration table (degrees)."""
+        return {PITCH_KEY: float(self.pitch_deg), ROLL_KEY: float(self.roll_deg)}
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any], source: str = "[inclinometer]") -> TiltOffset:
+        """Read an ``[inclinometer]`` calibration table; missing keys are 0, unknown keys raise."""
+        known = (PITCH_KEY, ROLL_KEY)
+        unknown = sorted(set(table) - set(known))
+        if unknown:
+            raise CalibrationError(f"{source}: unknown key {unknown[0]} (known: {', '.join(known)})")
+        values = []
+        for key in known:
+            v = table.get(key, 0.0)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise CalibrationError(f"{source} {key}: expected a finite number of degrees, got {v!r}")
+            values.append(float(v))
+        return cls(values[0], values[1])
 
 
 @dataclass(frozen=True)

@@ -21,13 +21,19 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import tomlkit
+import tomlkit.exceptions
+
 from appliance.config import Config
+from appliance.drivers.accelerometer import CALIBRATION_TABLE as INCLINOMETER_TABLE
 from appliance.drivers.accelerometer import Adxl345, TiltOffset
 from appliance.drivers.devices import AccelTilt, MagnetometerCompass, NmeaCompass, PtuStage, SystemClock
 from appliance.drivers.gps_reader import GpsReader, GpsSourceOptions, open_gps
 from appliance.drivers.i2c import I2cBus, open_smbus
+from appliance.drivers.magnetometer import CALIBRATION_TABLE as MAGNETOMETER_TABLE
 from appliance.drivers.magnetometer import HardSoftIron, Hmc5883l
 from appliance.drivers.ptu import PanTiltUnit
 from appliance.drivers.transport import Backoff, ReconnectingStream, open_serial
@@ -64,9 +70,47 @@ class Devices:
         self.close()
 
 
+def _calibration_table(config: Config, name: str) -> tuple[dict[str, Any] | None, str]:
+    """The ``[name]`` table of ``[devices] calibration_file`` (None if no file or no such table)."""
+    path = config.devices.calibration_file
+    if path is None:
+        return None, ""
+    try:
+        doc = tomlkit.parse(Path(path).read_text(encoding="utf-8")).unwrap()
+    except FileNotFoundError:
+        raise ConfigError(f"devices.calibration_file: {path}: file not found") from None
+    except tomlkit.exceptions.ParseError as exc:
+        raise ConfigError(f"devices.calibration_file: {path}: not valid TOML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"devices.calibration_file: {path}: cannot read: {exc}") from None
+    table = doc.get(name)
+    if table is not None and not isinstance(table, dict):
+        raise ConfigError(f"{path}: {name} is not a table")
+    return table, f"{path} [{name}]"
+
+
 def calibration_of(config: Config) -> HardSoftIron:
+    """The magnetometer's hard/soft iron (tesla): the calibration file's [compass], else [devices.compass]."""
     c = config.devices.compass
-    return HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix)
+    inline = HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix)
+    table, source = _calibration_table(config, MAGNETOMETER_TABLE)
+    if table is None:
+        return inline
+    if inline != HardSoftIron():
+        raise ConfigError(f"compass calibration given twice: in [devices.compass] and in {source}; keep one")
+    return HardSoftIron.from_table(table, source)
+
+
+def tilt_offset_of(config: Config) -> TiltOffset:
+    """The inclinometer's offsets (deg): the calibration file's [inclinometer], else [devices.inclinometer]."""
+    c = config.devices.inclinometer
+    inline = TiltOffset(c.pitch_offset_deg, c.roll_offset_deg)
+    table, source = _calibration_table(config, INCLINOMETER_TABLE)
+    if table is None:
+        return inline
+    if inline != TiltOffset():
+        raise ConfigError(f"inclinometer offsets given twice: in [devices.inclinometer] and in {source}; keep one")
+    return TiltOffset.from_table(table, source)
 
 
 def build_devices(
@@ -95,7 +139,7 @@ def build_devices(
         if d.inclinometer.kind == "adxl345" and bus is not None:
             try:
                 tilt = AccelTilt(Adxl345(bus, d.inclinometer.i2c_address), d.inclinometer.samples,
-                                 TiltOffset(d.inclinometer.pitch_offset_deg, d.inclinometer.roll_offset_deg),
+                                 tilt_offset_of(config),
                                  clock_ns)
             except DeviceError as exc:
                 log.warning("inclinometer absent: %s", exc)
