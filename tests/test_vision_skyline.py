@@ -41,9 +41,10 @@ def test_clean_panorama_within_a_tenth_of_a_degree(method: Method) -> None:
 def test_clouds_and_haze_within_three_tenths() -> None:
     # the panorama size: 300 rows, 0.1 degree per pixel
     err, valid = _errors("mixed", Method.DP, px_per_rad=557.0, height_px=300)
-    # columns where a cloud sits on the skyline may be dropped as unconfident (missing, not wrong);
-    # bench/vision_skyline.py records the fraction against the 90 % target over several scenes
-    assert valid >= 0.85
+    # a cloud sitting on the ridge is textured, yet the column keeps its skyline when clear sky shows
+    # above the cloud; bench/vision_skyline.py records the fraction over several scenes
+    assert valid >= 0.95
+    assert (np.abs(np.nan_to_num(err, nan=9.0)) <= 0.3).mean() >= 0.95
     assert np.sqrt(np.nanmean(err**2)) <= 0.3
 
 

@@ -14,7 +14,14 @@ Two methods:
 
 Per-column confidence: where the pixels above the line do not look like sky, the pixels below do not
 look like ground, or the edge is too weak (a person, a pole, a panorama without sky), the column is
-missing (NaN), never guessed.  Masked azimuth ranges are missing too.
+missing (NaN), never guessed.  The learnt colour models are checked against a generic prior (sky is
+smooth and bright): a column must show such sky somewhere above its line, so an image without sky
+yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
+clear sky shows above it.  Masked azimuth ranges are missing too.
+
+Speed: the per-pixel costs are built column-major by a compiled kernel (band sums by cumulative
+sums), the dynamic programme runs in float32 with int8 back-pointers, and the Gaussian models are
+evaluated per pixel by ``cv2.transform`` (an affine map, then a sum of squares).
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.
@@ -370,10 +377,14 @@ def _dp_rows(
     path = _run_dp(_path_cost(drop, llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     rows = _refine(drop, path)
     conf = _confidence(drop, llr, path, cfg)
-    # the generic prior vetoes a "sky" that is textured (an image without sky)
-    prior_full = cv2.resize(prior, (w, h), interpolation=cv2.INTER_LINEAR)
+    # the generic prior vetoes a "sky" that is textured (an image without sky) unless the column has
+    # clear sky somewhere above the line: a cloud sitting on the ridge is textured, but above it or
+    # through a gap the column shows the sky the learnt model was taught on
+    # (bilinear upsampling and transposition commute: the full-size prior is made transposed, WxH)
+    prior_full_t = cv2.resize(cv2.transpose(prior), (h, w), interpolation=cv2.INTER_LINEAR)
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
-    conf = np.minimum(conf, np.clip((_mean_above(prior_full, path, gap=10) + 1.0) / 0.3, 0.0, 1.0))
+    sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
+    conf = np.minimum(conf, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     return rows, conf
 
 
@@ -394,12 +405,26 @@ def _learn_llr(
     return _gaussian_llr(feats, sky, gnd)
 
 
-def _mean_above(score: np.ndarray, path: np.ndarray, gap: int = 2, depth: int = 8) -> np.ndarray:
-    """Mean of ``score`` (clipped to [-1, 1]) over the ``depth`` rows starting ``gap`` rows above the path."""
-    h, w = score.shape
-    offs = np.arange(gap, gap + depth)
-    up = np.clip(path[None, :] - offs[:, None], 0, h - 1)
-    return np.asarray(np.clip(score[up, np.arange(w)[None, :]], -1, 1).mean(axis=0))
+@numba.njit(cache=True)
+def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: int) -> np.ndarray:  # pragma: no cover
+    """Per column of the transposed (WxH) ``score_t``, the largest mean of the score (clipped to
+    [-1, 1]) over ``depth`` consecutive rows lying wholly at least ``gap`` rows above the path; -1
+    where no such run of rows fits."""
+    w, h = score_t.shape
+    out = np.full(w, -1.0)
+    for c in range(w):
+        last = min(path[c] - gap, h - 1)  # the lowest row a window may reach
+        if last - depth + 1 < 0:
+            continue
+        run = 0.0
+        for r in range(depth):
+            run += min(max(score_t[c, r], -1.0), 1.0)
+        best = run
+        for r in range(depth, last + 1):
+            run += min(max(score_t[c, r], -1.0), 1.0) - min(max(score_t[c, r - depth], -1.0), 1.0)
+            best = max(best, run)
+        out[c] = best / depth
+    return out
 
 
 def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
