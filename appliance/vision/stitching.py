@@ -3,10 +3,15 @@
 1. Every image is warped onto a vertical cylinder of focal length ``fy`` through the full camera
    model (distortion, the camera's pitch and roll), so a rotation about the vertical becomes a pure
    horizontal shift and residual tilt is corrected, not assumed away.
+   The remap maps depend only on the camera model and the (pitch, roll) of a shot: they are
+   computed once per distinct (pitch, roll) and reused for every such image, both to register and
+   to blend (a sub-column shift of a strip interpolates the maps, not the pixels).
 2. Neighbours (sorted by stage angle) are registered: a coarse shift by phase correlation
    (Kuglin-Hines, ``cv2.phaseCorrelate``) on their nominal overlap, then Levenberg-Marquardt
    (``scipy.optimize.least_squares(method="lm")``) on the photometric residual over the overlap
-   refines the rotation between them (and a gain).
+   refines the rotation between them (and a vertical shift, a gain and an offset).  The residual
+   is sampled every ``LM_STRIDE_PX`` rows and columns, with an analytic Jacobian (the warped image
+   derivatives), from the same single remap as the residual.
 3. Around a full circle the measured rotations must add up to 360 degrees; the misclosure is
    spread evenly over all seams instead of piling up on the last one.
 4. The images are blended with feathered weights (falling to zero at each image's side edges).
