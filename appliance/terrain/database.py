@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+import numba
 import numpy as np
 from affine import Affine
 from pyproj import CRS, Transformer
@@ -38,7 +39,7 @@ from pyproj import CRS, Transformer
 from appliance.errors import DatabaseError, DemError, InputError
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
-from appliance.terrain.sweep import horizon_tan_grid
+from appliance.terrain.sweep import HorizonSweeper
 
 MAGIC = b"VIPERDB\0"
 FORMAT_VERSION = 1
@@ -46,6 +47,7 @@ MISSING_CODE = 255
 BASE_STEP_DEG = 0.1
 MAX_SPAN_DEG = 25.0
 ALIGN = 64
+MISSING_CDEG = np.iinfo(np.int16).min
 
 
 @dataclass(frozen=True)
@@ -299,19 +301,83 @@ def grid_convergence_deg(grid: NodeGrid, geod_crs: CRS) -> np.ndarray:
     return interp(np.stack([R.ravel(), C.ravel()], axis=1)).reshape(grid.n_rows, grid.n_cols)
 
 
+@numba.njit(cache=True, parallel=True)
+def _store_centidegrees(tan: np.ndarray, out: np.ndarray, j: int) -> None:
+    """out[node, j] = elevation in hundredths of a degree (int16; MISSING_CDEG where NaN)."""
+    rows, cols = tan.shape
+    for r in numba.prange(rows):
+        for c in range(cols):
+            t = tan[r, c]
+            if math.isnan(t):
+                out[r * cols + c, j] = MISSING_CDEG
+            else:
+                out[r * cols + c, j] = np.int16(round(math.degrees(math.atan(t)) * 100.0))
+
+
+@numba.njit(cache=True)
+def _quantize_row(row: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: np.ndarray, i: int) -> None:
+    """Offset, step and uint8 codes of one skyline (deg, NaN = missing) into row i."""
+    lo = np.inf
+    hi = -np.inf
+    for e in row:
+        if not math.isnan(e):
+            lo = min(lo, e)
+            hi = max(hi, e)
+    if lo > hi:
+        offs[i] = np.nan
+        steps[i] = BASE_STEP_DEG
+        codes[i, :] = MISSING_CODE
+        return
+    o = np.float32(lo)
+    st = np.float32(max(BASE_STEP_DEG, (hi - lo) / (MISSING_CODE - 1)))
+    offs[i] = o
+    steps[i] = st
+    for j in range(row.size):
+        e = row[j]
+        if math.isnan(e):
+            codes[i, j] = MISSING_CODE
+        else:
+            codes[i, j] = min(max(round((e - o) / st), 0), MISSING_CODE - 1)
+
+
+@numba.njit(cache=True, parallel=True)
+def _turn_and_quantize(cdeg: np.ndarray, shift: np.ndarray, codes: np.ndarray, offs: np.ndarray,
+                       steps: np.ndarray) -> None:
+    """Resample each node's skyline from grid to true azimuths (true = grid + shift steps, linear on
+    the circle), then quantise it."""
+    n, n_az = cdeg.shape
+    for i in numba.prange(n):
+        row = np.empty(n_az)
+        for j in range(n_az):
+            p = (j - shift[i]) % n_az
+            i0 = int(math.floor(p))
+            w = p - i0
+            i0 = i0 % n_az
+            a = cdeg[i, i0]
+            b = cdeg[i, (i0 + 1) % n_az]
+            if a == MISSING_CDEG or b == MISSING_CDEG:
+                row[j] = np.nan
+            else:
+                row[j] = (a * (1.0 - w) + b * w) / 100.0
+        _quantize_row(row, codes, offs, steps, i)
+
+
+@numba.njit(cache=True, parallel=True)
+def _quantize_rows(elev: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: np.ndarray) -> None:
+    for i in numba.prange(elev.shape[0]):
+        _quantize_row(elev[i], codes, offs, steps, i)
+
+
 def quantize(elev_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-node offset and step, and uint8 codes, of skylines ``elev_deg[n, n_az]`` (NaN = missing)."""
-    with np.errstate(invalid="ignore"):
-        lo = np.nanmin(np.where(np.isfinite(elev_deg), elev_deg, np.inf), axis=1)
-        hi = np.nanmax(np.where(np.isfinite(elev_deg), elev_deg, -np.inf), axis=1)
-    empty = ~np.isfinite(lo)
-    lo = np.where(empty, np.nan, lo)
-    span = np.where(empty, 0.0, hi - lo)
-    step = np.maximum(BASE_STEP_DEG, span / (MISSING_CODE - 1)).astype(np.float32)
-    off = lo.astype(np.float32)
-    q = np.rint((elev_deg - off[:, None]) / step[:, None])
-    codes = np.where(np.isfinite(q), np.clip(q, 0, MISSING_CODE - 1), MISSING_CODE).astype(np.uint8)
-    return codes, off, step
+    """Per-node offset and step, and uint8 codes, of skylines ``elev_deg[n, n_az]`` (NaN = missing).
+
+    The step is 0.1 degree (error at most 0.05) unless the skyline spans more than 25.4 degrees."""
+    e = np.ascontiguousarray(elev_deg, dtype=np.float64)
+    codes = np.empty(e.shape, dtype=np.uint8)
+    offs = np.empty(e.shape[0], dtype=np.float32)
+    steps = np.empty(e.shape[0], dtype=np.float32)
+    _quantize_rows(e, codes, offs, steps)
+    return codes, offs, steps
 
 
 def _progress(done: int, total: int, label: str) -> None:
@@ -351,11 +417,9 @@ def build_database(
     n = cand.n_nodes
     cdeg = np.empty((n, n_azimuths), dtype=np.int16)  # centidegrees at grid azimuths
     sl = (slice(ro, ro + cand.n_rows), slice(co, co + cand.n_cols))
+    sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff)
     for j in range(n_azimuths):
-        tan = horizon_tan_grid(Z, terr.dx_m, terr.dy_m, j * step_az, height_m, r_eff)[sl]
-        with np.errstate(invalid="ignore"):
-            deg = np.degrees(np.arctan(tan.ravel())) * 100.0
-        cdeg[:, j] = np.where(np.isfinite(deg), np.rint(deg), np.iinfo(np.int16).min)
+        _store_centidegrees(sweeper.tan_grid(j * step_az)[sl], cdeg, j)
         if progress is not None:
             progress(j + 1, n_azimuths, "skylines")
 
@@ -402,20 +466,7 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, shift: np.ndarr
         codes = mm[layout["codes"] : layout["codes"] + n * n_az].reshape(n, n_az)
         offs = np.empty(n, np.float32)
         steps = np.empty(n, np.float32)
-        cols = np.arange(n_az)
-        chunk = 20_000
-        for a in range(0, n, chunk):
-            b = min(n, a + chunk)
-            c = cdeg[a:b].astype(np.float64)
-            c[cdeg[a:b] == np.iinfo(np.int16).min] = np.nan
-            c /= 100.0
-            # resample from grid azimuths to true azimuths: true = grid + gamma
-            pos_f = (cols[None, :] - shift[a:b, None]) % n_az
-            i0 = np.floor(pos_f).astype(np.intp)
-            w = pos_f - i0
-            i1 = (i0 + 1) % n_az
-            e = np.take_along_axis(c, i0, 1) * (1 - w) + np.take_along_axis(c, i1, 1) * w
-            codes[a:b], offs[a:b], steps[a:b] = quantize(e)
+        _turn_and_quantize(cdeg, np.asarray(shift, dtype=np.float64), codes, offs, steps)
         for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground)):
             mm[layout[name] : layout[name] + 4 * n] = arr.view(np.uint8)
         mm.flush()

@@ -65,6 +65,7 @@ def _sweep_canonical(
     r_eff: float,
     delay: int,
     spacing: float,
+    scratch: np.ndarray,
 ) -> None:
     """Lines v = k*spacing + u*tau (0 <= tau <= 1) over W[v, u]; ahead is increasing u.
 
@@ -78,8 +79,9 @@ def _sweep_canonical(
     inv2r = 0.5 / r_eff
     for kk in numba.prange(kmax - kmin + 1):
         k = kmin + kk
-        hs = np.empty(nu)
-        hz = np.empty(nu)
+        tid = numba.get_thread_id()
+        hs = scratch[tid, 0]
+        hz = scratch[tid, 1]
         n = 0
         for u in range(nu - 1, -delay - 1, -1):
             # enter the point of column u + delay into the hull
@@ -127,41 +129,100 @@ def _near_field(
     W: np.ndarray, out: np.ndarray, tau: float, step_m: float, height_m: float, r_eff: float,
     fractions: np.ndarray,
 ) -> None:
-    """Raise ``out`` (tangents) by terrain sampled on the exact ray at fractions of a column step."""
+    """Raise ``out`` (tangents) by terrain sampled on the exact ray at fractions of a column step.
+
+    For one fraction every node's sample sits at the same offset from it, so the bilinear weights
+    are shared and the inner loop runs over contiguous memory.
+    """
     nv, nu = W.shape
-    for v in numba.prange(nv):
-        for u in range(nu):
-            zn = W[v, u]
-            if math.isnan(zn):
-                continue
-            zo = zn + height_m
-            best = out[v, u]
-            for fr in fractions:
-                uu = u + fr
-                vv = v + fr * tau
-                if uu > nu - 1 or vv > nv - 1:
-                    continue
-                u0 = int(uu)
-                v0 = int(vv)
-                fu = uu - u0
-                fv = vv - v0
-                u1 = min(u0 + 1, nu - 1)
-                v1 = min(v0 + 1, nv - 1)
-                z = (W[v0, u0] * (1 - fu) * (1 - fv) + W[v0, u1] * fu * (1 - fv)
-                     + W[v1, u0] * (1 - fu) * fv + W[v1, u1] * fu * fv)
-                if math.isnan(z):
-                    continue
-                d = fr * step_m
-                t = (z - zo - d * d * (0.5 / r_eff)) / d
-                if math.isnan(best) or t > best:
-                    best = t
-            out[v, u] = best
+    for fi in range(fractions.size):
+        fr = fractions[fi]
+        du0 = int(math.floor(fr))
+        dv0 = int(math.floor(fr * tau))
+        fu = fr - du0
+        fv = fr * tau - dv0
+        w00 = (1.0 - fu) * (1.0 - fv)
+        w01 = fu * (1.0 - fv)
+        w10 = (1.0 - fu) * fv
+        w11 = fu * fv
+        d = fr * step_m
+        drop = height_m + d * d * (0.5 / r_eff)
+        inv_d = 1.0 / d
+        u_end = nu - du0 - 1
+        v_end = nv - dv0 - 1
+        for v in numba.prange(max(v_end, 0)):
+            r0 = v + dv0
+            for u in range(max(u_end, 0)):
+                c0 = u + du0
+                z = (W[r0, c0] * w00 + W[r0, c0 + 1] * w01 + W[r0 + 1, c0] * w10 + W[r0 + 1, c0 + 1] * w11)
+                t = (z - W[v, u] - drop) * inv_d
+                b = out[v, u]
+                if t > b or (b != b and t == t):
+                    out[v, u] = t
 
 
 NEAR_FIELD_FRACTIONS = np.array([0.25, 0.5, 1.0, 1.5, 2.0])
 NEAR_FIELD_COLUMNS = 2
 #: Rows between neighbouring sweep lines: a node is at most half of it beside its line.
 LINE_SPACING_ROWS = 0.5
+
+
+class HorizonSweeper:
+    """Horizons of every node of one grid, azimuth after azimuth, reusing its buffers.
+
+    ``elevation_m[row, col]`` is a north-up grid (row increases southwards) with spacing ``dx_m``
+    east and ``dy_m`` north.  The kernels march along rows of a canonical view of the grid (the
+    azimuth turned into increasing columns, rows rising by at most one per column); the eight
+    canonical copies are made once.
+    """
+
+    def __init__(self, elevation_m: np.ndarray, dx_m: float, dy_m: float, height_m: float, r_eff_m: float):
+        self.Z = np.ascontiguousarray(elevation_m, dtype=np.float64)
+        self.dx_m, self.dy_m = float(dx_m), float(dy_m)
+        self.height_m, self.r_eff_m = float(height_m), float(r_eff_m)
+        self.result = np.full(self.Z.shape, np.nan)
+        self._canonical: dict[tuple[bool, bool, bool], np.ndarray] = {}
+        self._work: dict[tuple[int, int], np.ndarray] = {}
+        n = max(self.Z.shape) + NEAR_FIELD_COLUMNS + 2
+        self._scratch = np.empty((int(numba.config.NUMBA_NUM_THREADS), 2, n))  # type: ignore[attr-defined]
+
+    @staticmethod
+    def _orient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.ndarray:
+        v = a.T if transpose else a
+        if flip_u:
+            v = v[:, ::-1]
+        if flip_v:
+            v = v[::-1, :]
+        return v
+
+    def tan_grid(self, grid_azimuth_deg: float) -> np.ndarray:
+        """Tangent of the horizon elevation at every node along one grid azimuth (clockwise from grid
+        north); NaN where the node is nodata or no terrain lies ahead.  The array is the sweeper's
+        own buffer, overwritten by the next call."""
+        a = math.radians(grid_azimuth_deg)
+        dcol = math.sin(a) / self.dx_m
+        drow = -math.cos(a) / self.dy_m
+        du, dv, du_m, dv_m = dcol, drow, self.dx_m, self.dy_m
+        transpose = abs(drow) > abs(dcol)
+        if transpose:
+            du, dv, du_m, dv_m = drow, dcol, self.dy_m, self.dx_m
+        key = (transpose, du < 0, dv < 0)
+        W = self._canonical.get(key)
+        if W is None:
+            W = np.ascontiguousarray(self._orient(self.Z, *key))
+            self._canonical[key] = W
+        out = self._work.get(W.shape)
+        if out is None:
+            out = np.empty(W.shape)
+            self._work[W.shape] = out
+        out.fill(np.nan)
+        tau = abs(dv / du)
+        step = math.hypot(du_m, tau * dv_m)
+        _sweep_canonical(W, out, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS, LINE_SPACING_ROWS,
+                         self._scratch)
+        _near_field(W, out, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS)
+        self._orient(self.result, *key)[...] = out
+        return self.result
 
 
 def horizon_tan_grid(
@@ -172,33 +233,5 @@ def horizon_tan_grid(
     height_m: float,
     r_eff_m: float,
 ) -> np.ndarray:
-    """Tangent of the horizon elevation at every node along one grid azimuth.
-
-    ``elevation_m[row, col]`` is a north-up grid (row increases southwards) with spacing ``dx_m``
-    east and ``dy_m`` north; the azimuth is clockwise from grid north.  NaN where the node is
-    nodata or no terrain lies ahead.
-    """
-    Z = np.ascontiguousarray(elevation_m, dtype=np.float64)
-    out = np.full(Z.shape, np.nan)
-    a = math.radians(grid_azimuth_deg)
-    dcol = math.sin(a) / dx_m
-    drow = -math.cos(a) / dy_m
-    views = [Z, out]
-    du, dv, du_m, dv_m = dcol, drow, dx_m, dy_m
-    if abs(drow) > abs(dcol):
-        views = [x.T for x in views]
-        du, dv, du_m, dv_m = drow, dcol, dy_m, dx_m
-    if du < 0:
-        views = [x[:, ::-1] for x in views]
-    if dv < 0:
-        views = [x[::-1, :] for x in views]
-    view_in, view_out = views
-    # the kernels march along rows of the canonical view: give them contiguous memory
-    W = np.ascontiguousarray(view_in)
-    Wout = np.full(W.shape, np.nan)
-    tau = abs(dv / du)
-    step = math.hypot(du_m, tau * dv_m)
-    _sweep_canonical(W, Wout, tau, step, height_m, r_eff_m, NEAR_FIELD_COLUMNS, LINE_SPACING_ROWS)
-    _near_field(W, Wout, tau, step, height_m, r_eff_m, NEAR_FIELD_FRACTIONS)
-    view_out[...] = Wout
-    return out
+    """Tangent of the horizon elevation at every node along one grid azimuth (see HorizonSweeper)."""
+    return HorizonSweeper(elevation_m, dx_m, dy_m, height_m, r_eff_m).tan_grid(grid_azimuth_deg).copy()
