@@ -89,3 +89,27 @@ def test_occluder_is_skipped() -> None:
     err = cols.elevation_deg[590:640] - sp.truth.elevation_deg[590:640]
     assert np.all(np.isnan(err) | (np.abs(err) < 0.3))
     assert np.isnan(err[10:40]).all()
+
+
+def _path_cost_of(cost_t: np.ndarray, path: np.ndarray, jump_cost: float) -> float:
+    return float(cost_t[np.arange(len(path)), path].sum() + jump_cost * np.abs(np.diff(path)).sum())
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dp_path_is_optimal_against_an_exhaustive_oracle(seed: int) -> None:
+    from appliance.vision.skyline_detect import _dp_path
+
+    rng = np.random.default_rng(seed)
+    w, h, jump, jump_cost = 30, 12, 2, 0.3
+    cost_t = rng.normal(size=(w, h)).astype(np.float32)
+    # oracle: plain float64 dynamic programme over every predecessor within the jump limit
+    acc = cost_t[0].astype(np.float64)
+    for c in range(1, w):
+        best = [
+            min(acc[q] + jump_cost * abs(q - r) for q in range(max(0, r - jump), min(h, r + jump + 1)))
+            for r in range(h)
+        ]
+        acc = np.array(best) + cost_t[c]
+    path = np.asarray(_dp_path(cost_t, jump, jump_cost))
+    assert np.abs(np.diff(path)).max() <= jump
+    assert _path_cost_of(cost_t, path, jump_cost) == pytest.approx(float(acc.min()), abs=1e-4)

@@ -20,7 +20,7 @@ yields nothing, while a cloud sitting on a ridge, textured itself, does not drop
 clear sky shows above it.  Masked azimuth ranges are missing too.
 
 Speed: the per-pixel costs are built column-major by a compiled kernel (band sums by cumulative
-sums), the dynamic programme runs in float32 with int8 back-pointers, and the Gaussian models are
+sums), the dynamic programme runs vectorised in float32 without back-pointers, and the Gaussian models are
 evaluated per pixel by ``cv2.transform`` (an affine map, then a sum of squares).
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
@@ -72,8 +72,8 @@ class DetectionConfig:
             object.__setattr__(self, "method", Method(self.method))
         if self.smooth_sigma_px <= 0:
             raise ConfigError(f"skyline.smooth_sigma_px must be positive, got {self.smooth_sigma_px}")
-        if not 1 <= self.max_jump_px <= 127:
-            raise ConfigError(f"skyline.max_jump_px must be in 1..127, got {self.max_jump_px}")
+        if self.max_jump_px < 1:
+            raise ConfigError(f"skyline.max_jump_px must be at least 1, got {self.max_jump_px}")
         if not 0 < self.step_deg <= 10:
             raise ConfigError(f"skyline.step_deg must be in (0, 10], got {self.step_deg}")
         if self.min_elevation_deg >= self.max_elevation_deg:
@@ -183,8 +183,10 @@ def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.
     out = np.zeros(feats.shape[:2], dtype=np.float32)
     ones = np.ones((1, feats.shape[2]), dtype=np.float32)
     for sign, sample in ((1.0, sky), (-1.0, ground)):
-        mu = sample.mean(axis=0, dtype=np.float64)
-        cov = np.cov(sample, rowvar=False) + np.eye(sample.shape[1]) * 1e-4
+        # (OpenCV's covariance, not np.cov: a BLAS product spawns threads that a loaded machine makes slow)
+        cov, mean = cv2.calcCovarMatrix(sample, None, cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE, cv2.CV_64F)
+        mu = mean[0]
+        cov = cov * (sample.shape[0] / (sample.shape[0] - 1.0)) + np.eye(sample.shape[1]) * 1e-4
         # Mahalanobis distance as a squared norm: with inv(cov) = L L^T, |L^T (x - mu)|^2, the affine
         # map applied per pixel by cv2.transform (one pass, no temporaries per feature)
         lt = np.linalg.cholesky(np.linalg.inv(cov)).T
@@ -203,45 +205,56 @@ def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.
 def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:  # pragma: no cover - jit
     """Row per column minimising sum(cost_t[c, row]) + jump_cost * sum |row step|; cost_t is WxH.
 
-    The inner loops run over rows for one step offset at a time (vectorisable, float32); the
-    accumulated cost is shifted by its minimum at every column, so it stays small and float32 keeps
-    its precision; back-pointers are int8 offsets (max_jump <= 127) to stay in cache.
+    The forward pass keeps every column's accumulated cost (float32, shifted by its minimum at each
+    column so that float32 keeps its precision) and its inner loops are branch-free minima over
+    rows for one step at a time, which the compiler vectorises.  No back-pointers are stored: the
+    backward pass recomputes the best predecessor of the path's row only, with the forward pass's
+    arithmetic and its tie rule (offsets in increasing order, strict comparison: the uppermost row).
     """
     w, h = cost_t.shape
-    acc = np.empty(h, dtype=np.float32)
-    new = np.empty(h, dtype=np.float32)
-    back = np.zeros((w, h), dtype=np.int8)
+    accs = np.empty((w, h), dtype=np.float32)
     for r in range(h):
-        acc[r] = cost_t[0, r]
+        accs[0, r] = cost_t[0, r]
     for c in range(1, w):
-        bk = back[c]
+        prev = accs[c - 1]
+        cur = accs[c]
         for r in range(h):
-            new[r] = np.inf
-        # offsets in increasing order with a strict comparison: ties go to the uppermost row
-        for d in range(-max_jump, max_jump + 1):
-            pen = np.float32(jump_cost * abs(d))
-            lo = max(0, -d)
-            hi = min(h, h - d)
-            for r in range(lo, hi):
-                v = acc[r + d] + pen
-                if v < new[r]:
-                    new[r] = v
-                    bk[r] = d
-        low = np.float32(np.inf)
+            cur[r] = prev[r]
+        for d in range(1, max_jump + 1):
+            pen = np.float32(jump_cost * d)
+            for r in range(d, h):
+                v = prev[r - d] + pen
+                cur[r] = v if v < cur[r] else cur[r]
+            for r in range(0, h - d):
+                v = prev[r + d] + pen
+                cur[r] = v if v < cur[r] else cur[r]
+        low = cur[0]
+        for r in range(1, h):
+            low = cur[r] if cur[r] < low else low
         for r in range(h):
-            low = min(low, new[r])
-        for r in range(h):
-            acc[r] = new[r] - low + cost_t[c, r]
+            cur[r] = cur[r] - low + cost_t[c, r]
     path = np.empty(w, dtype=np.int32)
-    best = np.inf
+    best = np.float32(np.inf)
     arg = 0
     for r in range(h):
-        if acc[r] < best:
-            best = acc[r]
+        if accs[w - 1, r] < best:
+            best = accs[w - 1, r]
             arg = r
     path[w - 1] = arg
     for c in range(w - 1, 0, -1):
-        path[c - 1] = path[c] + back[c, path[c]]
+        r = path[c]
+        prev = accs[c - 1]
+        best = np.float32(np.inf)
+        arg = r
+        for d in range(-max_jump, max_jump + 1):
+            q = r + d
+            if q < 0 or q >= h:
+                continue
+            v = prev[q] + np.float32(jump_cost * abs(d))
+            if v < best:
+                best = v
+                arg = q
+        path[c - 1] = arg
     return path
 
 
