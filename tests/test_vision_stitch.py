@@ -12,9 +12,9 @@ import pytest
 from appliance.cli.main import main
 from appliance.errors import InputError
 from appliance.skyline import read_skyline_csv
-from appliance.vision.camera import CameraPose
+from appliance.vision.camera import CameraPose, directions_to_pixels
 from appliance.vision.intrinsics import CameraIntrinsics, save_intrinsics
-from appliance.vision.stitching import Shot, stitch
+from appliance.vision.stitching import Shot, _strip_geometry, _WarpMaps, stitch
 from appliance.vision.synth import analytic_skyline_fn, render_photo_from
 
 K = CameraIntrinsics.from_fov(320, 240, 60.0)
@@ -39,6 +39,36 @@ def test_rotations_between_neighbours_recovered(ring: tuple[list[np.ndarray], np
     assert res.seam_rotation_deg.sum() == pytest.approx(360.0)
     assert res.panorama.full_circle
     assert abs(res.misclosure_deg) < 0.2
+
+
+def test_tilted_shots_share_maps_only_when_their_tilt_is_the_same() -> None:
+    # two tilts alternate: the warp maps are computed once per (pitch, roll) and reused; the
+    # rotations must come out as for a level camera
+    rng = np.random.default_rng(8)
+    nominal = np.arange(12) * 30.0
+    true = nominal + rng.normal(0.0, 0.5, nominal.size)
+    tilts = [(0.8, -0.5) if i % 2 else (-0.4, 0.6) for i in range(nominal.size)]
+    images = [render_photo_from(FN, CameraPose(y, p, r), K, rng, "clear") for y, (p, r) in zip(true, tilts)]
+    res = stitch([Shot(im, a, p, r) for im, a, (p, r) in zip(images, nominal, tilts)], K)
+    true_gaps = np.diff(np.concatenate([true, [true[0] + 360.0]]))
+    np.testing.assert_allclose(res.seam_rotation_deg, true_gaps, atol=0.05)
+
+
+def test_shifted_warp_maps_match_the_camera_model() -> None:
+    # a strip shifted by a fraction of a column takes interpolated maps: compare with the model
+    f = 300.0
+    ws, h, horizon = _strip_geometry(K, f)
+    maps = _WarpMaps(K, f, ws, h, horizon)
+    frac = 0.37
+    u, v = maps.maps(0.9, -0.6, frac)
+    x = np.arange(ws, dtype=np.float64) - (ws - 1) / 2.0 - frac
+    el = np.degrees(np.arctan((horizon - np.arange(h, dtype=np.float64)) / f))
+    azg, elg = np.meshgrid(np.degrees(x / f), el)
+    u_ref, v_ref = directions_to_pixels(K, CameraPose(0.0, 0.9, -0.6), azg, elg)
+    inside = (u_ref >= 0) & (u_ref <= K.width - 1) & (v_ref >= 0) & (v_ref <= K.height - 1)
+    assert inside.mean() > 0.5
+    assert np.abs(u[inside] - u_ref[inside]).max() < 1e-3
+    assert np.abs(v[inside] - v_ref[inside]).max() < 1e-3
 
 
 def test_images_that_do_not_overlap(ring: tuple[list[np.ndarray], np.ndarray, np.ndarray]) -> None:
