@@ -41,7 +41,8 @@ class TerrainConfig:
 class EstimatorConfig:
     """The position estimator (paper section 4)."""
 
-    sigma_deg: tuple[float, float] = (0.2, 0.4)
+    # sensor noise plus the skyline's change between grid nodes (0.5-1 deg on a 90 m map, camera 1.5 m)
+    sigma_deg: tuple[float, float] = (0.3, 1.2)
     heading_tolerance_deg: float = 4.0
     heading_step_deg: float = 1.0
     min_valid_fraction: float = 0.2
@@ -95,8 +96,7 @@ class SessionConfig:
     settle_s: float = 0.5  # wait after every stage move before capturing
     stage_tolerance_deg: float = 1.0  # stage considered stalled if it ends farther than this
     black_frame_max_mean: float = 8.0  # a frame whose mean grey level is below this is rejected
-    search_radius_m: float = 900.0  # onboard estimate: half-side of the searched square around the prior
-    search_step_m: float = 150.0  # onboard estimate: spacing of the candidate positions
+    database: Path | None = None  # skyline database of the onboard estimate (None: the demo map's, in sim)
 
 
 @dataclass(frozen=True)
@@ -197,6 +197,10 @@ class SimFaultsConfig:
     inclinometer_absent: bool = False  # no chip answers at the address
     stage_miss_step_every: int = 0  # every Nth move ends short (0 = never)
     stage_miss_positions: int = 20
+    stage_stall_at_deg: float | None = None  # the pan axis cannot pass this angle (signed, -180..180)
+    compass_metal_nearby: bool = False  # steel nearby distorts the field beyond any hard/soft iron fit
+    camera_unplug_after: int | None = None  # the camera disappears after this many stills
+    camera_black_frames: tuple[int, ...] = ()  # still numbers (from 0) that come back black
 
 
 @dataclass(frozen=True)

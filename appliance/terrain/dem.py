@@ -175,12 +175,11 @@ def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     fr = r - r0
     c1 = np.minimum(c0 + 1, ncols - 1)
     r1 = np.minimum(r0 + 1, nrows - 1)
-    z = (
-        grid[r0, c0] * (1 - fc) * (1 - fr)
-        + grid[r0, c1] * fc * (1 - fr)
-        + grid[r1, c0] * (1 - fc) * fr
-        + grid[r1, c1] * fc * fr
-    )
+    z = np.zeros(c.shape)
+    # a corner of zero weight does not count, so a point on a node next to nodata keeps its height
+    for rr, cc, w in ((r0, c0, (1 - fc) * (1 - fr)), (r0, c1, fc * (1 - fr)), (r1, c0, (1 - fc) * fr),
+                      (r1, c1, fc * fr)):
+        z = z + np.where(w > 0, grid[rr, cc] * w, 0.0)
     return np.where(inside, z, np.nan)
 
 
