@@ -143,6 +143,6 @@ def test_fusion_resolves_what_one_panorama_cannot():
     fused = estimate(g, *reading(g.skylines_deg(first), 0.0, rng, noise=0.2), (0.15, 0.4), 2.0, log_prior=lp)
     assert fused.node == first
     assert round(fused.col) == 5
-    # alone the twins are equally likely; with the prior the twin is a billion times less so
+    # alone the twins are equally likely; with the prior the twin is far less so
     assert abs(alone.log_lower_map[first] - alone.log_lower_map[first + 20]) < 1.0
     assert fused.log_lower_map[first] - fused.log_lower_map[first + 20] > 15.0

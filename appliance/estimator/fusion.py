@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-#: Probability floor of a transported prior, relative to its peak: dead reckoning can be wrong by
-#: more than its stated sigma, and a zero prior could never be revised.
-PRIOR_FLOOR = 1e-9
+#: Probability floor of a transported prior, relative to its peak: only there to keep the logarithm
+#: finite where the blurred posterior underflowed; it does not weaken the prior where it has mass.
+PRIOR_FLOOR = 1e-250
 
 
 def transport_prior(
