@@ -1,8 +1,8 @@
-"""Procedures on the simulated platform: level guidance, compass fit, GPS gating, capture faults."""
+"""Procedures on the simulated platform (the real drivers over the twins): level guidance, compass
+fit, GPS gating, capture faults."""
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
 import math
 
@@ -10,26 +10,25 @@ import numpy as np
 import pytest
 
 from appliance.acquisition import procedures as pr
-from appliance.acquisition.simulated import SimClock, SimFaults, SimWorld, simulated_platform
-from appliance.config import SessionConfig
+from appliance.acquisition.platform import platform_of
+from appliance.config import Config, SessionConfig, from_mapping
 from appliance.drivers.gps import CovarianceType, FixQuality, GpsFix
 from appliance.errors import CalibrationError, DeviceError
+from appliance.sim.platform import open_sim_platform
 from appliance.vision.intrinsics import CameraIntrinsics
 
 
-def world(**kw):
-    base = dict(dem=None, lat_deg=36.6, lon_deg=-84.25, heading_deg=123.0, declination_deg=-6.0, seed=1)
-    base.update(kw)
-    w = SimWorld.__new__(SimWorld)  # skip the DEM rendering set-up: these tests never capture
-    for f in dataclasses.fields(SimWorld):
-        if f.name in base:
-            setattr(w, f.name, base[f.name])
-        elif f.default is not dataclasses.MISSING:
-            setattr(w, f.name, f.default)
-        else:
-            setattr(w, f.name, f.default_factory())  # type: ignore[misc]
-    w.rng = np.random.default_rng(w.seed)
-    return w
+def sim_config(sim: dict | None = None, **faults) -> Config:
+    """The twins without a camera or DEM (ground elevation given), fast simulated time."""
+    base = {"time_rate": 50.0, "ground_elevation_m": 400.0, "heading_deg": 123.0, "tilt_north_deg": 0.0,
+            "tilt_east_deg": 0.0, "faults": faults}
+    base.update(sim or {})
+    return from_mapping(Config, {"platform": {"kind": "sim"}, "devices": {"stage": {"speed_deg_s": 120.0}},
+                                 "sim": base})
+
+
+def angle_diff(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
 
 
 def test_level_guidance_names_the_leg():
@@ -41,37 +40,43 @@ def test_level_guidance_names_the_leg():
 
 
 def test_level_converges_with_the_person_following_guidance():
-    w = world(tilt_east_deg=2.0, tilt_north_deg=-1.5)
-    p = simulated_platform(w, SimClock())
-    res = pr.level(p.tilt, p.leveller, p.clock, SessionConfig(level_tolerance_deg=0.2))
+    with open_sim_platform(sim_config({"tilt_east_deg": 2.0, "tilt_north_deg": -1.5}), with_camera=False) as d:
+        p = platform_of(d)
+        res = pr.level(p.tilt, p.leveller, p.clock, SessionConfig(level_tolerance_deg=0.2, level_poll_s=0.2))
+        true_pitch, true_roll = d.world.head_tilt()
     assert res.status is pr.Status.OK
     assert abs(res.roll_deg) <= 0.2 and abs(res.pitch_deg) <= 0.2
-    assert res.instructions and res.instructions == tuple(p.leveller.heard)
+    # the accelerometer's reading agrees with the world's true tilt (noise 0.004 g over 16 samples)
+    assert res.roll_deg == pytest.approx(true_roll, abs=0.1) and res.pitch_deg == pytest.approx(true_pitch, abs=0.1)
+    assert res.instructions and res.instructions == tuple(d.leveller.heard)
 
 
 def test_level_gives_up_after_timeout_with_reason():
-    w = world(tilt_east_deg=3.0)
-    p = simulated_platform(w, SimClock())
-    res = pr.level(p.tilt, None, p.clock, SessionConfig(level_timeout_s=5.0, level_poll_s=1.0))
+    with open_sim_platform(sim_config({"tilt_east_deg": 3.0}), with_camera=False) as d:
+        p = platform_of(d)
+        res = pr.level(p.tilt, None, p.clock, SessionConfig(level_timeout_s=5.0, level_poll_s=1.0))
     assert res.status is pr.Status.DEGRADED and "not level after 5 s" in res.reason
-    assert res.roll_deg is not None and abs(res.roll_deg) > 0.5
+    assert res.roll_deg is not None and math.hypot(res.roll_deg, res.pitch_deg) > 2.5
 
 
 def test_hard_soft_iron_fit_recovers_heading_against_the_simulated_truth():
-    w = world()
-    p = simulated_platform(w, SimClock())
-    res = pr.calibrate_compass(p.compass, p.stage, SessionConfig(compass_steps=24))
+    with open_sim_platform(sim_config(), with_camera=False) as d:
+        p = platform_of(d)
+        res = pr.calibrate_compass(p.compass, p.stage, SessionConfig(compass_steps=24))
+        w = d.world
     assert res.status is pr.Status.OK and res.fit is not None
     assert res.fit.residual < 0.01
-    assert res.fit.offset == pytest.approx(w.hard_iron, abs=0.5)
+    # the fitted hard iron is the simulated one, seen in the head's frame (x forward, y right)
+    assert res.fit.offset[0] == pytest.approx(w.hard_iron_t[0], abs=3e-7)
+    assert res.fit.offset[1] == pytest.approx(-w.hard_iron_t[1], abs=3e-7)
     magnetic_truth = (w.heading_deg - w.declination_deg) % 360
-    assert abs((res.platform_heading_deg - magnetic_truth + 180) % 360 - 180) < 0.5
+    assert angle_diff(res.platform_heading_deg, magnetic_truth) < 0.5
 
 
 def test_compass_fit_rejected_near_metal():
-    w = world(faults=SimFaults(metal_nearby=True))
-    p = simulated_platform(w, SimClock())
-    res = pr.calibrate_compass(p.compass, p.stage, SessionConfig())
+    with open_sim_platform(sim_config(compass_metal_nearby=True), with_camera=False) as d:
+        p = platform_of(d)
+        res = pr.calibrate_compass(p.compass, p.stage, SessionConfig())
     assert res.status is pr.Status.FAILED and "metal" in res.reason and res.fit.residual > 0.05
 
 
@@ -124,26 +129,28 @@ def grey(n):
 
 
 def test_capture_ring_skips_stalled_steps_and_black_frames():
-    w = world(faults=SimFaults(stage_stall_at_deg=250.0))
-    p = simulated_platform(w, SimClock())
-    black = {2, 3}  # the third step gets two black frames in a row
-    cam = StubCamera(lambda n: np.zeros((48, 64, 3), np.uint8) if n in black else grey(n))
-    seen, problems = [], []
-    frames, probs = pr.capture_ring(p.stage, cam, p.tilt, p.clock, SessionConfig(), 100.0, seen.append, problems.append)
-    assert [f.stage_deg for f in frames] == [0.0, 40.0, 120.0, 160.0, 200.0, 240.0]
-    assert [pb.index for pb in probs] == [2, 7, 8] and "black frame" in probs[0].reason
-    assert "stalled at 250.0" in probs[1].reason
-    assert frames[1].heading_deg == pytest.approx(140.0) and seen == frames
+    # an obstacle stops the pan axis at 250 deg (-110 signed): the moves 160 -> 200 (the PTU turns
+    # through 0, its range being -180..180) and 240 -> 280 end there
+    with open_sim_platform(sim_config(stage_stall_at_deg=-110.0), with_camera=False) as d:
+        p = platform_of(d)
+        black = {2, 3}  # the third step gets two black frames in a row
+        cam = StubCamera(lambda n: np.zeros((48, 64, 3), np.uint8) if n in black else grey(n))
+        seen, problems = [], []
+        frames, probs = pr.capture_ring(p.stage, cam, p.tilt, p.clock, SessionConfig(settle_s=0.1), 100.0,
+                                        seen.append, problems.append)
+    assert [f.stage_deg for f in frames] == pytest.approx([0.0, 40.0, 120.0, 160.0, 240.0, 320.0], abs=0.02)
+    assert [pb.index for pb in probs] == [2, 5, 7] and "black frame" in probs[0].reason
+    assert "stalled at 250.0" in probs[1].reason and "stalled at 250.0" in probs[2].reason
+    assert frames[1].heading_deg == pytest.approx(140.0, abs=0.02) and seen == frames
     roll, pitch = frames[1].roll_deg, frames[1].pitch_deg
-    assert math.isfinite(roll) and math.isfinite(pitch)
+    assert abs(roll) < 0.2 and abs(pitch) < 0.2  # a level tripod
 
 
 def test_capture_ring_unplugged_camera_raises_after_delivering_frames():
-    w = world()
-    p = simulated_platform(w, SimClock())
-    seen = []
-    with pytest.raises(DeviceError, match="unplugged"):
-        pr.capture_ring(
-            p.stage, StubCamera(grey, fail_after=3), p.tilt, p.clock, SessionConfig(), 0.0, seen.append, lambda pb: None
-        )
+    with open_sim_platform(sim_config(), with_camera=False) as d:
+        p = platform_of(d)
+        seen = []
+        with pytest.raises(DeviceError, match="unplugged"):
+            pr.capture_ring(p.stage, StubCamera(grey, fail_after=3), p.tilt, p.clock, SessionConfig(settle_s=0.1),
+                            0.0, seen.append, lambda pb: None)
     assert [f.index for f in seen] == [0, 1, 2]

@@ -19,9 +19,10 @@ from pathlib import Path
 from types import FrameType
 
 from appliance.acquisition.notify import Notifier
-from appliance.acquisition.session import SessionResult, run_field_session
+from appliance.acquisition.onboard import load_session_database
+from appliance.acquisition.session import SessionResult, run_field_session, run_platform_session
 from appliance.config import Config
-from appliance.errors import ConfigError, LogError
+from appliance.errors import LogError
 
 
 @contextmanager
@@ -49,15 +50,14 @@ def run_one_session(
     on_status: Callable[[str], None] = lambda s: None,
     seed: int | None = None,
 ) -> SessionResult:
-    """One session on the configured platform, under the session lock."""
-    if config.platform.kind != "sim":
-        raise ConfigError(
-            "platform.kind = 'hardware': the session needs the hardware drivers of the platform "
-            "(tilt, compass, stage, camera) wired into appliance.acquisition.platform.Platform; "
-            "use platform.kind = 'sim' for the simulated platform"
-        )
+    """One session under the session lock: on the hardware of ``[devices]``, or (``kind = "sim"``)
+    on the simulated twins at a random position of the ``[sim] dem`` map."""
     with session_lock(log_dir):
-        return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status)
+        if config.platform.kind == "sim":
+            return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status)
+        on_status("loading the skyline database")
+        db = load_session_database(config.session)
+        return run_platform_session(config, log_dir, db, should_stop, on_status)
 
 
 class SessionDaemon:

@@ -1,11 +1,12 @@
-"""The onboard estimate: tagged frames -> panorama -> skyline -> position.
+"""The onboard estimate: tagged frames -> panorama -> skyline -> position, and its log records.
 
 Stitching uses the tags, not image features: every panorama pixel is a direction (azimuth,
 elevation); each frame's pose (yaw = true heading of the optical axis, pitch and roll from the
 inclinometers) says where that direction falls in the frame; frames are blended with weights that
-fall to zero at their edges.  The estimator is any object with the :class:`PositionEstimator`
-interface; :class:`GridSearchEstimator` is a small exhaustive search over a region (rendering the
-DEM's skyline at each candidate) that stands in where no faster estimator is given.
+fall to zero at their edges.  The position comes from the skyline database with
+:func:`appliance.position.locate` (the interval-valued posterior of the paper, section 4);
+:func:`estimate_messages` turns it into the log's records (LocationFix, the full JSON record, the
+region as GeoJSON, the lower posterior as a Grid), shared by the session and by ``viper replay``.
 """
 
 from __future__ import annotations
@@ -13,17 +14,26 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from appliance.acquisition.procedures import TaggedFrame
+from appliance.config import EstimatorConfig, SessionConfig
 from appliance.errors import EstimationError, InputError
+from appliance.logbook import messages as m
+from appliance.logbook.summary import great_circle_m
 from appliance.skyline import Skyline
 from appliance.vision.camera import CameraPose, directions_to_pixels
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama, Projection
+
+if TYPE_CHECKING:
+    from appliance.position import Position
+    from appliance.terrain.database import SkylineDatabase
+    from appliance.terrain.dem import Dem
 
 
 def stitch_frames(
@@ -66,115 +76,93 @@ def stitch_frames(
     return Panorama(image, Projection.CYLINDRICAL, px_per_rad, 0.0, horizon_row, True)
 
 
-@dataclass(frozen=True)
-class EstimateResult:
-    """Position estimate; ``posterior`` over ``grid_lat``/``grid_lon`` (rows south->north) if any."""
+def load_session_database(cfg: SessionConfig, dem: Dem | None = None,
+                          cache_dir: Path | None = None) -> SkylineDatabase | None:
+    """The skyline database of ``[session] database``; on the demo map (jacksboro) without one, the
+    demo's database built once in ``cache_dir``; otherwise None (the estimate is then skipped)."""
+    from appliance.terrain.database import load_database
 
-    lat_deg: float
-    lon_deg: float
-    sigma_m: float
-    heading_offset_deg: float
-    rms_deg: float
-    posterior: np.ndarray | None = None
-    grid_lat: np.ndarray | None = None
-    grid_lon: np.ndarray | None = None
-    cell_m: float | None = None
-    rendered: Skyline | None = None
+    if cfg.database is not None:
+        return load_database(cfg.database, dem)
+    if dem is not None and cache_dir is not None and Path(dem.source).name.startswith("jacksboro"):
+        from appliance.demo import demo_database
 
-
-class PositionEstimator(Protocol):
-    def estimate(self, skyline: Skyline) -> EstimateResult: ...
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        return demo_database(dem, cache_dir)
+    return None
 
 
-def skyline_rms_deg(
-    observed: Skyline, rendered_az_deg: np.ndarray, rendered_el_deg: np.ndarray, offset_deg: float
-) -> float:
-    """RMS difference (deg) of the observed skyline against a rendered one shifted by ``offset_deg``."""
-    ref = np.interp((observed.azimuth_deg + offset_deg) % 360.0, rendered_az_deg, rendered_el_deg, period=360.0)
-    diff = observed.elevation_deg - ref
-    ok = np.isfinite(diff)
-    if ok.sum() < 3:
-        return math.inf
-    return float(np.sqrt(np.mean(diff[ok] ** 2)))
+def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, source: str = "") -> Position:
+    """The position of ``skyline`` in ``db``; refuses a skyline with too few valid azimuths."""
+    from appliance.position import locate
 
-
-class GridSearchEstimator:
-    """Exhaustive search over a square region; heading searched within +-``heading_tolerance_deg``.
-
-    ``posterior`` is proportional to exp(-rms^2 / (2 sigma^2)) with sigma = ``sigma_deg``.
-    """
-
-    def __init__(
-        self,
-        dem: Any,
-        center_lat: float,
-        center_lon: float,
-        radius_m: float,
-        step_m: float,
-        height_m: float = 1.5,
-        heading_tolerance_deg: float = 4.0,
-        heading_step_deg: float = 0.5,
-        sigma_deg: float = 0.3,
-    ) -> None:
-        if not (radius_m > 0 and step_m > 0):
-            raise EstimationError(f"grid search: radius and step must be positive, got {radius_m}, {step_m}")
-        self.dem = dem
-        self.center = (center_lat, center_lon)
-        self.radius_m, self.step_m = radius_m, step_m
-        self.height_m = height_m
-        self.offsets = np.arange(-heading_tolerance_deg, heading_tolerance_deg + 1e-9, heading_step_deg)
-        self.sigma_deg = sigma_deg
-
-    def region_lonlat(self) -> list[tuple[float, float]]:
-        lat0, lon0 = self.center
-        dlat = math.degrees(self.radius_m / 6_371_008.8)
-        dlon = dlat / math.cos(math.radians(lat0))
-        return [
-            (lon0 - dlon, lat0 - dlat),
-            (lon0 + dlon, lat0 - dlat),
-            (lon0 + dlon, lat0 + dlat),
-            (lon0 - dlon, lat0 + dlat),
-        ]
-
-    def estimate(self, skyline: Skyline) -> EstimateResult:
-        from appliance.terrain.horizon import render_skyline
-
-        if skyline.valid.sum() < 10:
-            raise EstimationError(f"skyline has only {int(skyline.valid.sum())} valid azimuths; need 10")
-        lat0, lon0 = self.center
-        n = int(self.radius_m // self.step_m)
-        ks = np.arange(-n, n + 1)
-        dlat = math.degrees(self.step_m / 6_371_008.8)
-        dlon = dlat / math.cos(math.radians(lat0))
-        lats, lons = lat0 + ks * dlat, lon0 + ks * dlon
-        az = np.arange(0.0, 360.0, 1.0)
-        rms = np.full((ks.size, ks.size), np.inf)
-        best_off = np.zeros_like(rms)
-        for i, lat in enumerate(lats):
-            for j, lon in enumerate(lons):
-                h = render_skyline(self.dem, float(lat), float(lon), self.height_m, azimuths_deg=az)
-                el = np.nan_to_num(np.asarray(h.elevation_deg, float), nan=-90.0)
-                scores = [skyline_rms_deg(skyline, az, el, o) for o in self.offsets]
-                k = int(np.argmin(scores))
-                rms[i, j], best_off[i, j] = scores[k], self.offsets[k]
-        if not np.isfinite(rms).any():
-            raise EstimationError("grid search: no candidate could be compared with the skyline")
-        bi, bj = (int(v) for v in np.unravel_index(int(np.argmin(rms)), rms.shape))
-        post = np.exp(-0.5 * (np.where(np.isfinite(rms), rms, 1e9) ** 2 - rms[bi, bj] ** 2) / self.sigma_deg**2)
-        post /= post.sum()
-        yy, xx = np.meshgrid(ks * self.step_m, ks * self.step_m, indexing="ij")
-        my, mx = float((post * yy).sum()), float((post * xx).sum())
-        sigma = math.sqrt(float((post * ((yy - my) ** 2 + (xx - mx) ** 2)).sum()) + (self.step_m / 2) ** 2)
-        best = render_skyline(self.dem, float(lats[i]), float(lons[j]), self.height_m, azimuths_deg=az)
-        return EstimateResult(
-            float(lats[i]),
-            float(lons[j]),
-            sigma,
-            float(best_off[i, j]),
-            float(rms[i, j]),
-            post.astype(np.float32),
-            lats,
-            lons,
-            self.step_m,
-            Skyline(az, np.asarray(best.elevation_deg, float)),
+    if skyline.valid_fraction < cfg.min_valid_fraction:
+        raise EstimationError(
+            f"skyline has {skyline.valid_fraction:.0%} valid azimuths, below {cfg.min_valid_fraction:.0%}"
         )
+    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, source=source)
+
+
+def region_features(db: SkylineDatabase, pos: Position) -> list[dict[str, Any]]:
+    """The region (polygons of its cells, lon/lat) and the estimate (a point) as GeoJSON features."""
+    from rasterio import features
+
+    mask = np.zeros(db.grid.n_nodes, dtype=np.uint8)
+    mask[pos.result.region_nodes] = 1
+    polys = []
+    for geom, value in features.shapes(mask.reshape(db.grid.n_rows, db.grid.n_cols), transform=db.grid.transform):
+        if value != 1:
+            continue
+        rings = []
+        for ring in geom["coordinates"]:
+            xy = np.asarray(ring, float)
+            lon, lat = db.grid.xy_to_lonlat(xy[:, 0], xy[:, 1])
+            rings.append([[round(float(a), 7), round(float(b), 7)] for a, b in zip(lon, lat, strict=True)])
+        polys.append(rings)
+    region = {
+        "type": "Feature",
+        "properties": {"name": "region", "area_m2": pos.result.region_area_m2,
+                       "lower": pos.result.lower, "upper": pos.result.upper},
+        "geometry": {"type": "MultiPolygon", "coordinates": polys},
+    }
+    return [region, m.point_feature(pos.lon, pos.lat, "estimate")]
+
+
+def posterior_grid(db: SkylineDatabase, pos: Position, time_ns: int, floor_decades: float = 20.0) -> Any:
+    """The lower posterior (log10, floored ``floor_decades`` below its peak) as a Foxglove Grid.
+
+    Row 0 is the grid's southernmost row; cells are ``dx_m`` x ``dy_m`` metres in the frame
+    ``skyline-grid`` whose origin is the south-west node.
+    """
+    g = db.grid
+    lower = np.asarray(pos.result.log_lower_map, float).reshape(g.n_rows, g.n_cols) / math.log(10.0)
+    top = float(np.nanmax(np.where(np.isfinite(lower), lower, -np.inf)))
+    floored = np.where(np.isfinite(lower), np.maximum(lower, top - floor_decades), top - floor_decades)
+    return m.grid(time_ns, floored[::-1], (g.dx_m, g.dy_m), (0.0, 0.0), frame_id="skyline-grid",
+                  field_name="log10_lower_posterior")
+
+
+@dataclass(frozen=True)
+class EstimateRecord:
+    """What the log holds of one estimate: the JSON record and the error against the truth (m)."""
+
+    record: dict[str, Any]
+    error_m: float | None
+
+
+def estimate_record(db: SkylineDatabase, pos: Position, skyline: Skyline,
+                    truth: tuple[float, float] | None) -> EstimateRecord:
+    """``Position.to_json`` plus the skyline's valid fraction and the error against ``truth`` (lat, lon)."""
+    rec = pos.to_json(db, truth)
+    rec["valid_fraction"] = skyline.valid_fraction
+    err = None
+    if truth is not None:
+        err = great_circle_m(pos.lat, pos.lon, truth[0], truth[1])
+        rec["error_m"] = err
+        rec["truth_lat"], rec["truth_lon"] = truth
+    return EstimateRecord(rec, err)
+
+
+def rendered_skyline(db: SkylineDatabase, pos: Position) -> Skyline:
+    """The database's skyline at the estimate's node (azimuths clockwise from true north)."""
+    return Skyline(np.asarray(db.azimuths_deg, float), np.asarray(db.skylines_deg(pos.result.node), float))

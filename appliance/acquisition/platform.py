@@ -5,13 +5,15 @@ camera's frame: ``roll_deg`` positive when the right-hand side of the image goes
 positive nose up (as :mod:`appliance.vision.camera`), the magnetic field's ``x`` along the optical
 axis (forward), ``y`` to the right, ``z`` down.  Stage angles are degrees clockwise seen from
 above.  Times are UTC nanoseconds.  Every device call may raise :class:`DeviceError` (unplugged,
-stalled); the session degrades instead of dying.
+stalled); the session degrades instead of dying.  :func:`platform_of` takes the devices of
+:func:`appliance.drivers.factory.open_platform` (the real drivers, on hardware or on the simulated
+twins), whose records have these fields.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -97,3 +99,17 @@ class Platform:
     gps: GpsSource | None
     leveller: Leveller | None
     camera_height_m: float = 1.5
+
+
+def platform_of(devices: Any) -> Platform:
+    """The procedures' view of :class:`appliance.drivers.factory.Devices` (same attribute names)."""
+    return Platform(
+        clock=devices.clock,
+        tilt=devices.tilt,
+        compass=devices.compass,
+        stage=devices.stage,
+        camera=devices.camera,
+        gps=devices.gps,
+        leveller=devices.leveller,
+        camera_height_m=devices.camera_height_m,
+    )

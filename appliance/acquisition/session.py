@@ -8,27 +8,31 @@ log is closed properly.  :func:`run_field_session` is the whole simulated sessio
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import math
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from appliance.acquisition import onboard, procedures
-from appliance.acquisition.platform import Platform
+from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
-from appliance.config import Config
+from appliance.config import Config, PlatformConfig, SimFaultsConfig
 from appliance.errors import DeviceError, EstimationError, InputError, ViperError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
-from appliance.logbook.summary import great_circle_m
 from appliance.logbook.writer import Logbook, LogbookFullError
 from appliance.skyline import Skyline
+
+if TYPE_CHECKING:
+    from appliance.position import Position
+    from appliance.terrain.database import SkylineDatabase
 
 
 class StopRequestedError(Exception):
@@ -43,7 +47,7 @@ class SessionResult:
     outcomes: dict[str, str] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
     truth: procedures.TruthResult | None = None
-    estimate: onboard.EstimateResult | None = None
+    estimate: Position | None = None
     error_m: float | None = None
     frames: int = 0
     stopped: bool = False
@@ -72,17 +76,15 @@ class Session:
         platform: Platform,
         logbook: Logbook,
         config: Config,
-        estimator: onboard.PositionEstimator | None,
+        db: SkylineDatabase | None,
         result: SessionResult,
         should_stop: Callable[[], bool] = lambda: False,
         on_status: Callable[[str], None] = lambda s: None,
-        region: list[tuple[float, float]] | None = None,
         approx_position: tuple[float, float] | None = None,
     ) -> None:
         self.p, self.log, self.cfg = platform, logbook, config
-        self.estimator, self.result = estimator, result
+        self.db, self.result = db, result
         self.should_stop, self.on_status = should_stop, on_status
-        self.region = region
         self.approx = approx_position
 
     # -------------------------------------------------------------------------------- helpers
@@ -113,9 +115,6 @@ class Session:
         r = self.result
         try:
             self.log.write_json(t.SESSION, "viper.Session", {"session_id": r.session_id}, self.now())
-            if self.region:
-                feats = [m.polygon_feature(self.region, "search region")]
-                self.log.write_proto(t.REGION, m.geojson(feats), self.now())
             if self.p.camera is not None:
                 intr = self.p.camera.intrinsics
                 self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
@@ -289,8 +288,8 @@ class Session:
         if not frames or self.p.camera is None:
             self.outcome("estimate", Status.FAILED, "no frames to estimate from")
             return
-        if self.estimator is None:
-            self.outcome("estimate", Status.DEGRADED, "no estimator configured (no DEM?)")
+        if self.db is None:
+            self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
         from appliance.vision.skyline_detect import detect_skyline
 
@@ -299,54 +298,50 @@ class Session:
         ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
         if ok:
             self.log.write_proto(
-                "/camera/panorama",
-                m.compressed_image(self.now(), jpeg.tobytes(), frame_id="panorama"),
-                self.now(),
+                t.PANORAMA, m.compressed_image(self.now(), jpeg.tobytes(), frame_id="panorama"), self.now()
             )
         sky = detect_skyline(pano)
         self.result.skyline = sky
-        self.log.write_json(
-            t.SKYLINE_DETECTED,
-            "viper.Skyline",
-            {"azimuth_deg": sky.azimuth_deg, "elevation_deg": sky.elevation_deg},
-            self.now(),
-        )
-        est = self.estimator.estimate(sky)
-        self.result.estimate = est
-        now = self.now()
-        if est.rendered is not None:
-            self.log.write_json(
-                t.SKYLINE_RENDERED,
-                "viper.Skyline",
-                {"azimuth_deg": est.rendered.azimuth_deg, "elevation_deg": est.rendered.elevation_deg},
-                now,
-            )
-        self.log.write_proto(
-            t.ESTIMATE_FIX,
-            m.location_fix(now, est.lat_deg, est.lon_deg, sigma_m=est.sigma_m, frame_id="estimate"),
-            now,
-        )
-        if est.posterior is not None and est.cell_m is not None:
-            self.log.write_proto(
-                t.POSTERIOR,
-                m.grid(now, est.posterior, (est.cell_m, est.cell_m), (0.0, 0.0), frame_id="search-grid"),
-                now,
-            )
-        record: dict[str, Any] = {
-            "lat": est.lat_deg,
-            "lon": est.lon_deg,
-            "sigma_m": est.sigma_m,
-            "heading_offset_deg": est.heading_offset_deg,
-            "rms_deg": est.rms_deg,
-            "valid_fraction": sky.valid_fraction,
-        }
+        self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), self.now())
+        self.on_status("estimate: searching the skyline database")
+        pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
+        self.result.estimate = pos
+        where = None
         if truth is not None and truth.lat_deg is not None and truth.lon_deg is not None:
-            err = great_circle_m(est.lat_deg, est.lon_deg, truth.lat_deg, truth.lon_deg)
-            self.result.error_m = err
-            record.update(error_m=err, truth_lat=truth.lat_deg, truth_lon=truth.lon_deg)
-            self.say("info", f"estimate {est.lat_deg:.6f} {est.lon_deg:.6f}: {err:.0f} m from the GPS truth")
-        self.log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", record, now)
+            where = (truth.lat_deg, truth.lon_deg)
+        rec = write_estimate(self.log, self.now(), self.db, pos, sky, where)
+        self.result.error_m = rec.error_m
+        if rec.error_m is not None:
+            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f}: {rec.error_m:.0f} m from the GPS truth")
+        else:
+            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} (no GPS truth to compare)")
         self.outcome("estimate", Status.OK)
+
+
+def skyline_payload(sky: Skyline) -> dict[str, Any]:
+    return {"azimuth_deg": sky.azimuth_deg, "elevation_deg": sky.elevation_deg}
+
+
+def write_estimate(
+    log: Logbook,
+    time_ns: int,
+    db: SkylineDatabase,
+    pos: Position,
+    skyline: Skyline,
+    truth: tuple[float, float] | None,
+) -> onboard.EstimateRecord:
+    """The estimate into ``log``: LocationFix, full JSON record, region (GeoJSON), lower posterior (Grid)
+    and the skyline rendered at the estimate; returns the record with its error against ``truth``."""
+    rec = onboard.estimate_record(db, pos, skyline, truth)
+    cell_m = math.sqrt(pos.cell_size_m[0] * pos.cell_size_m[1])
+    log.write_proto(t.ESTIMATE_FIX, m.location_fix(time_ns, pos.lat, pos.lon, sigma_m=cell_m, frame_id="estimate"),
+                    time_ns)
+    log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
+    log.write_proto(t.REGION, m.geojson(onboard.region_features(db, pos)), time_ns)
+    log.write_proto(t.POSTERIOR, onboard.posterior_grid(db, pos, time_ns), time_ns)
+    log.write_json(t.SKYLINE_RENDERED, "viper.Skyline", skyline_payload(onboard.rendered_skyline(db, pos)), time_ns)
+    log.flush()
+    return rec
 
 
 def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:
@@ -358,10 +353,9 @@ def run_session(
     platform: Platform,
     config: Config,
     log_dir: Path,
-    estimator: onboard.PositionEstimator | None = None,
+    db: SkylineDatabase | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
-    region: list[tuple[float, float]] | None = None,
     approx_position: tuple[float, float] | None = None,
 ) -> SessionResult:
     """Run one session on ``platform``; the log goes to a new file in ``log_dir``."""
@@ -376,70 +370,87 @@ def run_session(
         reserve_bytes=lc.reserve_bytes,
     )
     result = SessionResult(path, session_id)
-    return Session(platform, logbook, config, estimator, result, should_stop, on_status, region, approx_position).run()
+    return Session(platform, logbook, config, db, result, should_stop, on_status, approx_position).run()
+
+
+def run_platform_session(
+    config: Config,
+    log_dir: Path,
+    db: SkylineDatabase | None = None,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_status: Callable[[str], None] = lambda s: None,
+) -> SessionResult:
+    """One session on :func:`appliance.drivers.factory.open_platform` (hardware, or the simulated twins)."""
+    from appliance.drivers.factory import open_platform
+
+    on_status("opening the devices")
+    with open_platform(config) as devices:
+        return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status)
+
+
+def simulated_config(config: Config, dem: Any, db: SkylineDatabase | None, rng: np.random.Generator,
+                     faults: SimFaultsConfig | None = None) -> Config:
+    """``config`` with ``[sim]`` at a random position of the map, heading, tripod tilt and seed."""
+    lat, lon = random_position(dem, db, rng)
+    sim = dataclasses.replace(
+        config.sim,
+        lat_deg=lat,
+        lon_deg=lon,
+        ground_elevation_m=None,
+        heading_deg=float(rng.uniform(0.0, 360.0)),
+        tilt_north_deg=float(rng.uniform(-2.0, 2.0)),
+        tilt_east_deg=float(rng.uniform(-2.0, 2.0)),
+        seed=int(rng.integers(1 << 30)),
+        faults=config.sim.faults if faults is None else faults,
+    )
+    return dataclasses.replace(config, platform=PlatformConfig("sim"), sim=sim)
 
 
 def run_field_session(
     config: Config,
     out_dir: str | Path,
     seed: int | None = None,
-    search_radius_m: float | None = None,
-    search_step_m: float | None = None,
     dem: Any = None,
-    faults: Any = None,
+    faults: SimFaultsConfig | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
+    db: SkylineDatabase | None = None,
 ) -> SessionResult:
-    """A whole simulated session on the jacksboro DEM at a random position; the log goes to ``out_dir``.
+    """A whole simulated session at a random position of the ``[sim] dem`` map; the log goes to ``out_dir``.
 
-    The search region is a square of half-side ``search_radius_m`` around a point drawn within half
-    of it from the true position (the operator's rough idea of where the tripod stands).
+    The platform is :func:`appliance.sim.platform.open_sim_platform`: the real drivers over the twins'
+    wire protocols (ptys, fake I2C, a simulated V4L2 capture), faults from ``faults`` (else
+    ``[sim.faults]``).  The skyline database is ``db``, else ``[session] database``, else the demo
+    map's, built once beside the log.  ``outcomes["true_position"]`` is the simulated truth.
     """
-    from appliance.acquisition.simulated import SimClock, SimFaults, SimWorld, simulated_platform
     from appliance.terrain.dem import load_dem
 
-    search_radius_m = config.session.search_radius_m if search_radius_m is None else search_radius_m
-    search_step_m = config.session.search_step_m if search_step_m is None else search_step_m
     rng = np.random.default_rng(seed)
-    dem = dem if dem is not None else load_dem("jacksboro")
-    lon0, lat0, lon1, lat1 = dem.bounds_lonlat()
-    margin = 0.25
-    lat = float(lat0 + (lat1 - lat0) * rng.uniform(margin, 1 - margin))
-    lon = float(lon0 + (lon1 - lon0) * rng.uniform(margin, 1 - margin))
-    clock = SimClock()
-    decl = magnetic_declination_deg(lat, lon, _utc(clock.now_ns()))
-    world = SimWorld(
-        dem,
-        lat,
-        lon,
-        heading_deg=float(rng.uniform(0, 360)),
-        declination_deg=decl,
-        camera_height_m=config.terrain.camera_height_m,
-        seed=int(rng.integers(1 << 30)),
-        faults=faults or SimFaults(),
-    )
-    platform = simulated_platform(world, clock)
-    shift = rng.uniform(-0.5, 0.5, 2) * search_radius_m
-    c_lat = lat + math.degrees(shift[0] / 6_371_008.8)
-    c_lon = lon + math.degrees(shift[1] / (6_371_008.8 * math.cos(math.radians(lat))))
-    est = onboard.GridSearchEstimator(
-        dem,
-        c_lat,
-        c_lon,
-        search_radius_m,
-        search_step_m,
-        height_m=config.terrain.camera_height_m,
-        heading_tolerance_deg=config.estimator.heading_tolerance_deg,
-    )
-    result = run_session(
-        platform,
-        config,
-        Path(out_dir),
-        est,
-        should_stop,
-        on_status,
-        region=est.region_lonlat(),
-        approx_position=(c_lat, c_lon),
-    )
-    result.outcomes.setdefault("true_position", f"{lat:.6f},{lon:.6f}")
+    dem = dem if dem is not None else load_dem(config.sim.dem)
+    out = Path(out_dir)
+    if db is None:
+        on_status("loading the skyline database")
+        db = onboard.load_session_database(config.session, dem, out)
+    sim_config = simulated_config(config, dem, db, rng, faults)
+    result = run_platform_session(sim_config, out, db, should_stop, on_status)
+    result.outcomes.setdefault("true_position", f"{sim_config.sim.lat_deg:.6f},{sim_config.sim.lon_deg:.6f}")
     return result
+
+
+def random_position(dem: Any, db: SkylineDatabase | None, rng: np.random.Generator,
+                    margin_nodes: float = 20.0) -> tuple[float, float]:
+    """(lat, lon) drawn uniformly inside the database's grid (or the DEM) away from its edges, on terrain."""
+    for _ in range(1000):
+        if db is not None:
+            g = db.grid
+            margin_nodes = min(margin_nodes, g.n_rows / 4, g.n_cols / 4)
+            r = rng.uniform(margin_nodes, g.n_rows - margin_nodes)
+            c = rng.uniform(margin_nodes, g.n_cols - margin_nodes)
+            lon, lat = (float(v) for v in g.xy_to_lonlat(*g.rc_to_xy(r, c)))
+        else:
+            lon0, lat0, lon1, lat1 = dem.bounds_lonlat()
+            lat = float(lat0 + (lat1 - lat0) * rng.uniform(0.25, 0.75))
+            lon = float(lon0 + (lon1 - lon0) * rng.uniform(0.25, 0.75))
+        if math.isfinite(float(dem.sample_lonlat(np.atleast_1d(lon), np.atleast_1d(lat))[0])):
+            return lat, lon
+    raise InputError("no position on terrain found in the map after 1000 draws")

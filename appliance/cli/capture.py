@@ -30,5 +30,6 @@ def _capture(args: argparse.Namespace) -> int:
     if result.estimate is not None:
         e = result.estimate
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
-        print(f"estimate: lat {e.lat_deg:.6f} lon {e.lon_deg:.6f} (sigma {e.sigma_m:.0f} m), {err}")
+        area = e.result.region_area_m2 / 1e6
+        print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
     return 0 if result.status.value != "failed" else 1

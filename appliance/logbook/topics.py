@@ -7,13 +7,14 @@ topic                       schema                      content
 ==========================  ==========================  ===========================================
 ``/camera/image``           foxglove.CompressedImage    each captured frame (JPEG or PNG)
 ``/camera/calibration``     foxglove.CameraCalibration  the intrinsics used for the session
+``/camera/panorama``        foxglove.CompressedImage    the panorama stitched from the tagged frames
 ``/gps/fix``                foxglove.LocationFix        every GPS fix as received
 ``/gps/truth``              foxglove.LocationFix        the averaged ground truth of the session
 ``/estimate/fix``           foxglove.LocationFix        the onboard (or replayed) estimate
 ``/tf``                     foxglove.FrameTransform     attitude (world->platform), stage (->camera)
 ``/log``                    foxglove.Log                daemon and procedure messages
-``/region``                 foxglove.GeoJSON            the searched region and the DEM's extent
-``/estimate/posterior``     foxglove.Grid               the posterior over the searched grid
+``/region``                 foxglove.GeoJSON            the estimate's region (cells) and the estimate
+``/estimate/posterior``     foxglove.Grid               log10 lower posterior over the database grid
 ==========================  ==========================  ===========================================
 
 JSON-schema messages (schema names ``viper.*``): raw heading, tilt and stage readings, the tag of
@@ -26,6 +27,7 @@ from __future__ import annotations
 from typing import Any
 
 IMAGE = "/camera/image"
+PANORAMA = "/camera/panorama"
 CALIBRATION = "/camera/calibration"
 GPS_FIX = "/gps/fix"
 GPS_TRUTH = "/gps/truth"
@@ -93,12 +95,15 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "Session description: identifier, platform, configuration", {"session_id": _STR, "platform": _STR}
     ),
     "viper.Estimate": _object(
-        "The estimate's full record: position, uncertainty, heading, error against the GPS truth",
+        "The estimate's full record (appliance.position.Position.to_json) and its error against the GPS truth",
         {
             "lat": _NUM,
             "lon": _NUM,
-            "sigma_m": _NUM,
-            "heading_deg": _NUM,
+            "heading_correction_deg": _NUM,
+            "lower": _NUM,
+            "upper": _NUM,
+            "rms_residual_deg": _NUM,
+            "valid_fraction": _NUM,
             "error_m": _NUM,
             "truth_lat": _NUM,
             "truth_lon": _NUM,

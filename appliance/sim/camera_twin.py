@@ -3,7 +3,9 @@
 Frames are rendered by :func:`appliance.vision.synth.render_photo_from` from the world's true
 position and the head's pose (stage heading, tilt).  Properties behave as a V4L2 driver's: width
 and height must equal the intrinsics' (other sizes are refused), exposure scales the brightness.
-Faults: ``unplug()`` makes ``grab``/``read`` fail; ``refuse`` lists properties whose ``set`` fails.
+Faults: ``unplug()`` makes ``grab``/``read`` fail; ``refuse`` lists properties whose ``set`` fails;
+``unplug_after`` unplugs after that many frames read; ``black_frames`` lists read numbers (from 0)
+that return a black frame (lens cap, dead sensor).
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ class SimVideoCapture:
         dem: Any = None,
         seed: int = 0,
         refuse: frozenset[int] = frozenset(),
+        unplug_after: int | None = None,
+        black_frames: frozenset[int] = frozenset(),
     ) -> None:
         if skyline_fn is None:
             if dem is None:
@@ -39,6 +43,7 @@ class SimVideoCapture:
         self.rng = np.random.default_rng(seed)
         self.seed = seed
         self.refuse = set(refuse)
+        self.unplug_after, self.black_frames = unplug_after, frozenset(black_frames)
         self.opened = True
         self.frames = 0
         self.props: dict[int, float] = {
@@ -70,8 +75,13 @@ class SimVideoCapture:
         return self.opened
 
     def read(self) -> tuple[bool, np.ndarray | None]:
+        if self.unplug_after is not None and self.frames >= self.unplug_after:
+            self.opened = False
         if not self.opened:
             return False, None
+        if self.frames in self.black_frames:
+            self.frames += 1
+            return True, np.zeros((self.intrinsics.height, self.intrinsics.width, 3), np.uint8)
         pitch, roll = self.world.head_tilt()
         pose = CameraPose(self.world.head_heading_deg, pitch, roll)
         img = render_photo_from(self.skyline_fn, pose, self.intrinsics, self.rng, scene_seed=self.seed)

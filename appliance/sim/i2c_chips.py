@@ -82,9 +82,10 @@ class SimHmc5883l(SimChip):
     """HMC5883L: data X, Z, Y big-endian from the world's raw field (with hard and soft iron)."""
 
     def __init__(self, world: SimWorld, noise_t: float = 2e-8, seed: int = 0, stuck: bool = False,
-                 drift_deg_per_s: float = 0.0) -> None:
+                 drift_deg_per_s: float = 0.0, metal_nearby: bool = False) -> None:
         super().__init__()
         self.world = world
+        self.metal_nearby = metal_nearby
         self.noise_t = noise_t
         self.rng = np.random.default_rng(seed)
         self.stuck = stuck
@@ -100,6 +101,11 @@ class SimHmc5883l(SimChip):
         if self.drift_deg_per_s:
             a = math.radians(self.drift_deg_per_s * (self.world.clock.now() - self._t0).total_seconds())
             x, y = x * math.cos(a) - y * math.sin(a), x * math.sin(a) + y * math.cos(a)
+        if self.metal_nearby:
+            # induced magnetisation of nearby steel: a distortion no ellipse fit absorbs
+            h = math.radians(self.world.head_heading_deg)
+            b = math.hypot(self.world.field_world_t[0], self.world.field_world_t[1])
+            x, y = x + 0.4 * b * math.cos(3 * h), y + 0.4 * b * math.sin(2 * h)
         n = self.rng.normal(0.0, self.noise_t, 3)
         return (x + n[0], y + n[1], z + n[2])
 

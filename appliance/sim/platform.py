@@ -2,7 +2,8 @@
 
 Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary folder; the I2C
 twins (HMC5883L, ADXL345) sit on one :class:`FakeI2cBus`; the camera is a :class:`SimVideoCapture`
-driven by the real :class:`V4l2Camera` driver.  Faults come from ``[sim.faults]``.
+driven by the real :class:`V4l2Camera` driver; the leveller is the person at the tripod
+(:class:`SimLeveller`).  Faults come from ``[sim.faults]``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from appliance.drivers.factory import Devices, build_devices
 from appliance.errors import ConfigError
 from appliance.sim.camera_twin import SimVideoCapture
 from appliance.sim.i2c_chips import FakeI2cBus, SimAdxl345, SimHmc5883l
+from appliance.sim.leveller import SimLeveller
 from appliance.sim.nmea_twins import GpsTwin, NmeaCompassTwin
 from appliance.sim.ptu_twin import PtuTwin
 from appliance.sim.pty_port import PtyPort
@@ -59,7 +61,8 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
     gps_twin = GpsTwin(world, gps_port, sim, faults)
     ptu_port = PtyPort(folder / "ptu")
     ptu_twin = PtuTwin(world, ptu_port, min_position=-7000, max_position=7000,
-                       miss_step_every=faults.stage_miss_step_every, miss_positions=faults.stage_miss_positions)
+                       miss_step_every=faults.stage_miss_step_every, miss_positions=faults.stage_miss_positions,
+                       stall_at_deg=faults.stage_stall_at_deg)
     compass_src = ""
     if "nmea" in (config.devices.compass.kind, config.devices.inclinometer.kind):
         c_port = PtyPort(folder / "compass")
@@ -73,7 +76,8 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
     bus = FakeI2cBus()
     bus.attach(config.devices.compass.i2c_address,
                SimHmc5883l(world, seed=sim.seed, stuck=faults.compass_stuck,
-                           drift_deg_per_s=faults.compass_drift_deg_per_s))
+                           drift_deg_per_s=faults.compass_drift_deg_per_s,
+                           metal_nearby=faults.compass_metal_nearby))
     if not faults.inclinometer_absent:
         bus.attach(config.devices.inclinometer.i2c_address,
                    SimAdxl345(world, seed=sim.seed, stuck=faults.inclinometer_stuck))
@@ -84,8 +88,13 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
         cam_cfg = config.devices.camera
         intr = (load_intrinsics(cam_cfg.intrinsics_file) if cam_cfg.intrinsics_file is not None
                 else CameraIntrinsics.from_fov(cam_cfg.width, cam_cfg.height, 60.0))
-        camera = V4l2Camera(cam_cfg, intr, lambda *_: SimVideoCapture(world, intr, dem=dem, seed=sim.seed),
-                            world.clock.now_ns)
+        black = frozenset(faults.camera_black_frames)
+
+        def video_capture(*_: object) -> SimVideoCapture:
+            return SimVideoCapture(world, intr, dem=dem, seed=sim.seed, unplug_after=faults.camera_unplug_after,
+                                   black_frames=black)
+
+        camera = V4l2Camera(cam_cfg, intr, video_capture, world.clock.now_ns)
     try:
         devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
                                 world.clock)
@@ -95,6 +104,7 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
         shutil.rmtree(folder, ignore_errors=True)
         raise
     devices.camera_height_m = sim.mast_height_m
+    devices.leveller = SimLeveller(world)
     devices._closers[:0] = [lambda: shutil.rmtree(folder, ignore_errors=True), *stops]
     devices.world = world  # type: ignore[attr-defined]
     return devices

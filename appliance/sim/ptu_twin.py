@@ -2,7 +2,8 @@
 
 Moves take ``distance / speed`` of simulated time.  With ``miss_step_every = N`` every Nth move
 stops ``miss_positions`` short of its target (a stalled stepper), as a real unit does silently: its
-position query then tells the truth, and the driver notices.
+position query then tells the truth, and the driver notices.  With ``stall_at_deg`` the pan axis
+cannot pass that angle (an obstacle): a move across it ends there.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ class PtuTwin:
         miss_step_every: int = 0,
         miss_positions: int = 20,
         silent: bool = False,
+        stall_at_deg: float | None = None,
     ) -> None:
         self.world, self.port = world, port
         self.res = arcsec_per_position
@@ -35,6 +37,7 @@ class PtuTwin:
         self.speed = speed_positions_s
         self.miss_every, self.miss_positions = miss_step_every, miss_positions
         self.silent = silent
+        self.stall_position = None if stall_at_deg is None else round(stall_at_deg * 3600.0 / arcsec_per_position)
         self.position = 0
         self.terse = False
         self.echo = True
@@ -69,7 +72,7 @@ class PtuTwin:
             return "*"
         if c in ("FV", "CI", "CV", "A", "R", "H"):
             if c == "A":
-                self.world.clock.sleep(self._pending_s / self.world.clock.time_rate)
+                self.world.clock.sleep(self._pending_s)
                 self._pending_s = 0.0
             if c == "R":
                 self._set_position(0)
@@ -105,6 +108,10 @@ class PtuTwin:
                 step = self.miss_positions if target > self.position else -self.miss_positions
                 reached = target - step
                 log.info("ptu twin: move %d to %d stalls at %d", self.moves, target, reached)
+            s = self.stall_position
+            if s is not None and min(self.position, target) < s < max(self.position, target):
+                reached = s
+                log.info("ptu twin: move %d to %d stopped by an obstacle at %d", self.moves, target, s)
             self._pending_s = abs(target - self.position) / self.speed
             self._set_position(reached)
             return "*"

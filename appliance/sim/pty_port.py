@@ -33,6 +33,7 @@ class PtyPort:
                 return
             master, slave = os.openpty()
             tty.setraw(slave)
+            os.set_blocking(master, False)  # a full line drops bytes (receiver overrun), never blocks the twin
             self._master, self._slave = master, slave
             tmp = self.path.with_name(self.path.name + ".new")
             if tmp.is_symlink() or tmp.exists():
@@ -52,7 +53,8 @@ class PtyPort:
             self._master = self._slave = None
 
     def write(self, data: bytes) -> None:
-        """Send bytes to the driver; dropped while unplugged (as a receiver talking to no one)."""
+        """Send bytes to the driver; dropped while unplugged (as a receiver talking to no one) and
+        when the driver has not read for so long that the line's buffer is full (an overrun)."""
         with self._lock:
             if self._master is None:
                 return

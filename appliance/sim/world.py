@@ -28,7 +28,11 @@ STANDARD_GRAVITY_M_S2 = 9.80665
 
 
 class SimClock:
-    """UTC = ``start_utc`` + real elapsed time x ``time_rate``."""
+    """UTC = ``start_utc`` + real elapsed time x ``time_rate``.
+
+    ``monotonic_s`` and ``sleep`` are in simulated seconds too, so procedures that wait and time out
+    run ``time_rate`` times faster than real time, at the pace of the twins.
+    """
 
     def __init__(self, start_utc: dt.datetime, time_rate: float = 1.0) -> None:
         self.start_utc = start_utc
@@ -42,10 +46,11 @@ class SimClock:
         return int(self.now().timestamp() * 1e9)
 
     def monotonic_s(self) -> float:
-        return time.monotonic()
+        return (time.monotonic() - self._t0) * self.time_rate
 
     def sleep(self, seconds: float) -> None:
-        time.sleep(max(seconds, 0.0))
+        """Wait ``seconds`` of simulated time."""
+        time.sleep(max(seconds, 0.0) / self.time_rate)
 
 
 @dataclass
