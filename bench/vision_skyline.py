@@ -24,6 +24,17 @@ from appliance.vision.synth import analytic_skyline_fn, render_panorama, render_
 
 OUT = Path(__file__).resolve().parent / "results" / "vision_skyline.md"
 SEEDS = (1, 2, 3, 4, 5)
+NOTES = [
+    "Before the speed work (2026-11-22, best of 5 / of 3 runs on the same shared machine): detection dp"
+    " 57 ms, stitching 3.51 s (rotation max error 0.0166 deg), mixed clouds+haze 89.9 % of columns found,"
+    " cloudy 90.1 %.",
+    "Detection: compiled column-major cost kernel, vectorised float32 DP without back-pointers, per-pixel"
+    " Gaussian models by cv2.transform.  Stitching: remap maps computed once per (pitch, roll) and"
+    " interpolated for sub-column shifts (each image is sampled once to register and once to blend, the"
+    " camera model evaluated once), Levenberg-Marquardt with an analytic Jacobian on every second row and"
+    " column, slice-based blending.  Coverage: the generic sky prior vetoes a column only when no clear"
+    " sky shows anywhere above its line (a cloud on a ridge no longer drops the column).",
+]
 
 
 def timed(fn, n: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]
@@ -122,6 +133,7 @@ def main() -> int:
         "|---|---|---|",
         *[f"| {a} | {b} | {c} |" for a, b, c in rows],
         "",
+        *[line for note in NOTES for line in (note, "")],
     ]
     OUT.write_text("\n".join(lines), encoding="utf-8")
     print(f"wrote {OUT}")
