@@ -84,6 +84,7 @@ class SessionConfig:
     interval_s: float = 3600.0  # the session daemon starts a session this often
     max_sessions: int = 0  # the daemon stops after this many sessions; 0 = never
     watchdog_margin: float = 0.5  # WATCHDOG=1 every margin * WatchdogSec
+    step_timeout_s: float = 900.0  # the watchdog is fed while the session reported progress this recently
     level_tolerance_deg: float = 0.5  # |roll| and |pitch| must both be within this
     level_timeout_s: float = 120.0
     level_poll_s: float = 0.5

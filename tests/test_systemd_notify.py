@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 import socket
+import time
+import types
 
+import numpy as np
 import pytest
 
 from appliance.acquisition.notify import Notifier
@@ -69,3 +72,57 @@ def test_errors_are_device_errors(tmp_path):
         Notifier(str(tmp_path / "x")).status("two\nlines")
     with pytest.raises(DeviceError, match="WATCHDOG_USEC"):
         Notifier.from_environment({"WATCHDOG_USEC": "soon"})
+
+
+class RecordingNotifier:
+    """The Notifier's interface, recording when each field was sent."""
+
+    def __init__(self, interval_s: float) -> None:
+        self.watchdog_interval_s = interval_s
+        self.sent: list[tuple[float, dict]] = []
+
+    def notify(self, **fields) -> None:
+        self.sent.append((time.monotonic(), fields))
+
+    def ready(self, status=None) -> None:
+        self.notify(READY=1)
+
+    def watchdog(self) -> None:
+        self.notify(WATCHDOG=1)
+
+    def stopping(self, status=None) -> None:
+        self.notify(STOPPING=1)
+
+
+def run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s: float, step_timeout_s: float):
+    import appliance.acquisition.daemon as daemon_mod
+    from appliance.acquisition.daemon import SessionDaemon
+    from appliance.config import Config, SessionConfig
+
+    def long_session(config, log_dir, should_stop, on_status):
+        on_status("estimate...")
+        start = time.monotonic()
+        time.sleep(step_s)  # a long step that reports nothing (building a database, say)
+        return types.SimpleNamespace(error_m=None, frames=0, status=types.SimpleNamespace(value="ok"),
+                                     log_path=tmp_path / "x.mcap", start=start)
+
+    monkeypatch.setattr(daemon_mod, "run_one_session", long_session)
+    notifier = RecordingNotifier(0.05)
+    cfg = Config(session=SessionConfig(max_sessions=1, step_timeout_s=step_timeout_s))
+    d = SessionDaemon(cfg, tmp_path, notifier)  # type: ignore[arg-type]
+    assert d.run() == 0
+    status_t = next(t for t, f in notifier.sent if f.get("STATUS") == "estimate...")
+    return [t - status_t for t, f in notifier.sent if f == {"WATCHDOG": 1}]
+
+
+def test_heartbeat_feeds_the_watchdog_through_a_long_step(monkeypatch, tmp_path):
+    pings = run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s=1.0, step_timeout_s=60.0)
+    during = [p for p in pings if 0 < p < 1.0]
+    # every 0.05 s for 1 s: about 20 pings, none more than a few intervals apart
+    assert len(during) >= 10 and max(np.diff([0.0, *during, 1.0])) < 0.5
+
+
+def test_heartbeat_stops_when_a_step_hangs_beyond_its_timeout(monkeypatch, tmp_path):
+    pings = run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s=1.0, step_timeout_s=0.2)
+    during = [p for p in pings if 0 < p < 1.0]
+    assert during and max(during) < 0.35  # fed for 0.2 s of silence, then left to expire

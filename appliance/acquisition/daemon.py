@@ -1,11 +1,14 @@
 """The session daemon: sessions on a schedule, systemd readiness and watchdog, a clean SIGTERM.
 
-One process, one thread.  It notifies READY=1, then runs a session every ``session.interval_s``
-seconds (the first at once), pinging the watchdog and updating STATUS= as the session progresses
-and while it waits.  SIGTERM (or SIGINT) sets a flag the session checks between steps and between
-captures: the current log is closed with everything captured, STOPPING=1 is sent and the daemon
-exits 0.  Sessions, from the daemon or from ``viper capture``, hold an exclusive lock in the log
-directory so two never drive the devices at once.
+One process: the main thread notifies READY=1, then runs a session every ``session.interval_s``
+seconds (the first at once), updating STATUS= as the session progresses; a heartbeat thread sends
+WATCHDOG=1 every ``watchdog_margin`` x WatchdogSec as long as the session reported progress within
+``session.step_timeout_s`` (a long step, such as building a database or the estimate, does not get
+the daemon restarted; a session stuck for longer does).  SIGTERM (or SIGINT) sets a flag the
+session checks between steps and between captures: the current log is closed with everything
+captured, STOPPING=1 is sent and the daemon exits 0.  Sessions, from the daemon or from
+``viper capture``, hold an exclusive lock in the log directory so two never drive the devices at
+once.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ from __future__ import annotations
 import fcntl
 import os
 import signal
+import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -64,12 +69,11 @@ class SessionDaemon:
     def __init__(
         self, config: Config, log_dir: Path, notifier: Notifier, sleep: Callable[[float], None] | None = None
     ) -> None:
-        import threading
-
         self.config, self.log_dir, self.notifier = config, log_dir, notifier
         self._stop = threading.Event()
         self._sleep = sleep
         self.results: list[SessionResult] = []
+        self._progress_s = time.monotonic()
 
     def request_stop(self, signum: int | None = None, frame: FrameType | None = None) -> None:
         self._stop.set()
@@ -79,7 +83,17 @@ class SessionDaemon:
         signal.signal(signal.SIGINT, self.request_stop)
 
     def _status(self, text: str) -> None:
+        self._progress_s = time.monotonic()
         self.notifier.notify(STATUS=text, WATCHDOG=1)
+
+    def _heartbeat(self, done: threading.Event) -> None:
+        """WATCHDOG=1 at the watchdog's pace while the main thread makes progress."""
+        interval = self.notifier.watchdog_interval_s
+        if interval is None:
+            return
+        while not done.wait(interval):
+            if time.monotonic() - self._progress_s <= self.config.session.step_timeout_s:
+                self.notifier.watchdog()
 
     def _wait(self, seconds: float) -> None:
         """Wait, pinging the watchdog; returns early on a stop request."""
@@ -88,11 +102,23 @@ class SessionDaemon:
         while remaining > 0 and not self._stop.is_set():
             self._stop.wait(min(step, remaining))
             remaining -= step
-            self.notifier.watchdog()
+            self._progress_s = time.monotonic()
 
     def run(self) -> int:
         cfg = self.config.session
         self.notifier.ready(status=f"ready; a session every {cfg.interval_s:.0f} s, logs in {self.log_dir}")
+        self._progress_s = time.monotonic()
+        done = threading.Event()
+        beat = threading.Thread(target=self._heartbeat, args=(done,), name="watchdog", daemon=True)
+        beat.start()
+        try:
+            return self._loop()
+        finally:
+            done.set()
+            beat.join(timeout=5.0)
+
+    def _loop(self) -> int:
+        cfg = self.config.session
         n = 0
         while not self._stop.is_set():
             n += 1
