@@ -184,7 +184,8 @@ def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.
     ones = np.ones((1, feats.shape[2]), dtype=np.float32)
     for sign, sample in ((1.0, sky), (-1.0, ground)):
         # (OpenCV's covariance, not np.cov: a BLAS product spawns threads that a loaded machine makes slow)
-        cov, mean = cv2.calcCovarMatrix(sample, None, cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE, cv2.CV_64F)
+        flags = cv2.COVAR_NORMAL | cv2.COVAR_ROWS | cv2.COVAR_SCALE
+        cov, mean = cv2.calcCovarMatrix(sample, np.empty((0, 0), np.float64), flags, ctype=cv2.CV_64F)
         mu = mean[0]
         cov = cov * (sample.shape[0] / (sample.shape[0] - 1.0)) + np.eye(sample.shape[1]) * 1e-4
         # Mahalanobis distance as a squared norm: with inv(cov) = L L^T, |L^T (x - mu)|^2, the affine
