@@ -1,0 +1,285 @@
+"""Replay: rerun stitch -> skyline -> estimate from a session log's raw data, perhaps with another map
+or other parameters, and report it.
+
+A session log holds every frame (``/camera/image``, JPEG) with its tag (``/camera/capture``: stage
+angle, true heading of the optical axis, roll and pitch; same log time as the frame), the camera's
+calibration and the GPS ground truth.  :func:`read_session` gathers them (a truncated log gives
+what it holds up to its last readable record, and says so); :func:`replay_session` reruns the
+onboard chain on them and writes a results log (MCAP, the same estimate topics as a session);
+:func:`write_report` draws the pictures and one HTML page, with a table of errors when several
+logs are replayed.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from appliance.acquisition import onboard
+from appliance.acquisition.platform import Frame
+from appliance.acquisition.procedures import TaggedFrame
+from appliance.config import EstimatorConfig
+from appliance.errors import EstimationError, InputError, LogError
+from appliance.logbook import messages as m
+from appliance.logbook import topics as t
+from appliance.logbook.reader import ErrorPolicy, LogReader
+from appliance.logbook.writer import Logbook
+from appliance.skyline import Skyline
+from appliance.vision.intrinsics import CameraIntrinsics
+from appliance.vision.panorama import Panorama
+
+if TYPE_CHECKING:
+    from appliance.position import Position
+    from appliance.terrain.database import SkylineDatabase
+
+
+@dataclass
+class SessionData:
+    """The raw data of one session log needed to rerun the estimate."""
+
+    path: Path
+    frames: list[TaggedFrame]
+    intrinsics: CameraIntrinsics | None
+    truth: tuple[float, float] | None  # GPS ground truth (lat, lon)
+    onboard_error_m: float | None  # the onboard estimate's error, if the log has one
+    complete: bool
+    problem: str | None  # why reading stopped early (truncated, corrupt), or None
+
+
+@dataclass
+class ReplayResult:
+    name: str
+    data: SessionData
+    panorama: Panorama | None = None
+    skyline: Skyline | None = None
+    position: Position | None = None
+    error_m: float | None = None
+    notes: list[str] = field(default_factory=list)
+    failure: str | None = None  # why no estimate
+    results_log: Path | None = None
+    pictures: list[Path] = field(default_factory=list)
+
+
+def intrinsics_from_calibration(cal: Any) -> CameraIntrinsics:
+    k = list(cal.K)
+    d = (list(cal.D) + [0.0] * 5)[:5]
+    return CameraIntrinsics(int(cal.width), int(cal.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                            (d[0], d[1], d[2], d[3], d[4]))
+
+
+def read_session(path: str | Path) -> SessionData:
+    """Frames with their tags, the intrinsics and the truth of a session log (up to its last readable
+    record).  Raises :class:`LogError` for a file that is not a readable MCAP log at all."""
+    reader = LogReader(path, ErrorPolicy.STOP)
+    images: dict[int, np.ndarray] = {}
+    tags: dict[int, dict[str, Any]] = {}
+    intr = None
+    truth = None
+    onboard_error = None
+    undecodable = 0
+    for msg in reader.messages():
+        try:
+            if msg.topic == t.IMAGE:
+                img = cv2.imdecode(np.frombuffer(msg.decode().data, np.uint8), cv2.IMREAD_COLOR)
+                if img is None:
+                    undecodable += 1
+                    continue
+                images[msg.log_time_ns] = img
+            elif msg.topic == t.CAPTURE:
+                tags[msg.log_time_ns] = msg.decode()
+            elif msg.topic == t.CALIBRATION:
+                intr = intrinsics_from_calibration(msg.decode())
+            elif msg.topic == t.GPS_TRUTH:
+                fix = msg.decode()
+                truth = (float(fix.latitude), float(fix.longitude))
+            elif msg.topic == t.ESTIMATE_RECORD:
+                rec = msg.decode()
+                if isinstance(rec, dict) and rec.get("error_m") is not None:
+                    onboard_error = float(rec["error_m"])
+        except (LogError, ValueError) as exc:
+            undecodable += 1
+            if undecodable == 1:
+                reader.problem = reader.problem or f"undecodable message on {msg.topic}: {exc}"
+    if reader.header is None and not images and not tags:
+        raise LogError(f"{path}: not a readable MCAP log ({reader.problem or 'no records'})")
+    frames = []
+    for ns in sorted(set(images) & set(tags)):
+        tag = tags[ns]
+        frames.append(TaggedFrame(int(tag["index"]), Frame(ns, images[ns]), float(tag["stage_deg"]),
+                                  tag.get("heading_deg"), tag.get("roll_deg"), tag.get("pitch_deg")))
+    return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem)
+
+
+def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
+    """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap``."""
+    from appliance.acquisition.session import skyline_payload, write_estimate
+    from appliance.vision.skyline_detect import detect_skyline
+
+    name = data.path.stem
+    res = ReplayResult(name, data)
+    if not data.complete:
+        res.notes.append(f"log incomplete ({data.problem}); replayed its {len(data.frames)} readable frames")
+    try:
+        if not data.frames:
+            raise InputError("no tagged frames in the log")
+        if data.intrinsics is None:
+            raise InputError("no camera calibration in the log")
+        pano = onboard.stitch_frames(data.frames, data.intrinsics)
+        sky = detect_skyline(pano)
+        res.panorama, res.skyline = pano, sky
+        pos = onboard.locate_skyline(db, sky, cfg, source=str(data.path))
+    except (InputError, EstimationError) as exc:
+        res.failure = str(exc)
+        return res
+    res.position = pos
+    out_dir.mkdir(parents=True, exist_ok=True)
+    log_path = out_dir / f"{name}.replay.mcap"
+    now = data.frames[-1].frame.time_ns
+    with Logbook.create(log_path) as log:
+        ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        if ok:
+            log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
+        if data.truth is not None:
+            log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"), now)
+        log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
+        rec = write_estimate(log, now, db, pos, sky, data.truth)
+        for note in res.notes:
+            log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
+    res.error_m = rec.error_m
+    res.results_log = log_path
+    return res
+
+
+# ------------------------------------------------------------------------------------------- report
+def panorama_picture(res: ReplayResult, db: SkylineDatabase, path: Path) -> None:
+    """The panorama with the detected skyline and the one rendered at the estimate (heading corrected)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    assert res.panorama is not None and res.skyline is not None and res.position is not None
+    pano, sky, pos = res.panorama, res.skyline, res.position
+    rendered = onboard.rendered_skyline(db, pos)
+    h, w = pano.image.shape[:2]
+    fig, ax = plt.subplots(figsize=(16, 16 * h / w + 1.0))
+    ax.imshow(cv2.cvtColor(pano.image, cv2.COLOR_BGR2RGB), aspect="auto")
+    ok = np.isfinite(sky.elevation_deg)
+    ax.plot(pano.azimuth_to_column(sky.azimuth_deg[ok]), pano.elevation_to_row(sky.elevation_deg[ok]), ".",
+            color="cyan", ms=2, label="detected skyline")
+    # the measured azimuth a sees the map's a + correction
+    az = (rendered.azimuth_deg - pos.result.heading_correction_deg) % 360.0
+    order = np.argsort(az)
+    ax.plot(pano.azimuth_to_column(az[order]), pano.elevation_to_row(rendered.elevation_deg[order]), "-",
+            color="orange", lw=1.0, label="rendered at the estimate")
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_xlabel("column (azimuth clockwise from true north)")
+    ax.set_title(f"{res.name}: heading correction {pos.result.heading_correction_deg:+.1f} deg")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def _fmt(v: float | None, spec: str = ".1f") -> str:
+    return "" if v is None or not math.isfinite(v) else format(v, spec)
+
+
+def summary_rows(results: list[ReplayResult]) -> list[dict[str, str]]:
+    rows = []
+    for r in results:
+        p = r.position
+        rows.append({
+            "log": str(r.data.path),
+            "frames": str(len(r.data.frames)),
+            "complete": "yes" if r.data.complete else "no",
+            "lat": "" if p is None else f"{p.lat:.6f}",
+            "lon": "" if p is None else f"{p.lon:.6f}",
+            "truth_lat": "" if r.data.truth is None else f"{r.data.truth[0]:.6f}",
+            "truth_lon": "" if r.data.truth is None else f"{r.data.truth[1]:.6f}",
+            "error_m": _fmt(r.error_m),
+            "onboard_error_m": _fmt(r.data.onboard_error_m),
+            "region_km2": "" if p is None else f"{p.result.region_area_m2 / 1e6:.4f}",
+            "heading_correction_deg": "" if p is None else f"{p.result.heading_correction_deg:+.2f}",
+            "failure": r.failure or "",
+        })
+    return rows
+
+
+def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> Path:
+    """PNG pictures per log, ``summary.csv`` and ``report.html``; returns the HTML page's path."""
+    from appliance.outputs import write_png
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for r in results:
+        if r.position is None or r.skyline is None:
+            continue
+        map_png = out_dir / f"{r.name}.map.png"
+        write_png(db, r.position, r.skyline, map_png, truth=r.data.truth)
+        pano_png = out_dir / f"{r.name}.panorama.png"
+        panorama_picture(r, db, pano_png)
+        r.pictures = [map_png, pano_png]
+    rows = summary_rows(results)
+    csv_path = out_dir / "summary.csv"
+    with csv_path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["log"])
+        writer.writeheader()
+        writer.writerows(rows)
+    errors = [r.error_m for r in results if r.error_m is not None]
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Viper replay</title>",
+             "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+             "td,th{border:1px solid #aaa;padding:3px 8px;text-align:right}img{max-width:100%}</style></head><body>",
+             f"<h1>Viper replay of {len(results)} log{'s' if len(results) != 1 else ''}</h1>",
+             f"<p>Skyline database: {html.escape(str(db.path))}</p>"]
+    if errors:
+        parts.append(f"<p>Error against the GPS truth: median {np.median(errors):.1f} m, "
+                     f"max {max(errors):.1f} m over {len(errors)} estimates (<a href='summary.csv'>CSV</a>)</p>")
+    parts.append("<table><tr>" + "".join(f"<th>{html.escape(k)}</th>" for k in (rows[0] if rows else {})) + "</tr>")
+    for row in rows:
+        parts.append("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row.values()) + "</tr>")
+    parts.append("</table>")
+    for r in results:
+        parts.append(f"<h2>{html.escape(r.name)}</h2>")
+        for note in r.notes:
+            parts.append(f"<p><b>note:</b> {html.escape(note)}</p>")
+        if r.failure:
+            parts.append(f"<p><b>no estimate:</b> {html.escape(r.failure)}</p>")
+        if r.position is not None:
+            err = "no GPS truth" if r.error_m is None else f"{r.error_m:.1f} m from the GPS truth"
+            parts.append(f"<p>estimate {r.position.lat:.6f}, {r.position.lon:.6f}: {err}; "
+                         f"results log <code>{html.escape(str(r.results_log))}</code></p>")
+        for pic in r.pictures:
+            parts.append(f"<p><img src='{html.escape(pic.name)}' alt='{html.escape(pic.stem)}'></p>")
+    parts.append("</body></html>")
+    page = out_dir / "report.html"
+    page.write_text("\n".join(parts))
+    return page
+
+
+def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path,
+                on_result: Any = None) -> tuple[list[ReplayResult], Path]:
+    """Replay every log (an unreadable one is a row with its reason) and write the report."""
+    results = []
+    for p in paths:
+        try:
+            data = read_session(p)
+        except LogError as exc:
+            data = SessionData(Path(p), [], None, None, None, False, str(exc))
+            r = ReplayResult(Path(p).stem, data, failure=str(exc))
+        else:
+            r = replay_session(data, db, cfg, out_dir)
+        results.append(r)
+        if on_result is not None:
+            on_result(r)
+    return results, write_report(results, db, out_dir)

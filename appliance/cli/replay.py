@@ -1,0 +1,73 @@
+"""``viper replay LOG.mcap... [--db DB] [--sigma LO,HI] [--out DIR]``: rerun the estimate from logs."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from appliance.acquisition.replay import ReplayResult, replay_logs
+from appliance.config import load_config
+from appliance.errors import ConfigError, InputError
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("replay", help="rerun stitch, skyline and estimate from session logs; report")
+    p.add_argument("logs", nargs="+", metavar="LOG.mcap")
+    p.add_argument("--db", metavar="DB", help="skyline database (default: [session] database, else the demo "
+                   "map's in ./viper-demo)")
+    p.add_argument("--sigma", metavar="LO,HI", help="interval of the skyline noise sigma in degrees")
+    p.add_argument("--heading-tolerance", type=float, metavar="DEG", help="compass error searched (deg)")
+    p.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--out", default="viper-replay", help="folder of the results logs and report")
+    p.set_defaults(func=run)
+
+
+def parse_sigma(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--sigma: expected LO,HI in degrees, got {text!r}") from None
+    if not 0 < lo <= hi:
+        raise InputError(f"--sigma: need 0 < LO <= HI, got {lo}, {hi}")
+    return lo, hi
+
+
+def run(args: argparse.Namespace) -> int:
+    from appliance.acquisition.onboard import load_session_database
+
+    config = load_config(args.config)
+    est = config.estimator
+    if args.sigma:
+        est = dataclasses.replace(est, sigma_deg=parse_sigma(args.sigma))
+    if args.heading_tolerance is not None:
+        est = dataclasses.replace(est, heading_tolerance_deg=args.heading_tolerance)
+    session = config.session
+    if args.db:
+        session = dataclasses.replace(session, database=Path(args.db))
+    dem = None
+    if session.database is None:
+        from appliance.terrain.dem import load_dem
+
+        dem = load_dem("jacksboro")
+        print("no --db: using the demo map's database (jacksboro) in ./viper-demo")
+    db = load_session_database(session, dem, Path("viper-demo"))
+    if db is None:
+        raise ConfigError("no skyline database: give --db")
+    out = Path(args.out)
+
+    def show(r: ReplayResult) -> None:
+        for note in r.notes:
+            print(f"{r.data.path}: note: {note}")
+        if r.failure:
+            print(f"{r.data.path}: no estimate: {r.failure}")
+            return
+        p = r.position
+        assert p is not None
+        err = "no GPS truth" if r.error_m is None else f"error {r.error_m:.1f} m"
+        was = "" if r.data.onboard_error_m is None else f" (onboard {r.data.onboard_error_m:.1f} m)"
+        print(f"{r.data.path}: {p.lat:.6f}, {p.lon:.6f}  {err}{was}  [{len(r.data.frames)} frames]")
+
+    results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
+    print(f"report: {page}  table: {out / 'summary.csv'}")
+    return 0 if any(r.position is not None for r in results) else 1
