@@ -456,7 +456,8 @@ def format_report(result: CompassCalibration) -> str:
     what = "|B|" if result.mode == "sphere" else "|B_xy|"
     lines = [
         f"mode {result.mode}, {result.n} samples, corrected field {result.field_gauss:.4f} gauss",
-        f"hard iron offset = [{o[0]:.5f}, {o[1]:.5f}, {o[2]:.5f}] gauss",
+        f"hard iron offset = [{o[0]:.5f}, {o[1]:.5f}, {o[2]:.5f}] gauss"
+        f" (written in tesla: [{o[0] * GAUSS_TO_TESLA:.4e}, {o[1] * GAUSS_TO_TESLA:.4e}, {o[2] * GAUSS_TO_TESLA:.4e}])",
         "soft iron matrix = " + "; ".join("[" + ", ".join(f"{v:.5f}" for v in row) + "]" for row in W),
         f"{what} spread (std/mean): before {result.magnitude_spread_before:.2%},"
         f" after {result.magnitude_spread_after:.2%}",
