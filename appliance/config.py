@@ -42,7 +42,7 @@ class EstimatorConfig:
     """The position estimator (paper section 4)."""
 
     # sensor noise plus the skyline's change between grid nodes (0.5-1 deg on a 90 m map, camera 1.5 m)
-    sigma_deg: tuple[float, float] = (0.3, 1.2)
+    sigma_deg: tuple[float, float] = (0.3, 0.8)
     heading_tolerance_deg: float = 4.0
     heading_step_deg: float = 1.0
     min_valid_fraction: float = 0.2

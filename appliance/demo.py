@@ -52,7 +52,7 @@ def sensor_reading(true_el: np.ndarray, rng: np.random.Generator, noise_deg: flo
 
 
 def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
-             sigma_deg: tuple[float, float] = (0.3, 1.2)) -> DemoResult:
+             sigma_deg: tuple[float, float] = (0.3, 0.8)) -> DemoResult:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)

@@ -61,7 +61,7 @@ def main() -> int:
     ap.add_argument("--map", default="jacksboro", choices=sorted(MAPS))
     ap.add_argument("--trials", type=int, default=60)
     ap.add_argument("--unknown-heading", action="store_true")
-    ap.add_argument("--sigma", default="0.3,1.2")
+    ap.add_argument("--sigma", default="0.3,0.8")
     ap.add_argument("--spacing", type=float, default=None, help="database node spacing (m)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()

@@ -40,7 +40,7 @@ def reading(truth: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--trials", type=int, default=30)
-    ap.add_argument("--sigma", default="0.3,1.2")
+    ap.add_argument("--sigma", default="0.3,0.8")
     args = ap.parse_args()
     sigma = tuple(float(v) for v in args.sigma.split(","))
     dem = load_dem("jacksboro")

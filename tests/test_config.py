@@ -12,7 +12,7 @@ from appliance.errors import ConfigError
 
 def test_defaults_without_a_file():
     cfg = load_config(None)
-    assert cfg.estimator.sigma_deg == (0.3, 1.2)
+    assert cfg.estimator.sigma_deg == (0.3, 0.8)
     assert cfg.terrain.camera_height_m == 1.5
     assert cfg.platform.kind == "sim"
 
