@@ -22,12 +22,13 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
 from appliance.errors import EstimationError, InputError
 from appliance.estimator.likelihood import log_likelihood_bounds, posterior_bounds
-from appliance.estimator.search import box_decimate, ssd_all_shifts, ssd_for_shifts
+from appliance.estimator.search import box_decimate, decimated, ssd_all_shifts, ssd_coarse, ssd_for_shifts
 
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
@@ -56,6 +57,12 @@ class SkylineGrid:
     @property
     def n_azimuths(self) -> int:
         return int(self.codes.shape[1])
+
+    @cached_property
+    def coarse(self) -> tuple[np.ndarray, np.ndarray]:
+        """Skylines averaged over runs of COARSE_STRIDE azimuths (float32), and the nodes lacking
+        terrain somewhere: made once, on first use, for every estimate on this grid."""
+        return decimated(self.codes, self.offset_deg, self.step_deg, COARSE_STRIDE)
 
     @property
     def az_step_deg(self) -> float:
@@ -168,7 +175,13 @@ def estimate(
             raise InputError(f"heading tolerance {heading_tolerance_deg} must be >= 0")
         k = int(math.ceil(heading_tolerance_deg / step - 1e-9))
         base_shifts = np.arange(-k, k + 1)
-        coarse = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, base_shifts, stride=COARSE_STRIDE)
+        # first pass on skylines averaged over runs of COARSE_STRIDE azimuths, turned in whole runs:
+        # every heading of the band lies within half a run of one of them
+        k_dec = int(math.ceil(k / COARSE_STRIDE))
+        dec, partial = grid.coarse
+        m_dec = box_decimate(m, COARSE_STRIDE)
+        scale = n / max(int(np.isfinite(m_dec).sum()), 1)
+        coarse = ssd_coarse(dec, partial, m_dec, np.arange(-k_dec, k_dec + 1)) * np.float32(scale)
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
     else:
         coarse_best = np.full(n_nodes, np.inf, dtype=np.float64)
