@@ -38,7 +38,7 @@ MIN_RESCORE = 64
 #: A region wider than this many map cells is reported as ambiguous.
 AMBIGUOUS_CELLS = 25
 #: How many of the region's most likely nodes the sub-cell refinement examines.
-REFINE_NODES = 6
+REFINE_NODES = 3
 
 
 @dataclass(frozen=True)
@@ -206,7 +206,7 @@ def estimate(
     best_lo = float(np.max(c_lo + lp))
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
-        rescore = np.sort(np.argsort(-node_up)[:MIN_RESCORE])
+        rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore)
     ssd_r = ssd_r.astype(np.float64)
     if not np.isfinite(ssd_r).any():
@@ -248,7 +248,9 @@ def estimate(
         from appliance.estimator.refine import refine_subcell
 
         # refine the most likely nodes of the region (the best first) and keep the closest fit
-        scored = region[np.isin(region, rescore)]
+        in_rescore = np.zeros(n_nodes, dtype=bool)
+        in_rescore[rescore] = True
+        scored = region[in_rescore[region]]
         order = np.argsort(-node_lower[scored])[:REFINE_NODES]
         tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
         # scored like the grid: likelihood at sigma's midpoint plus the prior of the nearest node

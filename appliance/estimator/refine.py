@@ -17,9 +17,9 @@ import numpy as np
 if TYPE_CHECKING:
     from appliance.estimator.estimate import SkylineGrid
 
-#: A first lattice of quarter cells and quarter steps over +-1, then twentieths over +-1/4.
+#: A first lattice of quarter cells and quarter steps over +-1, then twentieths over +-1/5.
 COARSE = np.linspace(-1.0, 1.0, 9)
-FINE = np.linspace(-0.25, 0.25, 11)
+FINE = np.linspace(-0.2, 0.2, 9)
 
 
 def refine_subcell(
@@ -65,16 +65,17 @@ def _search(
     S0 = np.where(ok_s[None, :], S, 0.0)
     valid = np.isfinite(measured)
     m0 = np.where(valid, measured, 0.0)
-    n_az = measured.size
     ssd = np.empty((trial.size, S.shape[0]))
+    n_valid = max(float(valid.sum()), 1.0)
     for ih, phi in enumerate(trial):
-        # model value at true azimuth j + phi, i.e. at input azimuth j
-        pos = np.arange(n_az) + phi / step
-        i0 = np.floor(pos).astype(np.intp)
-        t = pos - i0
-        a, b = i0 % n_az, (i0 + 1) % n_az
-        w = (valid & ok_s[a] & ok_s[b]).astype(float)
-        model = S0[:, a] * (1 - t) + S0[:, b] * t
-        ssd[ih] = ((m0[None, :] - model) ** 2 * w[None, :]).sum(axis=1) / max(float(w.sum()), 1.0)
+        # model value at true azimuth j + phi, i.e. at input azimuth j: a whole turn and a fraction
+        whole = int(np.floor(phi / step))
+        t = phi / step - whole
+        a = np.roll(S0, -whole, axis=1)
+        b = np.roll(S0, -whole - 1, axis=1)
+        ok = valid & np.roll(ok_s, -whole) & np.roll(ok_s, -whole - 1)
+        resid = m0[None, :] - (a * (1.0 - t) + b * t)
+        ssd[ih] = np.einsum("pj,pj,j->p", resid, resid, ok.astype(float)) / (n_valid if ok.all() else
+                                                                             max(float(ok.sum()), 1.0))
     best_h, best_p = (int(v) for v in np.unravel_index(int(np.argmin(ssd)), ssd.shape))
     return float(PR[best_p]), float(PC[best_p]), float(trial[best_h]), math.sqrt(max(float(ssd[best_h, best_p]), 0.0))
