@@ -116,7 +116,8 @@ def main() -> int:
     print(json.dumps(summary))
     out = HERE / "results" / "estimator_accuracy.md"
     out.parent.mkdir(exist_ok=True)
-    line = (f"| {date.today()} | {args.map} | {'none' if args.unknown_heading else '±4°'} | {noise} | "
+    label = args.map if args.spacing is None else f"{args.map}, nodes every {args.spacing:g} m"
+    line = (f"| {date.today()} | {label} | {'none' if args.unknown_heading else '±4°'} | {noise} | "
             f"{int(missing * 100)}% | {sigma[0]}–{sigma[1]} | {args.trials} | {summary['median_error_m']} m "
             f"({summary['median_error_cells']}) | {100 * summary['within_2_cells']:.0f}% | "
             f"{100 * summary['region_holds_truth']:.0f}% | {summary['median_region_cells']} | "
