@@ -23,11 +23,13 @@ import numba
 import numpy as np
 
 MISSING_CODE = 255
+#: Fast-math without the "no NaN, no inf" assumptions: the kernels test for NaN and use inf.
+FAST_FINITE = {"nsz", "arcp", "contract", "afn", "reassoc"}
 MAX_MISSING_FRACTION = 0.1
 BLOCK = 256
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_shifts(
     codes: np.ndarray,
     offset: np.ndarray,
@@ -118,7 +120,7 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, f
     return out, partial
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_coarse(S: np.ndarray, partial: np.ndarray, m: np.ndarray, w: np.ndarray, shifts: np.ndarray,
                 out: np.ndarray) -> None:
     """out[i, k] = sum_t w_t (m_t - S[i, t + shifts[k]])^2 on decimated skylines (contiguous rows)."""
