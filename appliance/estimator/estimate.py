@@ -60,9 +60,9 @@ class SkylineGrid:
 
     @cached_property
     def coarse(self) -> tuple[np.ndarray, np.ndarray]:
-        """Skylines averaged over runs of COARSE_STRIDE azimuths (float32), and the nodes lacking
-        terrain somewhere: made once, on first use, for every estimate on this grid."""
-        return decimated(self.codes, self.offset_deg, self.step_deg, COARSE_STRIDE)
+        """Codes averaged over runs of COARSE_STRIDE azimuths, and the nodes lacking terrain
+        somewhere: made once, on first use, for every estimate on this grid."""
+        return decimated(self.codes, self.offset_deg, COARSE_STRIDE)
 
     @property
     def az_step_deg(self) -> float:
@@ -178,10 +178,10 @@ def estimate(
         # first pass on skylines averaged over runs of COARSE_STRIDE azimuths, turned in whole runs:
         # every heading of the band lies within half a run of one of them
         k_dec = int(math.ceil(k / COARSE_STRIDE))
-        dec, partial = grid.coarse
         m_dec = box_decimate(m, COARSE_STRIDE)
         scale = n / max(int(np.isfinite(m_dec).sum()), 1)
-        coarse = ssd_coarse(dec, partial, m_dec, np.arange(-k_dec, k_dec + 1)) * np.float32(scale)
+        coarse = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec, np.arange(-k_dec, k_dec + 1))
+        coarse *= np.float32(scale)
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
     else:
         coarse_best = np.full(n_nodes, np.inf, dtype=np.float64)

@@ -86,18 +86,16 @@ def _ssd_shifts(
 
 
 @numba.njit(cache=True, parallel=True)
-def _decimate_codes(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, factor: int, out: np.ndarray,
+def _decimate_codes(codes: np.ndarray, offset: np.ndarray, factor: int, out: np.ndarray,
                     partial: np.ndarray) -> None:
-    """out[i, t] = mean elevation (deg) of azimuths t*factor .. t*factor+factor-1 of node i (NaN if
-    all of them lack terrain); partial[i] = the node lacks terrain somewhere."""
+    """out[i, t] = mean code of azimuths t*factor .. t*factor+factor-1 of node i, rounded (255 if
+    all of them lack terrain); partial[i] = the node lacks terrain somewhere, or is nodata."""
     n, n_az = codes.shape
     n_dec = n_az // factor
     for i in numba.prange(n):
-        o = offset[i]
-        st = step[i]
         miss = False
         for t in range(n_dec):
-            acc = 0.0
+            acc = 0
             cnt = 0
             for j in range(t * factor, (t + 1) * factor):
                 c = codes[i, j]
@@ -106,31 +104,43 @@ def _decimate_codes(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, fac
                 else:
                     acc += c
                     cnt += 1
-            out[i, t] = np.float32(o + st * acc / cnt) if cnt > 0 and not math.isnan(o) else np.float32(np.nan)
-        partial[i] = miss or math.isnan(o)
+            out[i, t] = MISSING_CODE if cnt == 0 else (2 * acc + cnt) // (2 * cnt)
+        partial[i] = miss or math.isnan(offset[i])
 
 
-def decimated(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, factor: int):
-    """Box-averaged float32 skylines of every node, (n_nodes, n_az / factor), and the nodes that
-    lack terrain somewhere (or are nodata).  Made once per database, for the first pass."""
+def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Box-averaged uint8 codes of every node, (n_nodes, n_az / factor), in each node's own offset
+    and step, and the nodes that lack terrain somewhere (or are nodata).  Made once per database,
+    for the first pass; a quarter of the database's size."""
     n, n_az = codes.shape
-    out = np.empty((n, n_az // factor), dtype=np.float32)
+    out = np.empty((n, n_az // factor), dtype=np.uint8)
     partial = np.empty(n, dtype=np.bool_)
-    _decimate_codes(codes, offset_deg, step_deg, factor, out, partial)
+    _decimate_codes(codes, offset_deg, factor, out, partial)
     return out, partial
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
-def _ssd_coarse(S: np.ndarray, partial: np.ndarray, m: np.ndarray, w: np.ndarray, shifts: np.ndarray,
-                out: np.ndarray) -> None:
-    """out[i, k] = sum_t w_t (m_t - S[i, t + shifts[k]])^2 on decimated skylines (contiguous rows)."""
-    n, d = S.shape
+def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
+                w: np.ndarray, shifts: np.ndarray, out: np.ndarray) -> None:
+    """out[i, k] = sum_t w_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units."""
+    n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
     for t in range(d):
         n_meas += w[t]
     for i in numba.prange(n):
-        row = S[i]
+        o = offset[i]
+        if math.isnan(o):
+            for k in range(n_shift):
+                out[i, k] = np.inf
+            continue
+        st = step[i]
+        inv = np.float32(1.0 / st)
+        mt = np.empty(d, dtype=np.float32)
+        for t in range(d):
+            mt[t] = (m[t] - o) * inv
+        scale = np.float32(st * st)
+        row = C[i]
         for k in range(n_shift):
             sh = shifts[k] % d
             acc = np.float32(0.0)
@@ -138,38 +148,43 @@ def _ssd_coarse(S: np.ndarray, partial: np.ndarray, m: np.ndarray, w: np.ndarray
                 # row slices, indexed by range variables: contiguous and vectorisable
                 head = row[sh:]
                 tail = row[:sh]
-                m_head = m[: d - sh]
+                m_head = mt[: d - sh]
                 w_head = w[: d - sh]
-                m_tail = m[d - sh :]
+                m_tail = mt[d - sh :]
                 w_tail = w[d - sh :]
                 for t in range(d - sh):
-                    e = m_head[t] - head[t]
+                    e = m_head[t] - np.float32(head[t])
                     acc += w_head[t] * e * e
                 for t in range(sh):
-                    e = m_tail[t] - tail[t]
+                    e = m_tail[t] - np.float32(tail[t])
                     acc += w_tail[t] * e * e
-                out[i, k] = acc
+                out[i, k] = acc * scale
             else:
                 cnt = 0.0
                 for t in range(d):
-                    v = row[(t + sh) % d]
-                    if w[t] > 0 and not math.isnan(v):
-                        e = m[t] - v
+                    c = row[(t + sh) % d]
+                    if w[t] > 0 and c != MISSING_CODE:
+                        e = mt[t] - np.float32(c)
                         acc += e * e
                         cnt += 1.0
                 if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
                     out[i, k] = np.inf
                 else:
-                    out[i, k] = acc * n_meas / cnt
+                    out[i, k] = acc * scale * n_meas / cnt
 
 
-def ssd_coarse(S: np.ndarray, partial: np.ndarray, measured_dec: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    """SSD of every node on decimated skylines for shifts in decimated steps, (n_nodes, len(shifts))."""
+def ssd_coarse(
+    coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
+    measured_dec: np.ndarray, shifts: np.ndarray,
+) -> np.ndarray:
+    """SSD (deg^2) of every node on decimated skylines (:func:`decimated`) for shifts in decimated
+    steps, shape (n_nodes, len(shifts))."""
+    C, partial = coarse
     valid = np.isfinite(measured_dec)
     m = np.where(valid, measured_dec, 0.0).astype(np.float32)
     w = valid.astype(np.float32)
-    out = np.empty((S.shape[0], len(shifts)), dtype=np.float32)
-    _ssd_coarse(S, partial, m, w, np.asarray(shifts, dtype=np.int64), out)
+    out = np.empty((C.shape[0], len(shifts)), dtype=np.float32)
+    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out)
     return out
 
 
