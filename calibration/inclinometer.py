@@ -18,8 +18,6 @@ is the ``[inclinometer]`` table of a calibration TOML with the keys of ``[device
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ import numpy as np
 from appliance.drivers.accelerometer import CALIBRATION_TABLE, TiltOffset
 from appliance.errors import CalibrationError, InputError
 from calibration.config_edit import significant, update_toml_table
+from calibration.csvtable import read_rows
 
 HEADER = ("stage_deg", "tilt_x_deg", "tilt_y_deg")
 AXES = ("x", "y")
@@ -71,18 +70,9 @@ class InclinometerCalibration:
 
 def parse_reversal_csv(data: bytes, source: str = "<readings>") -> ReversalReadings:
     """Parse ``stage_deg,tilt_x_deg,tilt_y_deg`` rows."""
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{source}: not UTF-8 text: {exc}") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
-    if not rows:
-        raise InputError(f"{source}: empty file, expected the header {','.join(HEADER)}")
-    header = tuple(c.strip() for c in rows[0])
-    if header != HEADER:
-        raise InputError(f"{source}: header is {','.join(header)!r}, expected {','.join(HEADER)!r}")
-    values = np.empty((len(rows) - 1, 3))
-    for i, row in enumerate(rows[1:]):
+    rows = read_rows(data, source, HEADER)
+    values = np.empty((len(rows), 3))
+    for i, row in enumerate(rows):
         line_no = i + 2
         if len(row) != len(HEADER):
             raise InputError(f"{source}:{line_no}: expected {len(HEADER)} fields, got {len(row)}")

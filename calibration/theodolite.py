@@ -14,8 +14,6 @@ All angles are elevations in degrees above the local horizontal.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -25,6 +23,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from appliance.errors import CalibrationError, InputError
+from calibration.csvtable import read_rows
 
 HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
 MIN_POINTS = 3
@@ -66,19 +65,10 @@ class SigmaCalibration:
 
 def parse_points_csv(data: bytes, source: str = "<points>") -> tuple[ElevationPoint, ...]:
     """Parse the survey CSV (header ``point,camera_elevation_deg,theodolite_elevation_deg``)."""
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{source}: not UTF-8 text: {exc}") from None
-    rows = [r for r in csv.reader(io.StringIO(text)) if r and any(c.strip() for c in r)]
-    if not rows:
-        raise InputError(f"{source}: empty file, expected the header {','.join(HEADER)}")
-    header = tuple(c.strip() for c in rows[0])
-    if header != HEADER:
-        raise InputError(f"{source}: header is {','.join(header)!r}, expected {','.join(HEADER)!r}")
+    rows = read_rows(data, source, HEADER)
     points: list[ElevationPoint] = []
     seen: set[str] = set()
-    for line_no, row in enumerate(rows[1:], start=2):
+    for line_no, row in enumerate(rows, start=2):
         if len(row) != len(HEADER):
             raise InputError(f"{source}:{line_no}: expected {len(HEADER)} fields, got {len(row)}")
         name = row[0].strip()
