@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+from pathlib import Path
 
 from appliance.errors import InputError
 
@@ -21,3 +22,14 @@ def read_rows(data: bytes, source: str, header: tuple[str, ...]) -> list[list[st
     if found != header:
         raise InputError(f"{source}: header is {','.join(found)!r}, expected {','.join(header)!r}")
     return rows[1:]
+
+
+def read_input(path: str | Path) -> bytes:
+    """A calibration input file's bytes; a missing or unreadable file is an InputError."""
+    p = Path(path)
+    try:
+        return p.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{p}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read: {exc.strerror or exc}") from None

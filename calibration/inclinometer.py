@@ -28,7 +28,7 @@ import numpy as np
 from appliance.drivers.accelerometer import CALIBRATION_TABLE, TiltOffset
 from appliance.errors import CalibrationError, InputError
 from calibration.config_edit import significant, update_toml_table
-from calibration.csvtable import read_rows
+from calibration.csvtable import read_input, read_rows
 
 HEADER = ("stage_deg", "tilt_x_deg", "tilt_y_deg")
 AXES = ("x", "y")
@@ -88,14 +88,7 @@ def parse_reversal_csv(data: bytes, source: str = "<readings>") -> ReversalReadi
 
 
 def read_reversal_csv(path: str | Path) -> ReversalReadings:
-    p = Path(path)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{p}: file not found") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    return parse_reversal_csv(data, source=str(p))
+    return parse_reversal_csv(read_input(path), source=str(path))
 
 
 def calibrate_reversal(

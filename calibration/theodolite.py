@@ -23,7 +23,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from appliance.errors import CalibrationError, InputError
-from calibration.csvtable import read_rows
+from calibration.csvtable import read_input, read_rows
 
 HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
 MIN_POINTS = 3
@@ -93,14 +93,7 @@ def parse_points_csv(data: bytes, source: str = "<points>") -> tuple[ElevationPo
 
 
 def read_points_csv(path: str | Path) -> tuple[ElevationPoint, ...]:
-    p = Path(path)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{p}: file not found") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    return parse_points_csv(data, source=str(p))
+    return parse_points_csv(read_input(path), source=str(path))
 
 
 def sigma_interval(s: float, n: int, confidence: float = 0.95) -> tuple[float, float]:

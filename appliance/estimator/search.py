@@ -22,9 +22,9 @@ import math
 import numba
 import numpy as np
 
+from appliance.numerics import FAST_FINITE
+
 MISSING_CODE = 255
-#: Fast-math without the "no NaN, no inf" assumptions: the kernels test for NaN and use inf.
-FAST_FINITE = {"nsz", "arcp", "contract", "afn", "reassoc"}
 MAX_MISSING_FRACTION = 0.1
 BLOCK = 256
 

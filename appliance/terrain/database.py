@@ -37,6 +37,7 @@ from affine import Affine
 from pyproj import CRS, Transformer
 
 from appliance.errors import DatabaseError, DemError, InputError
+from appliance.numerics import FAST_FINITE
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.sweep import HorizonSweeper
@@ -47,8 +48,6 @@ MISSING_CODE = 255
 BASE_STEP_DEG = 0.1
 MAX_SPAN_DEG = 25.0
 ALIGN = 64
-#: Fast-math without the "no NaN, no inf" assumptions: the kernels test for NaN and use inf.
-FAST_FINITE = {"nsz", "arcp", "contract", "afn", "reassoc"}
 MISSING_CDEG = np.iinfo(np.int16).min
 
 
