@@ -26,6 +26,11 @@ class InputError(ViperError, ValueError):
     exit_code = 2
 
 
+class OutputError(ViperError, OSError):
+    """An output file or folder cannot be written (missing folder, a folder in its place, read-only,
+    full disk) or would replace an input or an existing file without ``--force``."""
+
+
 class DemError(ViperError, OSError):
     """A DEM cannot be read or is unusable (unreadable, unknown CRS, all nodata...)."""
 

@@ -4,21 +4,14 @@ region for QGIS."""
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from appliance.atomic import atomic_output, write_text_atomic
 from appliance.position import Position
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
-
-
-def _atomic_path(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}", suffix=".tmp")
-    os.close(fd)
-    return Path(tmp)
 
 
 def region_mask(db: SkylineDatabase, pos: Position) -> np.ndarray:
@@ -53,9 +46,7 @@ def write_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
              "geometry": {"type": "Point", "coordinates": [pos.lon, pos.lat]}},
         ],
     }
-    tmp = _atomic_path(p)
-    tmp.write_text(json.dumps(fc))
-    os.replace(tmp, p)
+    write_text_atomic(p, json.dumps(fc))
 
 
 def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
@@ -66,13 +57,13 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
     bands = np.where(np.isfinite(bands), bands, -9999.0).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
-    tmp = _atomic_path(p)
-    with rasterio.open(tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
-                       crs=g.crs.to_wkt(), transform=g.transform, nodata=-9999.0) as ds:
+    with atomic_output(p) as tmp, rasterio.open(
+        tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
+        crs=g.crs.to_wkt(), transform=g.transform, nodata=-9999.0,
+    ) as ds:
         ds.write(bands)
         ds.set_band_description(1, "log10 lower posterior")
         ds.set_band_description(2, "log10 upper posterior")
-    os.replace(tmp, p)
 
 
 def write_png(db: SkylineDatabase, pos: Position, skyline: Skyline, path: str | Path,
@@ -121,8 +112,8 @@ def write_png(db: SkylineDatabase, pos: Position, skyline: Skyline, path: str | 
     ax_sky.legend()
     ax_sky.grid(alpha=0.3)
     fig.tight_layout()
-    p = Path(path)
-    tmp = _atomic_path(p).with_suffix(".png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, p)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=90, format="png")
+    finally:
+        plt.close(fig)

@@ -9,13 +9,12 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from appliance.atomic import write_text_atomic
 from appliance.errors import InputError
 
 HEADER = ("azimuth_deg", "elevation_deg")
@@ -98,13 +97,5 @@ def format_skyline_csv(skyline: Skyline, decimals: int = 4) -> str:
 
 
 def write_skyline_csv(skyline: Skyline, path: str | Path) -> None:
-    """Write atomically: a temporary file in the same folder, then a rename."""
-    p = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=p.parent if str(p.parent) else ".", prefix=p.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(format_skyline_csv(skyline))
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write atomically (:func:`appliance.atomic.write_text_atomic`)."""
+    write_text_atomic(path, format_skyline_csv(skyline))

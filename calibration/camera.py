@@ -3,8 +3,8 @@
 Inner corners are found with ``cv2.findChessboardCornersSB`` and the pinhole model with OpenCV's
 plumb_bob distortion (k1, k2, p1, p2, k3) is fitted by ``cv2.calibrateCamera``.  Pixel coordinates
 follow OpenCV: the centre of the top-left pixel is (0, 0), x to the right, y down.  The result is a
-:class:`appliance.vision.intrinsics.CameraIntrinsics` that ``save_intrinsics`` writes as the camera
-calibration file.
+:class:`appliance.vision.intrinsics.CameraIntrinsics` that :func:`write_camera_calibration` writes
+as the ``[camera]`` table of a calibration file, keeping the rest of the file byte for byte.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 
 from appliance.errors import CalibrationError, ConfigError, InputError
 from appliance.vision.intrinsics import CameraIntrinsics
+from calibration.config_edit import update_toml_table
 
 MIN_BOARDS_FLOOR = 3  # calibrateCamera's own minimum for a 9-parameter fit from planar views
 FIND_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
@@ -181,3 +182,22 @@ def format_report(result: CameraCalibration) -> str:
         f"reprojection error (rms) = {result.reprojection_error_px:.4f} px",
     ]
     return "\n".join(lines)
+
+
+def camera_table(intrinsics: CameraIntrinsics) -> dict[str, Any]:
+    """The ``[camera]`` keys of a calibration file (as :func:`appliance.vision.intrinsics.load_intrinsics` reads)."""
+    k = intrinsics
+    table: dict[str, Any] = {
+        "width": k.width, "height": k.height, "fx": float(k.fx), "fy": float(k.fy),
+        "cx": float(k.cx), "cy": float(k.cy), "distortion": [float(d) for d in k.distortion],
+    }
+    if k.reprojection_error_px is not None:
+        table["reprojection_error_px"] = float(k.reprojection_error_px)
+    return table
+
+
+def write_camera_calibration(path: str | Path, intrinsics: CameraIntrinsics) -> None:
+    """Set ``[camera]`` in the TOML file ``path`` (created if absent); every other byte is kept."""
+    table = camera_table(intrinsics)
+    stale = () if "reprojection_error_px" in table else ("reprojection_error_px",)
+    update_toml_table(path, "camera", table, must_exist=False, remove=stale)

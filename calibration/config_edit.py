@@ -2,14 +2,13 @@
 
 A calibration writes a few keys into one table of a TOML file and leaves every other byte as it
 was: comments, key order, blank lines and the other tables.  The new text is checked (``validate``)
-before anything touches the disk, and the file is replaced atomically (temporary file in the same
-directory, fsync, rename), so on any error the original file is untouched.
+before anything touches the disk, and the file is replaced atomically
+(:func:`appliance.atomic.write_text_atomic`: temporary file in the same folder, fsync, rename), so
+on any error the original file is untouched.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import tomlkit
 import tomlkit.exceptions
 from tomlkit.items import Table
 
+from appliance.atomic import write_text_atomic
 from appliance.errors import ConfigError
 
 
@@ -75,38 +75,6 @@ def with_table_values(
     return tomlkit.dumps(doc)
 
 
-def write_atomic(path: str | Path, text: str) -> None:
-    """Replace ``path`` with ``text`` (UTF-8, newlines as given): temporary file, fsync, rename."""
-    p = Path(path)
-    directory = p.parent if str(p.parent) else Path(".")
-    try:
-        mode = p.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mode = None
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(text.encode("utf-8"))
-            fh.flush()
-            os.fsync(fh.fileno())
-        if mode is not None:
-            os.chmod(tmp, mode)
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    try:
-        dir_fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(dir_fd)
-    except OSError:
-        pass
-    finally:
-        os.close(dir_fd)
-
-
 def update_toml_table(
     path: str | Path,
     table: str,
@@ -126,10 +94,7 @@ def update_toml_table(
     new = with_table_values(old, table, values, source=str(p), remove=remove)
     if validate is not None:
         validate(new)
-    try:
-        write_atomic(p, new)
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot write: {exc.strerror or exc}") from None
+    write_text_atomic(p, new)
     return new
 
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import csv
 import html
+import io
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +26,7 @@ import numpy as np
 from appliance.acquisition import onboard
 from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
+from appliance.atomic import atomic_output, check_output_folder, write_text_atomic
 from appliance.config import EstimatorConfig
 from appliance.errors import EstimationError, InputError, LogError
 from appliance.logbook import messages as m
@@ -140,19 +141,22 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
         res.failure = str(exc)
         return res
     res.position = pos
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out_dir)
     log_path = out_dir / f"{name}.replay.mcap"
     now = data.frames[-1].frame.time_ns
-    with Logbook.create(log_path) as log:
-        ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-        if ok:
-            log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
-        if data.truth is not None:
-            log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"), now)
-        log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
-        rec = write_estimate(log, now, db, pos, sky, data.truth)
-        for note in res.notes:
-            log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
+    with atomic_output(log_path) as tmp:
+        tmp.unlink()  # the logbook creates its file itself and never opens an existing one
+        with Logbook.create(tmp) as log:
+            ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            if ok:
+                log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
+            if data.truth is not None:
+                log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"),
+                                now)
+            log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
+            rec = write_estimate(log, now, db, pos, sky, data.truth)
+            for note in res.notes:
+                log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
     res.error_m = rec.error_m
     res.results_log = log_path
     return res
@@ -186,10 +190,11 @@ def panorama_picture(res: ReplayResult, db: SkylineDatabase, path: Path) -> None
     ax.set_title(f"{res.name}: heading correction {pos.result.heading_correction_deg:+.1f} deg")
     ax.legend(loc="lower right")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=80)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with atomic_output(path) as tmp:
+            fig.savefig(tmp, dpi=80, format="png")
+    finally:
+        plt.close(fig)
 
 
 def _fmt(v: float | None, spec: str = ".1f") -> str:
@@ -221,7 +226,7 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
     """PNG pictures per log, ``summary.csv`` and ``report.html``; returns the HTML page's path."""
     from appliance.outputs import write_png
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out_dir)
     for r in results:
         if r.position is None or r.skyline is None:
             continue
@@ -232,10 +237,11 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
         r.pictures = [map_png, pano_png]
     rows = summary_rows(results)
     csv_path = out_dir / "summary.csv"
-    with csv_path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["log"])
-        writer.writeheader()
-        writer.writerows(rows)
+    table = io.StringIO(newline="")
+    writer = csv.DictWriter(table, fieldnames=list(rows[0]) if rows else ["log"])
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(csv_path, table.getvalue())
     errors = [r.error_m for r in results if r.error_m is not None]
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Viper replay</title>",
              "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
@@ -263,7 +269,7 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
             parts.append(f"<p><img src='{html.escape(pic.name)}' alt='{html.escape(pic.stem)}'></p>")
     parts.append("</body></html>")
     page = out_dir / "report.html"
-    page.write_text("\n".join(parts))
+    write_text_atomic(page, "\n".join(parts))
     return page
 
 

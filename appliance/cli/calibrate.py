@@ -87,12 +87,9 @@ def _camera(args: argparse.Namespace) -> int:
         args.images, pattern_size=args.pattern, square_size_m=args.square_m, min_boards=args.min_boards
     )
     if args.output is not None:
-        from appliance.vision.intrinsics import save_intrinsics
+        from calibration.camera import write_camera_calibration
 
-        try:
-            save_intrinsics(result.intrinsics, args.output)
-        except OSError as exc:
-            raise ConfigError(f"{args.output}: cannot write: {exc.strerror or exc}") from None
+        write_camera_calibration(args.output, result.intrinsics)
     if args.json:
         print(json.dumps(result.as_dict()))
     else:

@@ -12,8 +12,10 @@ import argparse
 import time
 from pathlib import Path
 
+from appliance.atomic import check_output_folder
 from appliance.config import CameraDeviceConfig, Config, DevicesConfig, LogbookConfig, SessionConfig, SimConfig
 from appliance.demo import run_demo
+from appliance.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,6 +38,8 @@ def demo_config(out: Path, time_rate: float) -> Config:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not args.time_rate > 0:
+        raise InputError(f"--time-rate {args.time_rate}: must be a positive number")
     if args.skyline_only:
         return run_skyline_only(args)
     from appliance.acquisition.replay import ReplayResult, SessionData, write_report
@@ -44,8 +48,7 @@ def run(args: argparse.Namespace) -> int:
     from appliance.logbook.summary import great_circle_m
     from appliance.terrain.dem import load_dem
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_folder(args.out)
     print("Viper demo: a simulated field session on the jacksboro DEM (Cumberland Mountains, Tennessee)")
     t0 = time.monotonic()
     dem = load_dem("jacksboro")
@@ -88,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
+    check_output_folder(args.out)
     r = run_demo(args.out, args.seed)
     p = r.position
     cell = (p.cell_size_m[0] * p.cell_size_m[1]) ** 0.5

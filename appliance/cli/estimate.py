@@ -7,11 +7,14 @@ import json
 import sys
 from pathlib import Path
 
+from appliance.atomic import check_output_folder
 from appliance.config import load_config
 from appliance.errors import InputError
 from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
+
+REPORT_FILES = (".png", "-posterior.tif", "-region.geojson")
 
 
 def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
@@ -47,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="true position of each skyline's station, for the error and the picture")
     p.add_argument("--report", metavar="DIR",
                    help="write per skyline a PNG, the posteriors as GeoTIFF and the region as GeoJSON")
+    p.add_argument("--force", action="store_true", help="replace report files that exist")
     p.set_defaults(func=run)
 
 
@@ -75,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         positions = [locate(db, sky, sigma, tolerance, source=name) for name, sky in skylines]
     report = Path(args.report) if args.report else None
     if report is not None:
-        report.mkdir(parents=True, exist_ok=True)
+        names = [f"{i + 1:02d}-{Path(s).stem}{e}" for i, s in enumerate(args.skylines) for e in REPORT_FILES]
+        check_output_folder(report, [args.db, *args.skylines], names, args.force)
     for i, (pos, (name, sky)) in enumerate(zip(positions, skylines)):
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)

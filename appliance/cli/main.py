@@ -5,12 +5,34 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import re
 import sys
 from collections.abc import Sequence
 
 import appliance.cli as cli_pkg
 from appliance import __version__
+from appliance.atomic import describe_os_error
 from appliance.errors import ViperError
+
+#: Options whose value is a comma-separated list of numbers that may start with a minus sign.
+NUMBER_LIST_OPTIONS = frozenset({"--truth", "--move", "--search-bounds", "--sigma", "--stage-angles", "--lat",
+                                 "--lon", "--heading-offset", "--azimuth-offset", "--known-bearing-deg"})
+_NEGATIVE_LIST = re.compile(r"^-[0-9.]")
+
+
+def join_negative_values(argv: Sequence[str]) -> list[str]:
+    """``--truth -36.5,84.2`` as ``--truth=-36.5,84.2``: argparse would take the value for an option."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        if a in NUMBER_LIST_OPTIONS and i + 1 < len(argv) and _NEGATIVE_LIST.match(argv[i + 1]):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
     func = getattr(args, "func", None)
     if func is None:
         parser.print_help(sys.stderr)
@@ -42,6 +64,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ViperError as exc:
         print(f"viper {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"viper {args.command}: error: {where}{describe_os_error(exc)}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print(f"viper {args.command}: error: out of memory", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"viper {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from appliance.atomic import check_output_path
 from appliance.errors import InputError
 from appliance.terrain.database import build_database
 from appliance.terrain.dem import load_dem
@@ -30,12 +31,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE_M, help="terrain reach (m)")
     p.add_argument("--refraction", type=float, help="refraction coefficient (default: the body's)")
     p.add_argument("--crs", help="CRS for a DEM file that carries none")
+    p.add_argument("--force", action="store_true", help="replace the database if it exists")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     if args.spacing is not None and args.spacing <= 0:
         raise InputError(f"--spacing {args.spacing} m must be positive")
+    check_output_path(args.out, [args.dem], args.force)
     dem = load_dem(args.dem, crs=args.crs)
     t0 = time.perf_counter()
     header = build_database(

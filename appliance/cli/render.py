@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 
+from appliance.atomic import check_output_path
 from appliance.errors import InputError
 from appliance.skyline import format_skyline_csv, write_skyline_csv
 from appliance.terrain.dem import load_dem
@@ -24,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--azimuths", type=int, default=360, help="number of azimuths (default 360)")
     p.add_argument("--crs", help="CRS for a DEM file that carries none")
     p.add_argument("--out", help="CSV file to write (default: standard output)")
+    p.add_argument("--force", action="store_true", help="replace the CSV if it exists")
     p.set_defaults(func=run)
 
 
@@ -34,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--height {args.height} m is negative")
     if not -180.0 <= args.lon <= 360.0:
         raise InputError(f"--lon {args.lon} outside [-180, 360]")
+    if args.out:
+        check_output_path(args.out, [args.dem], args.force)
     dem = load_dem(args.dem, crs=args.crs)
     az = np.arange(args.azimuths) * (360.0 / args.azimuths)
     horizon = render_skyline(dem, args.lat, args.lon, args.height, az, args.max_range, args.refraction)

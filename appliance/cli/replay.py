@@ -7,8 +7,11 @@ import dataclasses
 from pathlib import Path
 
 from appliance.acquisition.replay import ReplayResult, replay_logs
+from appliance.atomic import check_output_folder
 from appliance.config import load_config
 from appliance.errors import ConfigError, InputError
+
+REPLAY_FILES = (".replay.mcap", ".map.png", ".panorama.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,6 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--heading-tolerance", type=float, metavar="DEG", help="compass error searched (deg)")
     p.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
     p.add_argument("--out", default="viper-replay", help="folder of the results logs and report")
+    p.add_argument("--force", action="store_true", help="replace results and report files that exist")
     p.set_defaults(func=run)
 
 
@@ -36,6 +40,9 @@ def parse_sigma(text: str) -> tuple[float, float]:
 def run(args: argparse.Namespace) -> int:
     from appliance.acquisition.onboard import load_session_database
 
+    stems = [Path(p).stem for p in args.logs]
+    files = ["report.html", "summary.csv", *(f"{s}{e}" for s in stems for e in REPLAY_FILES)]
+    check_output_folder(args.out, args.logs, files, args.force)
     config = load_config(args.config)
     est = config.estimator
     if args.sigma:

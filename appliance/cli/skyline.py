@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import cv2
 
+from appliance.atomic import check_output_path, write_bytes_atomic
 from appliance.errors import InputError
 from appliance.skyline import write_skyline_csv
 from appliance.vision.panorama import Projection, load_panorama
@@ -39,10 +39,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step-deg", type=float, default=1.0, help="azimuth step of the CSV rows (default 1)")
     p.add_argument("--min-elevation-deg", type=float, default=DetectionConfig.min_elevation_deg)
     p.add_argument("--max-elevation-deg", type=float, default=DetectionConfig.max_elevation_deg)
+    p.add_argument("--force", action="store_true", help="replace the CSV and the overlay if they exist")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_path(args.out, [args.panorama, *filter(None, [args.overlay])], args.force)
+    if args.overlay:
+        check_output_path(args.overlay, [args.panorama], args.force)
     cfg = DetectionConfig(
         method=Method(args.method),
         step_deg=args.step_deg,
@@ -56,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         ok, buf = cv2.imencode(".png", draw_overlay(pano, columns, thickness_px=max(1, pano.height // 500)))
         if not ok:
             raise InputError(f"{args.overlay}: cannot encode the overlay")
-        Path(args.overlay).write_bytes(buf.tobytes())
+        write_bytes_atomic(args.overlay, buf.tobytes())
     skyline = resample(columns, pano, cfg.step_deg)
     if not skyline.valid.any():
         raise InputError(f"{args.panorama}: no skyline found (no column shows sky above ground)")

@@ -12,9 +12,10 @@ import json
 import re
 from pathlib import Path
 
+from appliance.atomic import check_output_path
 from appliance.errors import InputError
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
-from appliance.vision.panorama import read_image, save_panorama
+from appliance.vision.panorama import read_image, save_panorama, sidecar_path
 from appliance.vision.stitching import Shot, stitch
 
 STAGE_IN_NAME = re.compile(r"stage[_-]?(-?\d+(?:\.\d+)?)", re.IGNORECASE)
@@ -28,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hfov-deg", type=float, help="horizontal field of view, without a calibration file")
     p.add_argument("--stage-angles", help="comma-separated stage angles (deg), one per image")
     p.add_argument("--heading-offset", type=float, default=0.0, help="azimuth (deg) of stage angle 0")
+    p.add_argument("--force", action="store_true", help="replace the panorama and its geometry if they exist")
     p.set_defaults(func=run)
 
 
@@ -59,6 +61,9 @@ def shot_pose(path: Path, given: float | None) -> tuple[float, float, float]:
 
 def run(args: argparse.Namespace) -> int:
     paths = [Path(p) for p in args.images]
+    inputs = [*paths, *(p.with_name(p.name + ".json") for p in paths), *filter(None, [args.calibration])]
+    check_output_path(args.out, inputs, args.force)
+    check_output_path(sidecar_path(args.out), inputs, args.force)
     angles: list[float | None] = [None] * len(paths)
     if args.stage_angles:
         try:

@@ -3,22 +3,24 @@
 The broken file is read sequentially up to its first unreadable byte (see
 :class:`appliance.logbook.reader.LogReader`); every schema, channel and message read is written
 again, with the same ids, topics and times, into a new file that gets a summary and a footer.  The
-output is written beside its final name and renamed into place only when complete.
+output is written beside its final name and renamed into place only when complete
+(:func:`appliance.atomic.atomic_output`); the reserve file a killed session left beside the
+broken log is removed.
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
+from appliance.atomic import atomic_output, check_output_path
 from appliance.errors import LogError
 from appliance.logbook.reader import ErrorPolicy, LogReader
 from appliance.logbook.sink import DurableFile
-from appliance.logbook.writer import LIBRARY, PROFILE
+from appliance.logbook.writer import LIBRARY, PROFILE, remove_stale_reserves
 
 
 @dataclass(frozen=True)
@@ -41,11 +43,23 @@ def recover_log(src: str | Path, dst: str | Path, overwrite: bool = False) -> Re
     src_p, dst_p = Path(src), Path(dst)
     if src_p.resolve() == dst_p.resolve():
         raise LogError(f"{dst_p}: the recovered log must not overwrite its source")
-    if dst_p.exists() and not overwrite:
-        raise LogError(f"{dst_p}: already exists (pass --force to replace it)")
+    check_output_path(dst_p, [src_p], overwrite)
     reader = LogReader(src_p, ErrorPolicy.STOP)
-    tmp = dst_p.with_name(f".{dst_p.name}.partial")
-    tmp.unlink(missing_ok=True)
+    remove_stale_reserves(src_p.parent)
+    with atomic_output(dst_p) as tmp:
+        tmp.unlink()  # DurableFile creates its file itself and never opens an existing one
+        topics, count = _copy(reader, src_p, tmp)
+    return RecoveryReport(
+        messages=count,
+        topics=topics,
+        source_complete=reader.complete,
+        problem=reader.problem,
+        stopped_at=reader.stopped_at,
+        source_bytes=reader.size_bytes,
+    )
+
+
+def _copy(reader: LogReader, src_p: Path, tmp: Path) -> tuple[dict[str, int], int]:
     sink = DurableFile(tmp)
     topics: dict[str, int] = {}
     count = 0
@@ -84,25 +98,6 @@ def recover_log(src: str | Path, dst: str | Path, overwrite: bool = False) -> Re
             writer.start(profile=reader.header.profile, library=LIBRARY)
         writer.finish()
         sink.sync()
+    finally:
         sink.close()
-        os.replace(tmp, dst_p)
-    except LogError:
-        sink.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    except OSError as exc:
-        sink.close()
-        tmp.unlink(missing_ok=True)
-        raise LogError(f"{dst_p}: cannot write the recovered log: {exc.strerror or exc}") from None
-    except BaseException:
-        sink.close()
-        tmp.unlink(missing_ok=True)
-        raise
-    return RecoveryReport(
-        messages=count,
-        topics=topics,
-        source_complete=reader.complete,
-        problem=reader.problem,
-        stopped_at=reader.stopped_at,
-        source_bytes=reader.size_bytes,
-    )
+    return topics, count

@@ -10,11 +10,16 @@ Full disk.  A write that fails with ENOSPC (or EDQUOT) cuts the torn tail off at
 record, frees a small reserve file kept beside the log, and closes the data section with an empty
 summary (DataEnd, Footer, magic): a valid MCAP file holding everything written before the failure.
 The logbook then refuses further writes and raises :class:`LogbookFullError`.
+
+The reserve file (``.NAME.mcap.reserve``) stays locked (``flock``) while its log is open; a killed
+session leaves it unlocked, and :func:`remove_stale_reserves` (called at session start and by
+``viper log recover``) removes it.
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import json
 import os
 import time
@@ -73,6 +78,7 @@ class Logbook:
         self._clock = clock
         self._interval_s = fsync_interval_s
         self._reserve_path = reserve_path
+        self._reserve_fd: int | None = None
         self._state = "open"
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}
@@ -107,8 +113,9 @@ class Logbook:
             p.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise LogError(f"{p.parent}: cannot create log directory: {exc.strerror}") from None
+        remove_stale_reserves(p.parent)
         sink = DurableFile(p)
-        reserve = p.with_name(f".{p.name}.reserve") if reserve_bytes > 0 else None
+        reserve = reserve_path_of(p) if reserve_bytes > 0 else None
         try:
             return cls(
                 sink,
@@ -276,15 +283,22 @@ class Logbook:
                 pass
 
     def _make_reserve(self, path: Path, size: int) -> None:
+        fd = None
         try:
-            with open(path, "wb") as f:
-                f.write(b"\0" * size)
-                f.flush()
-                os.fsync(f.fileno())
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            view = memoryview(b"\0" * size)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
         except OSError as exc:
+            if fd is not None:
+                os.close(fd)
+                path.unlink(missing_ok=True)
             raise LogbookFullError(
                 f"{path}: cannot reserve {size} bytes beside the log: {exc.strerror}"
             ) from None
+        self._reserve_fd = fd
 
     def _drop_reserve(self) -> None:
         if self._reserve_path is not None:
@@ -293,3 +307,42 @@ class Logbook:
             except FileNotFoundError:
                 pass
             self._reserve_path = None
+        if self._reserve_fd is not None:
+            fd, self._reserve_fd = self._reserve_fd, None
+            os.close(fd)
+
+
+def reserve_path_of(log_path: str | Path) -> Path:
+    """The reserve file kept beside the log ``log_path`` while it is written."""
+    p = Path(log_path)
+    return p.with_name(f".{p.name}.reserve")
+
+
+def remove_stale_reserves(folder: str | Path) -> list[Path]:
+    """Remove the reserve files in ``folder`` whose log is no longer written (a killed session).
+
+    A reserve is stale when no process holds its lock; a live session's reserve is left alone.
+    """
+    removed = []
+    try:
+        candidates = sorted(Path(folder).glob(".*.reserve"))
+    except OSError:
+        return removed
+    for q in candidates:
+        try:
+            fd = os.open(q, os.O_RDONLY | os.O_CLOEXEC)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        try:
+            q.unlink()
+            removed.append(q)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    return removed

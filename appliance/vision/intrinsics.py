@@ -16,14 +16,13 @@ File layout (written by ``viper calibrate camera``, read by the vision chain and
 from __future__ import annotations
 
 import math
-import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from appliance.atomic import write_text_atomic
 from appliance.config import from_mapping
 from appliance.errors import ConfigError
 
@@ -101,13 +100,4 @@ def save_intrinsics(intrinsics: CameraIntrinsics, path: str | Path) -> None:
     ]
     if intrinsics.reprojection_error_px is not None:
         lines.append(f"reprojection_error_px = {intrinsics.reprojection_error_px!r}")
-    fd, tmp = tempfile.mkstemp(dir=p.parent if str(p.parent) else ".", prefix=p.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write("\n".join(lines) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(p, "\n".join(lines) + "\n")

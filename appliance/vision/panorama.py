@@ -27,6 +27,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from appliance.atomic import atomic_output
 from appliance.errors import InputError
 
 SIDECAR_SUFFIX = ".json"
@@ -204,10 +205,14 @@ def load_panorama(
 def save_panorama(pano: Panorama, path: str | Path) -> Path:
     """Write the image (format from the suffix) and its geometry sidecar; returns the sidecar path."""
     p = Path(path)
-    ok, buf = cv2.imencode(p.suffix or ".png", pano.image)
+    try:
+        ok, buf = cv2.imencode(p.suffix or ".png", pano.image)
+    except cv2.error:
+        ok = False
     if not ok:
         raise InputError(f"{p}: cannot encode an image with suffix {p.suffix!r}")
-    p.write_bytes(buf.tobytes())
     side = sidecar_path(p)
-    side.write_text(json.dumps(pano.geometry(), indent=2) + "\n", encoding="utf-8")
+    with atomic_output(p) as tmp_image, atomic_output(side) as tmp_side:
+        tmp_image.write_bytes(buf.tobytes())
+        tmp_side.write_text(json.dumps(pano.geometry(), indent=2) + "\n", encoding="utf-8")
     return side

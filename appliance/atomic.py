@@ -1,0 +1,300 @@
+"""Atomic file output: every file the appliance writes goes through here.
+
+A file is written to a temporary file in its own folder (``.NAME.XXXXXXXX.tmpSUFFIX``, so a
+library that picks the format from the suffix sees the right one), fsynced, given its mode and
+renamed over its final name, and the folder is fsynced; on any failure the temporary file is
+removed and the final name is untouched.  A new file gets ``0666 & ~umask`` like any other tool's
+output; a replaced file keeps its mode.  Every ``OSError`` (a missing folder, a file where the
+folder should be, a folder where the file should be, a read-only folder, a full disk) becomes one
+:class:`OutputError` line naming the path.
+
+:func:`check_output_path` is what commands call before the work starts: it refuses an output that
+is one of the inputs, an existing file without ``--force``, and a path whose folder cannot take it.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import secrets
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from appliance.errors import OutputError, ViperError
+
+#: Marker in every temporary name (``.report.png.1f2e3d4c.tmp.png``), for tests and cleanup.
+TMP_MARK = ".tmp"
+
+_REASONS = {
+    errno.ENOENT: "no such file or folder",
+    errno.ENOTDIR: "a path component is a file, not a folder",
+    errno.EISDIR: "is a folder",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EROFS: "read-only file system",
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EFBIG: "file too large",
+    errno.ENAMETOOLONG: "file name too long",
+    errno.EEXIST: "already exists",
+    errno.EIO: "input/output error",
+}
+
+_umask_lock = threading.Lock()
+
+
+def describe_os_error(exc: OSError) -> str:
+    """A short reason for ``exc`` (no errno numbers, no Python names)."""
+    if exc.errno in _REASONS:
+        return _REASONS[exc.errno]
+    return exc.strerror or str(exc) or type(exc).__name__
+
+
+def output_error(path: str | Path, exc: OSError, doing: str = "cannot write") -> OutputError:
+    """The one-line error for ``exc`` raised while writing ``path``."""
+    p = Path(path)
+    reason = describe_os_error(exc)
+    if exc.errno == errno.ENOENT and not p.parent.exists():
+        reason = f"folder {_folder(p)} does not exist"
+    elif exc.errno == errno.ENOTDIR:
+        reason = f"{_first_non_folder(p)} is not a folder"
+    err = OutputError(f"{p}: {doing}: {reason}")
+    err.errno = exc.errno
+    return err
+
+
+def _folder(p: Path) -> str:
+    return str(p.parent) if str(p.parent) not in ("", ".") else "."
+
+
+def _first_non_folder(p: Path) -> str:
+    for parent in reversed(p.parents):
+        if str(parent) in ("", "."):
+            continue
+        if parent.exists() and not parent.is_dir():
+            return str(parent)
+    return _folder(p)
+
+
+def umask_mode() -> int:
+    """``0o666 & ~umask``: the mode a new regular file gets from ``open(..., "w")``."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _umask_lock:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename durable (best effort: some file systems refuse to fsync a folder)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _preallocate(fd: int, size: int) -> None:
+    """Reserve ``size`` bytes on disk now, so a full disk is ENOSPC here and never SIGBUS later."""
+    if size <= 0:
+        return
+    try:
+        os.posix_fallocate(fd, 0, size)
+        return
+    except OSError as exc:
+        if exc.errno not in (errno.EOPNOTSUPP, errno.EINVAL):
+            raise
+    block = b"\0" * (1 << 20)
+    os.lseek(fd, 0, os.SEEK_SET)
+    left = size
+    while left > 0:
+        left -= os.write(fd, block[: min(left, len(block))])
+    os.lseek(fd, 0, os.SEEK_SET)
+
+
+@contextmanager
+def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on a clean exit it becomes ``path`` atomically.
+
+    The body writes the temporary file by any means (``open``, ``rasterio.open``, ``savefig``, a
+    memory map) and closes it.  On success: fsync, mode (the umask's, or the replaced file's), rename,
+    folder fsync.  On any exception the temporary file is removed and ``path`` is untouched; an
+    ``OSError`` (from the body too) becomes one :class:`OutputError` line.
+
+    ``preallocate`` > 0 (memory-mapped writers): the temporary file is created with that many bytes
+    allocated on disk (zeros), so a full disk fails here with ENOSPC instead of killing the process
+    with SIGBUS when a page of the map is first written.  Open it ``"r+b"`` then, not ``"wb"``
+    (which would give the allocation back).
+    """
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise OutputError(f"{p}: cannot write: is a folder")
+    try:
+        mode = p.stat().st_mode & 0o7777
+    except OSError:
+        mode = umask_mode()
+    tmp = folder / f".{p.name}.{secrets.token_hex(4)}{TMP_MARK}{p.suffix}"
+    try:
+        fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise output_error(p, exc) from None
+    try:
+        try:
+            _preallocate(fd, preallocate)
+        finally:
+            os.close(fd)
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY | os.O_CLOEXEC)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.chmod(tmp, mode)
+        os.replace(tmp, p)
+    except OSError as exc:
+        _remove(tmp)
+        if isinstance(exc, ViperError):
+            raise
+        raise output_error(p, exc) from None
+    except BaseException:
+        _remove(tmp)
+        raise
+    _fsync_folder(folder)
+
+
+def _remove(tmp: Path) -> None:
+    try:
+        tmp.unlink()
+    except FileNotFoundError:
+        pass
+    except OSError:
+        pass
+
+
+def write_bytes_atomic(path: str | Path, data: bytes | bytearray | memoryview) -> None:
+    """Replace ``path`` with ``data`` atomically (see :func:`atomic_output`)."""
+    with atomic_output(path) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_CLOEXEC)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+        finally:
+            os.close(fd)
+
+
+def write_text_atomic(path: str | Path, text: str, encoding: str = "utf-8") -> None:
+    """Replace ``path`` with ``text`` atomically; newlines are written as given."""
+    write_bytes_atomic(path, text.encode(encoding))
+
+
+def check_output_path(path: str | Path, inputs: Iterable[str | Path] = (), force: bool = False) -> Path:
+    """Refuse, before any work, an output the command could not or should not write.
+
+    Refused: an empty path; a path that names one of ``inputs`` (also through links); an existing
+    folder; a missing folder or a file in its place; a read-only folder; an existing file unless
+    ``force``.  Returns the path.
+    """
+    p = Path(path)
+    if str(path) == "":
+        raise OutputError("output path is empty")
+    for inp in inputs:
+        if _same_file(p, Path(inp)):
+            raise OutputError(f"{p}: is also an input; refusing to overwrite it")
+    if p.is_dir():
+        raise OutputError(f"{p}: is a folder, expected a file name")
+    _check_folder(p)
+    if (p.exists() or p.is_symlink()) and not force:
+        raise OutputError(f"{p}: already exists (pass --force to replace it)")
+    return p
+
+
+def check_output_folder(path: str | Path, inputs: Iterable[str | Path] = (), files: Iterable[str] = (),
+                        force: bool = True) -> Path:
+    """Create the output folder ``path`` (and its parents) or refuse it in one line.
+
+    ``files`` are the names the command will write into it: unless ``force``, one that exists
+    already is refused, before the folder is created and before any work.
+    """
+    p = Path(path)
+    if str(path) == "":
+        raise OutputError("output folder is empty")
+    for inp in inputs:
+        if _same_file(p, Path(inp)):
+            raise OutputError(f"{p}: is also an input; refusing to write into it")
+    if p.exists() and not p.is_dir():
+        raise OutputError(f"{p}: is a file, expected a folder")
+    if not force:
+        for name in files:
+            q = p / name
+            if q.exists() or q.is_symlink():
+                raise OutputError(f"{q}: already exists (pass --force to replace it)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(p, exc, "cannot create the folder") from None
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise OutputError(f"{p}: cannot write into the folder: "
+                          f"{'read-only file system' if _read_only(p) else 'permission denied'}")
+    if _read_only(p):
+        raise OutputError(f"{p}: cannot write into the folder: read-only file system")
+    return p
+
+
+def _check_folder(p: Path) -> None:
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.exists():
+        if any(q.exists() and not q.is_dir() for q in folder.parents):
+            raise OutputError(f"{p}: cannot write: {_first_non_folder(p)} is not a folder")
+        raise OutputError(f"{p}: cannot write: folder {_folder(p)} does not exist")
+    if not folder.is_dir():
+        raise OutputError(f"{p}: cannot write: {folder} is not a folder")
+    if _read_only(folder):
+        raise OutputError(f"{p}: cannot write: read-only file system")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{p}: cannot write: permission denied on folder {_folder(p)}")
+
+
+def _read_only(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    try:
+        return a.resolve() == b.resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
+def remove_stale_temporaries(folder: str | Path, name: str) -> list[Path]:
+    """Remove the temporary files :func:`atomic_output` left for ``folder/name`` (a killed writer)."""
+    removed = []
+    for q in Path(folder).glob(f".{name}.*{TMP_MARK}*"):
+        try:
+            q.unlink()
+        except OSError:
+            continue
+        removed.append(q)
+    return removed
