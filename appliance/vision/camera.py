@@ -50,6 +50,18 @@ def world_from_camera(pose: CameraPose) -> np.ndarray:
     return np.column_stack([right, -up, forward])
 
 
+def pose_from_world_from_camera(rotation: np.ndarray) -> CameraPose:
+    """The (yaw, pitch, roll) of a camera-to-ENU rotation matrix; the inverse of :func:`world_from_camera`."""
+    m = np.asarray(rotation, dtype=np.float64)
+    right, forward = m[:, 0], m[:, 2]
+    yaw = math.atan2(forward[0], forward[1])
+    pitch = math.asin(max(-1.0, min(1.0, float(forward[2]))))
+    right0 = np.array([math.cos(yaw), -math.sin(yaw), 0.0])
+    up0 = -math.sin(pitch) * np.array([math.sin(yaw), math.cos(yaw), 0.0]) + math.cos(pitch) * np.array([0, 0, 1.0])
+    roll = math.atan2(-float(right @ up0), float(right @ right0))
+    return CameraPose(math.degrees(yaw) % 360.0, math.degrees(pitch), math.degrees(roll))
+
+
 def _has_distortion(intrinsics: CameraIntrinsics) -> bool:
     return any(d != 0.0 for d in intrinsics.distortion)
 

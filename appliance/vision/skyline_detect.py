@@ -347,19 +347,32 @@ def detect_columns(
     cols = np.arange(pano.width, dtype=np.float64)
     az = pano.column_azimuth_deg(cols)
     masked = in_mask(az, mask or [])
-    img8 = np.ascontiguousarray(pano.image[top:bot])
+    rows_local, conf = detect_rows(np.ascontiguousarray(pano.image[top:bot]), cfg, masked, wrap=pano.full_circle)
+    valid = np.isfinite(rows_local)
+    rows = np.where(valid, rows_local + top, np.nan)
+    el = np.where(valid, pano.row_elevation_deg(np.where(valid, rows, 0.0)), np.nan)
+    return ColumnSkyline(az, rows, el, conf)
+
+
+def detect_rows(
+    img8: np.ndarray, cfg: DetectionConfig, masked: np.ndarray | None = None, wrap: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """The skyline's fractional row in every column of an HxWx3 uint8 image, and its confidence.
+
+    Rows are NaN where the confidence is below ``cfg.min_confidence`` or the column is ``masked``
+    (a boolean per column); ``wrap`` joins the last column to the first (a full circle).
+    """
+    masked = np.zeros(img8.shape[1], dtype=bool) if masked is None else np.asarray(masked, dtype=bool)
     weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
     lum = cv2.transform(img8.astype(np.float32), weights)
     lum = cv2.GaussianBlur(lum, (0, 0), sigmaX=0.7, sigmaY=cfg.smooth_sigma_px)
     drop = _downward_drop(lum)
     if cfg.method is Method.GRADIENT:
-        rows_local, conf = _gradient_rows(drop, cfg)
+        rows, conf = _gradient_rows(drop, cfg)
     else:
-        rows_local, conf = _dp_rows(img8, drop, cfg, masked, wrap=pano.full_circle)
-    valid = np.isfinite(rows_local) & (conf >= cfg.min_confidence) & ~masked
-    rows = np.where(valid, rows_local + top, np.nan)
-    el = np.where(valid, pano.row_elevation_deg(np.where(valid, rows, 0.0)), np.nan)
-    return ColumnSkyline(az, rows, el, np.where(masked, 0.0, conf))
+        rows, conf = _dp_rows(img8, drop, cfg, masked, wrap=wrap)
+    valid = np.isfinite(rows) & (conf >= cfg.min_confidence) & ~masked
+    return np.where(valid, rows, np.nan), np.where(masked, 0.0, conf)
 
 
 def _gradient_rows(drop: np.ndarray, cfg: DetectionConfig) -> tuple[np.ndarray, np.ndarray]:
