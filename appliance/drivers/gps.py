@@ -249,7 +249,7 @@ def _decode_zda(m: pynmea2.NMEASentence) -> Zda:
     if d is not None and mo is not None and y is not None:
         try:
             date = dt.date(y, mo, d)
-        except ValueError:
+        except (ValueError, OverflowError):
             raise ProtocolError(f"ZDA: date out of range {y}-{mo}-{d}") from None
     return Zda(time=t, date=date)
 
@@ -265,8 +265,9 @@ _DECODERS: dict[str, Callable[[pynmea2.NMEASentence], GpsRecord]] = {
 
 def decode_gps_sentence(msg: pynmea2.NMEASentence) -> GpsRecord | None:
     """Typed record of a GGA/RMC/GSA/GST/ZDA sentence from any talker; ``None`` for other types."""
-    decoder = _DECODERS.get(nmea.sentence_type(msg))
-    return decoder(msg) if decoder is not None else None
+    stype = nmea.sentence_type(msg)
+    decoder = _DECODERS.get(stype)
+    return nmea.guarded(stype, decoder, msg) if decoder is not None else None
 
 
 # --- epoch assembly ----------------------------------------------------------------------------------
@@ -334,7 +335,11 @@ class GpsDecoder:
             self.errors.count("other sentence")
             return []
         self.stats.sentences += 1
-        return self._add(rec, nmea.sentence_type(msg), raw.receive_time_ns)
+        try:
+            return nmea.guarded("epoch", self._add, rec, nmea.sentence_type(msg), raw.receive_time_ns)
+        except ProtocolError as exc:
+            self.errors.reject("malformed field", exc)
+            return []
 
     def flush(self) -> list[GpsFix]:
         """Emit the epoch in progress (end of stream)."""
@@ -395,7 +400,7 @@ class GpsDecoder:
         date = ep.date
         if date is None and self._last_date is not None and self._last_time is not None:
             date = self._last_date
-            if ep.time < self._last_time:
+            if ep.time < self._last_time and date < dt.date.max:
                 date = date + dt.timedelta(days=1)  # the carried date rolls over at midnight
         if date is not None:
             self._last_date, self._last_time = date, ep.time

@@ -221,7 +221,9 @@ def decode_heading_sentence(raw: RawSentence, tnt_angle_scale_deg: float = 1.0) 
     """Readings in one sentence; ``[]`` for other sentence types or empty fields (``$GPHDT,,T``)."""
     address, fields = nmea.split_checked(raw.text)
     decoder = _grammar(tnt_angle_scale_deg).get(_type_of(address))
-    return decoder(address, fields, raw.receive_time_ns) if decoder is not None else []
+    if decoder is None:
+        return []
+    return nmea.guarded(address, decoder, address, fields, raw.receive_time_ns)
 
 
 class HeadingDecoder:
@@ -244,7 +246,7 @@ class HeadingDecoder:
                 self.errors.count("other sentence")
                 continue
             try:
-                out.extend(decoder(address, fields, raw.receive_time_ns))
+                out.extend(nmea.guarded(address, decoder, address, fields, raw.receive_time_ns))
             except ProtocolError as exc:
                 self.errors.reject("malformed field", exc)
         return out

@@ -2,19 +2,41 @@
 
 :func:`parse_sentence` wraps pynmea2 with the checksum required; the converters turn a field's
 text into a value or ``None`` when the field is empty, and raise :class:`ProtocolError` on text that
-is neither (never a silent 0 or NaN).
+is neither (never a silent 0 or NaN): numbers are plain decimals (no ``nan``, ``inf``, exponents or
+underscores), of at most :data:`MAX_DIGITS` digits.  :func:`guarded` turns any other exception a
+decoder raises into a :class:`ProtocolError`, so no sentence can raise anything else.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import re
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import pynmea2
 
 from appliance.errors import ProtocolError
 
 _ADDRESS = re.compile(r"^[$!]([A-Z0-9]{2}[A-Z]{3}|P[A-Z0-9]{3,}),")
+#: Longest number a field may hold (NMEA 0183 fields are at most a few tens of characters).
+MAX_DIGITS = 20
+_DECIMAL = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)")
+_INTEGER = re.compile(r"[+-]?\d+")
+_T = TypeVar("_T")
+
+#: Exceptions a decoder may raise on hostile field text; :func:`guarded` maps them to ProtocolError.
+FOREIGN_ERRORS = (ArithmeticError, ValueError, IndexError, KeyError, TypeError, AttributeError)
+
+
+def guarded(what: str, decode: Callable[..., _T], *args: Any) -> _T:
+    """``decode(*args)``; a foreign exception (a decoder's bug, an unforeseen field) as ProtocolError."""
+    try:
+        return decode(*args)
+    except ProtocolError:
+        raise
+    except FOREIGN_ERRORS as exc:
+        raise ProtocolError(f"{what}: undecodable ({type(exc).__name__}: {exc})") from None
 
 
 def parse_sentence(text: str) -> pynmea2.NMEASentence:
@@ -24,11 +46,14 @@ def parse_sentence(text: str) -> pynmea2.NMEASentence:
     try:
         return pynmea2.parse(text, check=True)
     except pynmea2.ChecksumError as exc:
-        raise ProtocolError(f"checksum: {exc.args[0][0]}: {text[:40]!r}") from None
+        detail = exc.args[0][0] if exc.args and isinstance(exc.args[0], tuple) else "does not match"
+        raise ProtocolError(f"checksum: {detail}: {text[:40]!r}") from None
     except pynmea2.SentenceTypeError:
         raise ProtocolError(f"unknown sentence type: {text[:12]!r}") from None
     except pynmea2.ParseError:
         raise ProtocolError(f"malformed sentence: {text[:40]!r}") from None
+    except FOREIGN_ERRORS as exc:
+        raise ProtocolError(f"malformed sentence ({type(exc).__name__}): {text[:40]!r}") from None
 
 
 def sentence_type(msg: pynmea2.NMEASentence) -> str:
@@ -54,21 +79,21 @@ def raw(msg: pynmea2.NMEASentence, index: int) -> str:
 
 
 def opt_float(text: str, what: str) -> float | None:
+    """A plain decimal number (``-12.5``, ``.5``, ``7.``); ``None`` for an empty field."""
     if text == "":
         return None
-    try:
-        return float(text)
-    except ValueError:
-        raise ProtocolError(f"{what}: not a number: {text!r}") from None
+    if len(text) > MAX_DIGITS + 2 or not _DECIMAL.fullmatch(text):
+        raise ProtocolError(f"{what}: not a number: {text[:30]!r}")
+    return float(text)
 
 
 def opt_int(text: str, what: str) -> int | None:
+    """A decimal integer of at most :data:`MAX_DIGITS` digits; ``None`` for an empty field."""
     if text == "":
         return None
-    try:
-        return int(text)
-    except ValueError:
-        raise ProtocolError(f"{what}: not an integer: {text!r}") from None
+    if len(text) > MAX_DIGITS + 1 or not _INTEGER.fullmatch(text):
+        raise ProtocolError(f"{what}: not an integer: {text[:30]!r}")
+    return int(text)
 
 
 def opt_time(text: str) -> dt.time | None:
@@ -79,7 +104,7 @@ def opt_time(text: str) -> dt.time | None:
     if not m:
         raise ProtocolError(f"time of day: malformed {text!r}")
     h, mi, s = int(m.group(1)), int(m.group(2)), int(m.group(3))
-    us = round(float(m.group(4)) * 1e6) if m.group(4) else 0
+    us = round(float(m.group(4)[:8]) * 1e6) if m.group(4) else 0
     if h > 23 or mi > 59 or s > 60 or us >= 1_000_000:
         raise ProtocolError(f"time of day: out of range {text!r}")
     return dt.time(h, mi, min(s, 59), us, tzinfo=dt.timezone.utc)

@@ -16,6 +16,7 @@ not end where it was sent (a missed step) is reported, never hidden.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -87,9 +88,12 @@ class PanTiltUnit:
     @staticmethod
     def _number(text: str, what: str) -> float:
         try:
-            return float(text.split()[-1])
+            value = float(text.split()[-1])
         except (ValueError, IndexError):
             raise ProtocolError(f"PTU {what}: no number in answer {text!r}") from None
+        if not math.isfinite(value) or abs(value) > 1e9:
+            raise ProtocolError(f"PTU {what}: implausible number in answer {text!r}")
+        return value
 
     def _readline(self, timeout_s: float) -> bytes:
         deadline = self._clock() + timeout_s

@@ -1,6 +1,7 @@
 """The simulated platform: one :class:`SimWorld`, its twins started, and the real drivers on them.
 
-Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary folder; the I2C
+Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary folder
+(:class:`appliance.sim.scratch.SimFolder`, removed on close and after a kill); the I2C
 twins (HMC5883L, ADXL345) sit on one :class:`FakeI2cBus`; the camera is a :class:`SimVideoCapture`
 driven by the real :class:`V4l2Camera` driver; the leveller is the person at the tripod
 (:class:`SimLeveller`).  Faults come from ``[sim.faults]``.
@@ -11,9 +12,6 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
-import shutil
-import tempfile
-from pathlib import Path
 
 from appliance.config import Config, SimConfig
 from appliance.drivers.camera import V4l2Camera
@@ -25,6 +23,7 @@ from appliance.sim.leveller import SimLeveller
 from appliance.sim.nmea_twins import GpsTwin, NmeaCompassTwin
 from appliance.sim.ptu_twin import PtuTwin
 from appliance.sim.pty_port import PtyPort
+from appliance.sim.scratch import SimFolder
 from appliance.sim.world import SimClock, SimWorld
 
 log = logging.getLogger(__name__)
@@ -48,15 +47,27 @@ def make_world(sim: SimConfig, dem: object | None = None) -> SimWorld:
 
 
 def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
-    sim, faults = config.sim, config.sim.faults
+    sim = config.sim
     dem = None
     if with_camera or sim.ground_elevation_m is None:
         from appliance.terrain.dem import load_dem
 
         dem = load_dem(sim.dem)
     world = make_world(sim, dem)
-    folder = Path(tempfile.mkdtemp(prefix="viper-sim-"))
+    scratch = SimFolder()
     stops: list = []
+    try:
+        return _start_twins(config, world, dem, stops, scratch, with_camera)
+    except BaseException:
+        for s in reversed(stops):
+            s()
+        scratch.remove()
+        raise
+
+
+def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: list, scratch: SimFolder,
+                 with_camera: bool) -> Devices:
+    sim, faults, folder = config.sim, config.sim.faults, scratch.path
     gps_port = PtyPort(folder / "gps")
     gps_twin = GpsTwin(world, gps_port, sim, faults)
     ptu_port = PtyPort(folder / "ptu")
@@ -95,16 +106,10 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
                                    black_frames=black)
 
         camera = V4l2Camera(cam_cfg, intr, video_capture, world.clock.now_ns)
-    try:
-        devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
-                                world.clock)
-    except BaseException:
-        for s in reversed(stops):
-            s()
-        shutil.rmtree(folder, ignore_errors=True)
-        raise
+    devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
+                            world.clock)
     devices.camera_height_m = sim.mast_height_m
     devices.leveller = SimLeveller(world)
-    devices._closers[:0] = [lambda: shutil.rmtree(folder, ignore_errors=True), *stops]
+    devices._closers[:0] = [scratch.remove, *stops]
     devices.world = world  # type: ignore[attr-defined]
     return devices
