@@ -60,7 +60,8 @@ class ControlPoints:
 
 @dataclass(frozen=True)
 class PoseFit:
-    """The fitted camera: intrinsics, orientation, centre (WGS84 lat, lon, ellipsoidal height) and residuals."""
+    """The fitted camera: intrinsics, orientation, centre (WGS84 lat, lon; height in the points' vertical
+    datum) and residuals."""
 
     intrinsics: CameraIntrinsics
     pose: CameraPose
@@ -283,7 +284,7 @@ def format_report(fit: PoseFit) -> str:
             f"orientation: yaw {fit.pose.yaw_deg:.3f} deg (true azimuth), pitch {fit.pose.pitch_deg:.3f} deg,"
             f" roll {fit.pose.roll_deg:.3f} deg",
             f"camera centre: lat {fit.centre_geodetic[0]:.7f}, lon {fit.centre_geodetic[1]:.7f},"
-            f" ellipsoidal height {fit.centre_geodetic[2]:.2f} m",
+            f" height {fit.centre_geodetic[2]:.2f} m (in the points' vertical datum)",
             f"intrinsics: fx {k.fx:.2f} fy {k.fy:.2f} cx {k.cx:.2f} cy {k.cy:.2f}"
             f" distortion [{', '.join(f'{d:.5f}' for d in k.distortion)}]"
             + (f" (refined: {', '.join(fit.refined)})" if fit.refined else ""),

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +146,51 @@ def _inclinometer(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pose(args: argparse.Namespace) -> int:
+    from appliance.atomic import check_output_path, write_text_atomic
+    from appliance.vision.intrinsics import load_intrinsics
+    from appliance.vision.panorama import read_image
+    from calibration.camera import write_camera_calibration
+    from calibration.pose import fit_pose, format_report, read_control_points
+
+    for out in filter(None, [args.out, args.camera_out]):
+        check_output_path(out, [args.photo, args.points], force=args.force or out == args.camera_out)
+    intrinsics = load_intrinsics(args.camera)
+    h, w = read_image(args.photo).shape[:2]
+    if (w, h) != (intrinsics.width, intrinsics.height):
+        raise ConfigError(
+            f"{args.camera}: calibration for {intrinsics.width}x{intrinsics.height} images, but {args.photo} is {w}x{h}"
+        )
+    points = read_control_points(args.points, crs=args.crs)
+    fit = fit_pose(points, intrinsics, refine=args.refine)
+    if args.camera_out is not None:
+        write_camera_calibration(args.camera_out, replace(fit.intrinsics, reprojection_error_px=fit.rms_px))
+    record = fit.as_dict()
+    if args.out is not None:
+        sidecar = {k: record[k] for k in ("yaw_deg", "pitch_deg", "roll_deg")}
+        if args.camera_out is not None:
+            sidecar["camera"] = os.path.relpath(Path(args.camera_out).resolve(), Path(args.out).resolve().parent)
+        sidecar.update({k: v for k, v in record.items() if k not in sidecar})
+        write_text_atomic(args.out, json.dumps(sidecar, indent=1) + "\n")
+    if args.json:
+        print(json.dumps(record))
+    else:
+        print(format_report(fit))
+        for out in filter(None, [args.out, args.camera_out]):
+            print(f"wrote {out}")
+    return 0
+
+
+def _refine(text: str) -> tuple[str, ...]:
+    from calibration.pose import REFINABLE
+
+    names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
+    bad = [n for n in names if n not in REFINABLE]
+    if bad:
+        raise argparse.ArgumentTypeError(f"cannot refine {', '.join(bad)}: choose among {','.join(REFINABLE)}")
+    return names
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -179,6 +226,29 @@ def register(subparsers: Any) -> None:
     p.add_argument("--output", type=Path, help="camera calibration TOML to write ([camera] table)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_camera)
+
+    p = sub.add_parser(
+        "pose",
+        help="camera orientation (and focal length, radial distortion) from ground-control points in a photo",
+        description=(
+            "Fits the orientation and centre of the camera to image points whose map positions are known"
+            " (solvePnP through cv2.calibrateCamera on one view). POINTS: CSV with u_px,v_px (or x_img,y_img)"
+            " and lat_deg,lon_deg,height_m, or x,y,z in --crs; optional name and use (0 leaves a point out)."
+            " Yaw is the true azimuth of the optical axis."
+        ),
+    )
+    p.add_argument("photo", type=Path, help="the photo the points were picked on (its size is checked)")
+    p.add_argument("--camera", type=Path, required=True, help="camera calibration TOML: the starting intrinsics")
+    p.add_argument("--points", type=Path, required=True, help="ground-control points CSV")
+    p.add_argument("--crs", help="CRS of x,y,z map coordinates, e.g. EPSG:32632")
+    p.add_argument(
+        "--refine", type=_refine, default=(), help="intrinsics to fit as well: any of f,k1,k2 (e.g. f,k1,k2)"
+    )
+    p.add_argument("--out", type=Path, help="JSON to write: the photo's sidecar (yaw_deg, pitch_deg, roll_deg...)")
+    p.add_argument("--camera-out", type=Path, help="camera calibration TOML to receive the fitted [camera] table")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_pose)
 
     p = sub.add_parser("compass", help="hard and soft iron from a logged rotation, and the mounting offset")
     p.add_argument(

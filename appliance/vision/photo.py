@@ -71,7 +71,12 @@ class PhotoSkyline:
 
 
 def parse_orientation(text: str) -> CameraPose:
-    """``"YAW,PITCH,ROLL"`` in degrees."""
+    """``"YAW,PITCH,ROLL"`` in degrees, or a JSON file holding yaw_deg, pitch_deg, roll_deg."""
+    if text.lower().endswith(".json"):
+        pose, _ = read_orientation_file(Path(text))
+        if pose is None:
+            raise InputError(f"{text}: no yaw_deg in this JSON file")
+        return pose
     parts = [p.strip() for p in text.split(",")]
     try:
         values = [float(p) for p in parts]
@@ -98,25 +103,34 @@ def photo_sidecars(photo_path: str | Path) -> list[Path]:
 def read_sidecar(photo_path: str | Path) -> tuple[CameraPose | None, Path | None]:
     """The orientation and camera file named by the photo's sidecar, if it has one with ``yaw_deg``."""
     for side in photo_sidecars(photo_path):
-        if not side.is_file():
-            continue
-        try:
-            data = json.loads(side.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"{side}: not a readable JSON sidecar: {exc}") from None
-        if not isinstance(data, dict) or "yaw_deg" not in data:
-            continue
-        try:
-            pose = _checked_pose(
-                float(data["yaw_deg"]), float(data.get("pitch_deg", 0.0)), float(data.get("roll_deg", 0.0)), str(side)
-            )
-        except (TypeError, ValueError) as exc:
-            if isinstance(exc, InputError):
-                raise
-            raise InputError(f"{side}: yaw_deg, pitch_deg and roll_deg must be numbers") from None
-        camera = data.get("camera")
-        return pose, (side.parent / str(camera)) if camera else None
+        if side.is_file():
+            pose, camera = read_orientation_file(side)
+            if pose is not None:
+                return pose, camera
     return None, None
+
+
+def read_orientation_file(side: Path) -> tuple[CameraPose | None, Path | None]:
+    """The orientation (``yaw_deg``, ``pitch_deg``, ``roll_deg``) and ``camera`` of a JSON file;
+    (None, None) for a JSON object without ``yaw_deg`` (a panorama's geometry sidecar)."""
+    if not side.is_file():
+        raise InputError(f"{side}: orientation file not found")
+    try:
+        data = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{side}: not a readable JSON sidecar: {exc}") from None
+    if not isinstance(data, dict) or "yaw_deg" not in data:
+        return None, None
+    try:
+        pose = _checked_pose(
+            float(data["yaw_deg"]), float(data.get("pitch_deg", 0.0)), float(data.get("roll_deg", 0.0)), str(side)
+        )
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{side}: yaw_deg, pitch_deg and roll_deg must be numbers") from None
+    camera = data.get("camera")
+    return pose, (side.parent / str(camera)) if camera else None
 
 
 def load_photo(
