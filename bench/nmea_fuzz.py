@@ -95,9 +95,9 @@ def fuzz(count: int, seed: int) -> tuple[int, collections.Counter[str], list[str
         for line in batch:
             try:
                 for s in framer.feed(line, 0):
-                    for step in (lambda: gps.feed_one(s), lambda: heading.feed([s])):
+                    for decoder in (gps, heading):
                         try:
-                            step()
+                            decoder.feed([s])
                         except ViperError as exc:
                             errors[type(exc).__name__] += 1
             except Exception as exc:  # what the fuzzing looks for: anything not the project's own

@@ -323,7 +323,7 @@ def remove_stale_reserves(folder: str | Path) -> list[Path]:
 
     A reserve is stale when no process holds its lock; a live session's reserve is left alone.
     """
-    removed = []
+    removed: list[Path] = []
     try:
         candidates = sorted(Path(folder).glob(".*.reserve"))
     except OSError:
