@@ -403,12 +403,12 @@ def _dp_rows(
     llr = cv2.resize(llr_small, (w, h), interpolation=cv2.INTER_LINEAR)
     path = _run_dp(_path_cost(drop, llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     rows = _refine(drop, path)
-    conf = _confidence(drop, llr, path, cfg)
     # the generic prior vetoes a "sky" that is textured (an image without sky) unless the column has
     # clear sky somewhere above the line: a cloud sitting on the ridge is textured, but above it or
     # through a gap the column shows the sky the learnt model was taught on
     # (bilinear upsampling and transposition commute: the full-size prior is made transposed, WxH)
     prior_full_t = cv2.resize(cv2.transpose(prior), (h, w), interpolation=cv2.INTER_LINEAR)
+    conf = _confidence(drop, llr, path, cfg, prior_full_t)
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
     sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
     conf = np.minimum(conf, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
@@ -454,7 +454,9 @@ def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: i
     return out
 
 
-def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
+def _confidence(
+    drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig, prior_t: np.ndarray
+) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge."""
     h, w = drop.shape
     cols = np.arange(w)
@@ -469,7 +471,15 @@ def _confidence(drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: Detect
     inside = (path > gap) & (path < h - 1 - gap)
     # sky just above the skyline is often paler than the sky model: only clearly non-sky (an
     # occluder) fails; the ground below must look like ground
-    c_sky = np.clip(sky_above + 1.2, 0.0, 1.0)
+    # a grey cloud or haze resting on the ridge is unlike the learnt sky model too; where the pixels
+    # just above are smooth and bright (the generic prior: a cloud, not a rock or a person), a
+    # strong edge onto clear ground vouches for the column
+    # (the prior's texture bleeds about ten rows across the edge: it is read from 10 to 18 rows up)
+    far = np.clip(path[None, :] - np.arange(10, 18)[:, None], 0, h - 1)
+    smooth_above = np.clip(prior_t[cols[None, :], far], -1, 1).mean(axis=0)
+    strong = np.clip((edge - 2 * cfg.min_edge) / (4 * cfg.min_edge), 0.0, 1.0) * (ground_below > 0.6)
+    strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
+    c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
     conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)
