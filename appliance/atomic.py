@@ -43,6 +43,8 @@ _REASONS = {
 }
 
 _umask_lock = threading.Lock()
+#: Folders :func:`check_output_folder` created in this process, for :func:`remove_created_folders`.
+_created_folders: list[Path] = []
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -243,16 +245,33 @@ def check_output_folder(path: str | Path, inputs: Iterable[str | Path] = (), fil
             q = p / name
             if q.exists() or q.is_symlink():
                 raise OutputError(f"{q}: already exists (pass --force to replace it)")
+    missing = [q for q in (p, *p.parents) if not q.exists()]
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise output_error(p, exc, "cannot create the folder") from None
+    _created_folders.extend(reversed(missing))
     if not os.access(p, os.W_OK | os.X_OK):
         raise OutputError(f"{p}: cannot write into the folder: "
                           f"{'read-only file system' if _read_only(p) else 'permission denied'}")
     if _read_only(p):
         raise OutputError(f"{p}: cannot write into the folder: read-only file system")
     return p
+
+
+def remove_created_folders() -> None:
+    """Remove the folders :func:`check_output_folder` created that are still empty (a command
+    that failed leaves no empty report folder behind), deepest first; forget them all."""
+    while _created_folders:
+        try:
+            _created_folders.pop().rmdir()
+        except OSError:
+            pass
+
+
+def forget_created_folders() -> None:
+    """Keep the folders created so far (the command that made them succeeded)."""
+    _created_folders.clear()
 
 
 def _check_folder(p: Path) -> None:

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 import appliance.cli as cli_pkg
 from appliance import __version__
-from appliance.atomic import describe_os_error
+from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
 from appliance.errors import ViperError
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus sign.
@@ -59,23 +59,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     if func is None:
         parser.print_help(sys.stderr)
         return 2
+    forget_created_folders()
     try:
         return int(func(args) or 0)
-    except ViperError as exc:
-        print(f"viper {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"viper {args.command}: error: {where}{describe_os_error(exc)}", file=sys.stderr)
-        return 1
-    except MemoryError:
-        print(f"viper {args.command}: error: out of memory", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"viper {args.command}: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:
         return 0
+    except ViperError as exc:
+        message = str(exc)
+        code = exc.exit_code
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        message, code = f"{where}{describe_os_error(exc)}", 1
+    except MemoryError:
+        message, code = "out of memory", 1
+    except KeyboardInterrupt:
+        remove_created_folders()
+        print(f"viper {args.command}: interrupted", file=sys.stderr)
+        return 130
+    remove_created_folders()
+    print(f"viper {args.command}: error: {' '.join(message.split())}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":  # pragma: no cover
