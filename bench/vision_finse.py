@@ -71,8 +71,14 @@ def gcps_for_2022(work: Path) -> Path:
             if r["name"] in pixels:
                 p = pixels[r["name"]]
                 writer.writerow(
-                    {"name": r["name"], "x_world": r["x_world"], "y_world": r["y_world"], "z_world": r["z_world"],
-                     "x_img": p["u_px"], "y_img": p["v_px"]}
+                    {
+                        "name": r["name"],
+                        "x_world": r["x_world"],
+                        "y_world": r["y_world"],
+                        "z_world": r["z_world"],
+                        "x_img": p["u_px"],
+                        "y_img": p["v_px"],
+                    }
                 )
     return out
 
@@ -115,8 +121,17 @@ def position(work: Path, photo: str, skyline_csv: Path, fit: dict[str, float], d
     with rasterio.open(DSM) as ds:
         ground = float(next(ds.sample([(x, y)]))[0])
     height = fit["camera_height_m"] - ground
-    args = [db, skyline_csv, "--heading-tolerance", "2", "--json", "--height", f"{height:.2f}",
-            "--truth", f"{fit['camera_lat_deg']},{fit['camera_lon_deg']}"]
+    args: list[str | Path] = [
+        db,
+        skyline_csv,
+        "--heading-tolerance",
+        "2",
+        "--json",
+        "--height",
+        f"{height:.2f}",
+        "--truth",
+        f"{fit['camera_lat_deg']},{fit['camera_lon_deg']}",
+    ]
     out = viper("estimate", *args, check=False)
     if out.returncode != 0 and "--height" in out.stderr and "unrecognized" in out.stderr:
         # an estimator without a per-estimate height: the database was built at this height anyway
@@ -127,8 +142,14 @@ def position(work: Path, photo: str, skyline_csv: Path, fit: dict[str, float], d
         return record
     est = json.loads(out.stdout.strip().splitlines()[0])
     err = float(np.hypot(est["x"] - x, est["y"] - y))
-    record.update({"error_m": err, "area_m2": est["region"]["area_m2"], "ambiguous": est.get("ambiguous"),
-                   "heading_correction_deg": est.get("heading_correction_deg")})
+    record.update(
+        {
+            "error_m": err,
+            "area_m2": est["region"]["area_m2"],
+            "ambiguous": est.get("ambiguous"),
+            "heading_correction_deg": est.get("heading_correction_deg"),
+        }
+    )
     inside = est.get("truth_in_region")
     if inside is None:
         cell = est["region"]["cell_size_m"]
@@ -151,18 +172,59 @@ def main() -> int:
     (work / "stated.toml").write_text(STATED_CAMERA)
     camera = work / "camera.toml"
     camera.unlink(missing_ok=True)
-    viper("calibrate", "pose", FINSE / PHOTOS[0], "--camera", work / "stated.toml", "--points", GCPS,
-          "--crs", "EPSG:32632", "--refine", "f,k1,k2", "--camera-out", camera, "--out", work / "2019.json", "--force")
-    viper("calibrate", "pose", FINSE / PHOTOS[1], "--camera", camera, "--points", gcps_for_2022(work),
-          "--crs", "EPSG:32632", "--out", work / "2022.json", "--force")
+    viper(
+        "calibrate",
+        "pose",
+        FINSE / PHOTOS[0],
+        "--camera",
+        work / "stated.toml",
+        "--points",
+        GCPS,
+        "--crs",
+        "EPSG:32632",
+        "--refine",
+        "f,k1,k2",
+        "--camera-out",
+        camera,
+        "--out",
+        work / "2019.json",
+        "--force",
+    )
+    viper(
+        "calibrate",
+        "pose",
+        FINSE / PHOTOS[1],
+        "--camera",
+        camera,
+        "--points",
+        gcps_for_2022(work),
+        "--crs",
+        "EPSG:32632",
+        "--out",
+        work / "2022.json",
+        "--force",
+    )
     fits = {p: json.loads((work / f"{p[:4]}.json").read_text()) for p in PHOTOS}
     rows = []
     skylines = {}
     for photo in PHOTOS:
         out = work / f"{photo[:4]}_skyline.csv"
         t0 = time.perf_counter()
-        viper("skyline", FINSE / photo, "--camera", camera, "--orientation", work / f"{photo[:4]}.json",
-              "--step-deg", "0.1", "--out", out, "--overlay", work / f"{photo[:4]}_overlay.png", "--force")
+        viper(
+            "skyline",
+            FINSE / photo,
+            "--camera",
+            camera,
+            "--orientation",
+            work / f"{photo[:4]}.json",
+            "--step-deg",
+            "0.1",
+            "--out",
+            out,
+            "--overlay",
+            work / f"{photo[:4]}_overlay.png",
+            "--force",
+        )
         dt = time.perf_counter() - t0
         m = compare(photo, out, camera, work / f"{photo[:4]}.json")
         m["seconds"] = dt
@@ -171,8 +233,19 @@ def main() -> int:
         rows.append((photo, m))
     t0 = time.perf_counter()
     sancy_csv = work / "sancy.csv"
-    viper("skyline", SANCY, "--out", sancy_csv, "--overlay", work / "sancy_overlay.png",
-          "--min-elevation-deg", "-30", "--max-elevation-deg", "30", "--force")
+    viper(
+        "skyline",
+        SANCY,
+        "--out",
+        sancy_csv,
+        "--overlay",
+        work / "sancy_overlay.png",
+        "--min-elevation-deg",
+        "-30",
+        "--max-elevation-deg",
+        "30",
+        "--force",
+    )
     sancy_s = time.perf_counter() - t0
     from appliance.skyline import read_skyline_csv
 
@@ -186,26 +259,47 @@ def main() -> int:
         with rasterio.open(DSM) as ds:
             ground = float(next(ds.sample([(x, y)]))[0])
         db = work / "finse.viperdb"
-        bounds = f"{x - 400:.0f},{y - 400:.0f},{x + 400:.0f},{y + 400:.0f}"
-        viper("precompute", DSM, "--crs", "EPSG:32632", "--out", db, "--spacing", "10", f"--search-bounds={bounds}",
-              "--height", f"{f['camera_height_m'] - ground:.2f}", "--azimuths", "720", "--force")
+        to_geo = Transformer.from_crs(32632, 4326, always_xy=True)
+        w_, s_ = to_geo.transform(x - 400, y - 400)
+        e_, n_ = to_geo.transform(x + 400, y + 400)
+        bounds = f"{w_:.6f},{s_:.6f},{e_:.6f},{n_:.6f}"
+        viper(
+            "precompute",
+            DSM,
+            "--crs",
+            "EPSG:32632",
+            "--out",
+            db,
+            "--spacing",
+            "10",
+            f"--search-bounds={bounds}",
+            "--height",
+            f"{f['camera_height_m'] - ground:.2f}",
+            "--azimuths",
+            "720",
+            "--force",
+        )
         for photo in PHOTOS:
             positions[photo] = position(work, photo, skylines[photo], fits[photo], db)
             print(f"{photo} position: {positions[photo]}")
     with RESULTS.open("a", encoding="utf-8") as fh:
         if RESULTS.stat().st_size == 0:
-            fh.write("# Real photographs through the command line (Finse, Puy de Sancy)\n\n"
-                     "bench/vision_finse.py; targets: Finse detected >= 90 % of the traced columns inside the DSM,"
-                     " RMS <= 0.1 deg, max <= 1 deg; positioning within 10 m, truth inside the region;"
-                     " Puy de Sancy >= 85 % of 1-degree azimuths.\n\n"
-                     "| date | photo | detected | RMS (deg) | max (deg) | position error (m) | truth in region |"
-                     " detection (s) |\n|---|---|---|---|---|---|---|---|\n")
+            fh.write(
+                "# Real photographs through the command line (Finse, Puy de Sancy)\n\n"
+                "bench/vision_finse.py; targets: Finse detected >= 90 % of the traced columns inside the DSM,"
+                " RMS <= 0.1 deg, max <= 1 deg; positioning within 10 m, truth inside the region;"
+                " Puy de Sancy >= 85 % of 1-degree azimuths.\n\n"
+                "| date | photo | detected | RMS (deg) | max (deg) | position error (m) | truth in region |"
+                " detection (s) |\n|---|---|---|---|---|---|---|---|\n"
+            )
         today = datetime.date.today()
         for photo, m in rows:
             p = positions.get(photo, {})
             err = f"{p['error_m']:.1f}" if "error_m" in p else (f"refused: {p.get('stderr', '')}" if p else "not run")
-            fh.write(f"| {today} | Finse {photo} | {m['detected']:.1%} | {m['rms_deg']:.3f} | {m['max_deg']:.2f} |"
-                     f" {err} | {p.get('truth_in_region', '')} | {m['seconds']:.1f} |\n")
+            fh.write(
+                f"| {today} | Finse {photo} | {m['detected']:.1%} | {m['rms_deg']:.3f} | {m['max_deg']:.2f} |"
+                f" {err} | {p.get('truth_in_region', '')} | {m['seconds']:.1f} |\n"
+            )
         fh.write(f"| {today} | Puy de Sancy | {sancy:.1%} of 1-deg azimuths | | | | | {sancy_s:.1f} |\n")
     print(f"appended to {RESULTS}; outputs in {work}")
     return 0

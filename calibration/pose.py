@@ -258,9 +258,7 @@ def fit_pose(
         raise InputError(f"cannot refine {', '.join(bad)}: choose among {', '.join(REFINABLE)}")
     u, v = points.pixels[:, 0], points.pixels[:, 1]
     if np.any((u < -0.5) | (u > intrinsics.width - 0.5) | (v < -0.5) | (v > intrinsics.height - 0.5)):
-        raise InputError(
-            f"control points lie outside the calibration's {intrinsics.width}x{intrinsics.height} image"
-        )
+        raise InputError(f"control points lie outside the calibration's {intrinsics.width}x{intrinsics.height} image")
     origin: Sequence[float] = camera_guess if camera_guess is not None else points.geodetic.mean(axis=0)
     fitted, rvec, tvec, residual = _calibrate_once(points, intrinsics, origin, refine)
     for _ in range(2):

@@ -134,7 +134,10 @@ def read_orientation_file(side: Path) -> tuple[CameraPose | None, Path | None]:
 
 
 def load_photo(
-    path: str | Path, camera: str | Path | None = None, orientation: CameraPose | None = None, image: np.ndarray | None = None
+    path: str | Path,
+    camera: str | Path | None = None,
+    orientation: CameraPose | None = None,
+    image: np.ndarray | None = None,
 ) -> Photo:
     """The photo with its camera: command-line values first, then the sidecar's."""
     side_pose, side_camera = read_sidecar(path)
