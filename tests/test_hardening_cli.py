@@ -162,3 +162,36 @@ def test_negative_values_are_taken_as_users_type_them(work, capsys):
     assert main(argv) == 0
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 2 and '"truth"' in out[1]
+
+
+BAD_ARGUMENTS = [
+    ["render", "jacksboro", "--lat", "36.56", "--lon", "-84.285", "--max-range", "0"],
+    ["render", "jacksboro", "--lat", "36.56", "--lon", "-84.285", "--height", "nan"],
+    ["render", "jacksboro", "--lat", "36.56", "--lon", "-84.285", "--refraction", "nan"],
+    ["render", "jacksboro", "--lat", "91", "--lon", "-84.285"],
+    ["gps", "session.mcap", "--count", "-1"],
+    ["demo", "--time-rate", "0", "--out", "OUT"],
+    ["precompute", "jacksboro", "--out", "OUT", "--search-bounds", "-84.30,36.55,-84.27,36.57", "--spacing", "-5"],
+]
+
+
+@pytest.mark.parametrize("argv", BAD_ARGUMENTS, ids=[" ".join(a[:1] + a[-2:]) for a in BAD_ARGUMENTS])
+def test_a_bad_argument_is_one_line_and_writes_nothing(work, argv, capsys):
+    argv = [str(work / "new_out") if a == "OUT" else (str(work / a) if a == "session.mcap" else a) for a in argv]
+    capsys.readouterr()
+    before = snapshot(work)
+    rc = main(argv)
+    out, err = capsys.readouterr()
+    assert rc != 0 and out == ""
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert snapshot(work) == before
+
+
+def test_a_gps_truth_off_the_database_is_recognised(work):
+    from appliance.cli.replay import truth_on_map
+    from appliance.terrain.database import load_database
+
+    db = load_database(work / "map.viperdb")
+    assert truth_on_map(db, (36.56, -84.285))
+    assert not truth_on_map(db, (36.70, -84.285))  # 15 km north of the window
+    assert not truth_on_map(db, (46.0, 7.0))

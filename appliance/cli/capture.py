@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
@@ -32,4 +33,7 @@ def _capture(args: argparse.Namespace) -> int:
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
         area = e.result.region_area_m2 / 1e6
         print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
+    if result.frames == 0:
+        print("no frame captured: the session measured nothing", file=sys.stderr)
+        return 1
     return 0 if result.status.value != "failed" else 1

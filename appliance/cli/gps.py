@@ -9,6 +9,7 @@ import sys
 
 from appliance.drivers.gps_reader import GpsSourceOptions, open_gps
 from appliance.drivers.policy import ErrorPolicy
+from appliance.errors import InputError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -27,13 +28,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.count < 0:
+        raise InputError(f"--count {args.count}: must be 0 (never stop) or a positive number of fixes")
+    if args.baud <= 0:
+        raise InputError(f"--baud {args.baud}: must be positive")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     reader = open_gps(args.source, GpsSourceOptions(baudrate=args.baud), ErrorPolicy.LOG)
     n = 0
     try:
         for fix in reader.fixes():
             if args.json:
-                print(json.dumps(fix.to_json_dict()), flush=True)
+                print(json.dumps(fix.to_json_dict(), allow_nan=False), flush=True)
             else:
                 d = fix.to_json_dict()
                 print(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 import numpy as np
@@ -36,6 +37,14 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--height {args.height} m is negative")
     if not -180.0 <= args.lon <= 360.0:
         raise InputError(f"--lon {args.lon} outside [-180, 360]")
+    if not -90.0 <= args.lat <= 90.0:
+        raise InputError(f"--lat {args.lat} outside [-90, 90]")
+    if not math.isfinite(args.height):
+        raise InputError(f"--height {args.height}: not a number of metres")
+    if not (math.isfinite(args.max_range) and args.max_range > 0):
+        raise InputError(f"--max-range {args.max_range}: must be a positive number of metres")
+    if args.refraction is not None and not -1.0 < args.refraction < 1.0:
+        raise InputError(f"--refraction {args.refraction}: outside (-1, 1)")
     if args.out:
         check_output_path(args.out, [args.dem], args.force)
     dem = load_dem(args.dem, crs=args.crs)

@@ -5,11 +5,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.atomic import check_output_folder
 from appliance.config import load_config
 from appliance.errors import ConfigError, InputError
+
+if TYPE_CHECKING:
+    from appliance.terrain.database import SkylineDatabase
 
 REPLAY_FILES = (".replay.mcap", ".map.png", ".panorama.png")
 
@@ -25,6 +29,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="viper-replay", help="folder of the results logs and report")
     p.add_argument("--force", action="store_true", help="replace results and report files that exist")
     p.set_defaults(func=run)
+
+
+def truth_on_map(db: SkylineDatabase, truth: tuple[float, float]) -> bool:
+    """Whether the GPS truth (lat, lon) falls on the database's grid (half a node of margin)."""
+    g = db.grid
+    x, y = g.lonlat_to_xy(truth[1], truth[0])
+    rows, cols = g.xy_to_rc(x, y)
+    row, col = float(rows), float(cols)
+    return -0.5 <= row <= g.n_rows - 0.5 and -0.5 <= col <= g.n_cols - 0.5
 
 
 def parse_sigma(text: str) -> tuple[float, float]:
@@ -63,7 +76,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("no skyline database: give --db")
     out = Path(args.out)
 
+    elsewhere: list[str] = []
+
     def show(r: ReplayResult) -> None:
+        if r.data.truth is not None and not truth_on_map(db, r.data.truth):
+            elsewhere.append(str(r.data.path))
+            print(f"{r.data.path}: GPS truth {r.data.truth[0]:.6f}, {r.data.truth[1]:.6f} lies outside the database")
+            return
         for note in r.notes:
             print(f"{r.data.path}: note: {note}")
         if r.failure:
@@ -77,4 +96,7 @@ def run(args: argparse.Namespace) -> int:
 
     results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
     print(f"report: {page}  table: {out / 'summary.csv'}")
+    if elsewhere:
+        raise InputError(f"{len(elsewhere)} of {len(results)} logs were taken outside the database {db.path} "
+                         f"(a database of another map?): {', '.join(elsewhere)}")
     return 0 if any(r.position is not None for r in results) else 1
