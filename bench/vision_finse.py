@@ -46,6 +46,7 @@ SANCY = DATA / "panorama" / "puydesancy_equirect_4096x2048.jpg"
 TRACE = REPO / "tests" / "data" / "finse_skyline_trace.csv"
 GCP_2022 = REPO / "tests" / "data" / "finse_2022_gcp_pixels.csv"
 RESULTS = REPO / "bench" / "results" / "vision_finse.md"
+SURVEYED = (419169.2, 6718421.3)  # camera_pos, EPSG:32632 (MANIFEST section 6)
 PHOTOS = ("2019-05-24_12-00_ori.jpg", "2022-07-08.jpg")
 STATED_CAMERA = "[camera]\nwidth = 1920\nheight = 1080\nfx = 1484.0\nfy = 1484.0\ncx = 960.0\ncy = 540.0\n"
 
@@ -141,7 +142,7 @@ def position(work: Path, photo: str, skyline_csv: Path, fit: dict[str, float], d
         record["stderr"] = out.stderr.strip().splitlines()[-1] if out.stderr.strip() else ""
         return record
     est = json.loads(out.stdout.strip().splitlines()[0])
-    err = float(np.hypot(est["x"] - x, est["y"] - y))
+    err = float(np.hypot(est["x"] - SURVEYED[0], est["y"] - SURVEYED[1]))
     record.update(
         {
             "error_m": err,
@@ -150,11 +151,17 @@ def position(work: Path, photo: str, skyline_csv: Path, fit: dict[str, float], d
             "heading_correction_deg": est.get("heading_correction_deg"),
         }
     )
-    inside = est.get("truth_in_region")
-    if inside is None:
-        cell = est["region"]["cell_size_m"]
-        cells = est["region"].get("cells") or []
-        inside = any(abs(cx - x) <= cell / 2 and abs(cy - y) <= cell / 2 for cx, cy in cells) if cells else None
+    # the region's cells are (lat, lon) centres of database nodes; the truth is inside when it lies
+    # in one of those cells
+    size = est["region"]["cell_size_m"]
+    half = (max(size) if isinstance(size, list) else float(size)) / 2.0
+    cells = np.asarray(est["region"].get("cells") or [], dtype=np.float64).reshape(-1, 2)
+    sx, sy = SURVEYED
+    if cells.size:
+        cx, cy = to_utm.transform(cells[:, 1], cells[:, 0])
+        inside: object = bool(np.any((np.abs(np.asarray(cx) - sx) <= half) & (np.abs(np.asarray(cy) - sy) <= half)))
+    else:
+        inside = None
     record["truth_in_region"] = inside
     return record
 
