@@ -15,6 +15,8 @@ is one of the inputs, an existing file without ``--force``, and a path whose fol
 from __future__ import annotations
 
 import errno
+import fcntl
+import glob
 import os
 import secrets
 import threading
@@ -140,6 +142,9 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
     allocated on disk (zeros), so a full disk fails here with ENOSPC instead of killing the process
     with SIGBUS when a page of the map is first written.  Open it ``"r+b"`` then, not ``"wb"``
     (which would give the allocation back).
+
+    The temporary file stays locked (``flock``) while it is written; the unlocked temporaries of the
+    same name that a killed writer left are removed first.
     """
     p = Path(path)
     folder = p.parent if str(p.parent) else Path(".")
@@ -149,6 +154,7 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
         mode = p.stat().st_mode & 0o7777
     except OSError:
         mode = umask_mode()
+    remove_stale_temporaries(folder, p.name)
     tmp = folder / f".{p.name}.{secrets.token_hex(4)}{TMP_MARK}{p.suffix}"
     try:
         fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
@@ -156,17 +162,18 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
         raise output_error(p, exc) from None
     try:
         try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             _preallocate(fd, preallocate)
+            yield tmp
+            written = os.open(tmp, os.O_RDONLY | os.O_CLOEXEC)  # the body may have made a new file
+            try:
+                os.fsync(written)
+            finally:
+                os.close(written)
+            os.chmod(tmp, mode)
+            os.replace(tmp, p)
         finally:
             os.close(fd)
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY | os.O_CLOEXEC)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.chmod(tmp, mode)
-        os.replace(tmp, p)
     except OSError as exc:
         _remove(tmp)
         if isinstance(exc, ViperError):
@@ -308,12 +315,23 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def remove_stale_temporaries(folder: str | Path, name: str) -> list[Path]:
-    """Remove the temporary files :func:`atomic_output` left for ``folder/name`` (a killed writer)."""
-    removed = []
-    for q in Path(folder).glob(f".{name}.*{TMP_MARK}*"):
+    """Remove the temporary files of ``folder/name`` that no live writer holds (a killed one's)."""
+    removed: list[Path] = []
+    try:
+        candidates = sorted(Path(folder).glob(f".{glob.escape(name)}.*{TMP_MARK}*"))
+    except OSError:
+        return removed
+    for q in candidates:
         try:
-            q.unlink()
+            fd = os.open(q, os.O_RDONLY | os.O_CLOEXEC)
         except OSError:
             continue
-        removed.append(q)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            q.unlink()
+            removed.append(q)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
     return removed

@@ -19,6 +19,7 @@ from appliance.atomic import (
     atomic_output,
     check_output_folder,
     check_output_path,
+    remove_stale_temporaries,
     umask_mode,
     write_bytes_atomic,
     write_text_atomic,
@@ -221,3 +222,17 @@ def test_sim_folders_of_dead_processes_are_removed(tmp_path):
     live.remove()
     assert not live.path.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["viper-sim-nolock"]
+
+
+def test_a_killed_writers_temporary_is_removed_by_the_next_write(tmp_path):
+    out = tmp_path / "map.viperdb"
+    stale = tmp_path / f".map.viperdb.0badf00d{TMP_MARK}.viperdb"
+    stale.write_bytes(b"half a database")
+    other = tmp_path / f".other.viperdb.0badf00d{TMP_MARK}.viperdb"
+    other.write_bytes(b"another output's")
+    with atomic_output(out) as tmp:
+        assert not stale.exists()
+        tmp.write_bytes(b"whole")
+        assert remove_stale_temporaries(tmp_path, out.name) == []  # a live writer's is kept
+    assert out.read_bytes() == b"whole"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, other.name])
