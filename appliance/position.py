@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.estimator import EstimateResult, SkylineGrid, estimate, transport_prior
+from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -85,7 +86,11 @@ class Position:
 
 def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
     g = db.grid
-    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m)
+    terrain = Terrain(db.terrain_m, db.terrain_origin[0], db.terrain_origin[1], db.convergence_deg, db.height_m,
+                      db.r_eff_m, float(db.header["max_range_m"]))
+    dc = db.header["distance_code"]
+    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
+                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]))
 
 
 def crs_name(db: SkylineDatabase) -> str:

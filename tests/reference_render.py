@@ -1,8 +1,9 @@
 """An independent, dense and exact skyline renderer: the oracle for the production renderer.
 
-Geodesic rays (pyproj's Geod.fwd on the DEM's ellipsoid), samples every quarter cell, bilinear
-terrain on the DEM's own grid, and the exact elevation angle on a sphere of effective radius
-R / (1 - k) (no parabolic approximation).
+Geodesic rays (pyproj's Geod.fwd on the DEM's ellipsoid), samples every fiftieth of a cell out to
+NEAR_M (where a horizon a cell away moves by degrees within the cell) and every quarter cell beyond,
+bilinear terrain on the DEM's own grid, and the exact elevation angle on a sphere of effective
+radius R / (1 - k) (no parabolic approximation).
 """
 
 from __future__ import annotations
@@ -10,6 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from appliance.terrain.dem import Dem
+
+#: Out to here (or four cells, if further) the march steps a fiftieth of a cell.
+NEAR_M = 3000.0
 
 
 def reference_skyline(
@@ -22,8 +26,11 @@ def reference_skyline(
     refraction: float | None = None,
 ) -> np.ndarray:
     az = np.arange(360.0) if azimuths_deg is None else np.asarray(azimuths_deg, float)
-    step = min(dem.resolution_m()) / 4.0
-    dist = np.arange(1, int(max_range_m / step) + 1) * step
+    cell = min(dem.resolution_m())
+    near_m = min(max(NEAR_M, 4.0 * cell), max_range_m)
+    fine = np.arange(1, int(near_m / (cell / 50.0)) + 1) * (cell / 50.0)
+    coarse = np.arange(int(near_m / (cell / 4.0)) + 1, int(max_range_m / (cell / 4.0)) + 1) * (cell / 4.0)
+    dist = np.concatenate([fine, coarse])
     r_eff = dem.body.effective_radius_m(refraction)
     z0 = float(dem.sample_lonlat(np.array([lon]), np.array([lat]))[0])
     z_eye = r_eff + z0 + height_m

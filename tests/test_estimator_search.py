@@ -94,11 +94,11 @@ def test_ambiguous_skyline_gives_a_large_region_and_says_so():
     assert any("ambiguous" in n for n in res.notes)
 
 
-def test_mostly_missing_skyline_is_refused():
+def test_a_view_narrower_than_twenty_degrees_is_refused():
     g = make_grid(5, 5)
     el = np.full(N_AZ, np.nan)
-    el[:60] = 2.0
-    with pytest.raises(InputError, match="fewer than the 20%"):
+    el[:19] = 2.0
+    with pytest.raises(InputError, match="less than the 20 deg"):
         estimate(g, np.arange(N_AZ, dtype=float), el)
 
 

@@ -32,7 +32,7 @@ def test_header_records_identity_and_grid(jacksboro_db):
     dem, db = jacksboro_db
     h = db.header
     assert h["dem_sha256"] == dem.sha256
-    assert h["format_version"] == 1 and h["n_azimuths"] == 360 and h["height_m"] == 1.5
+    assert h["format_version"] == 2 and h["n_azimuths"] == 360 and h["height_m"] == 1.5
     assert h["body"] == "earth" and h["refraction"] == pytest.approx(0.13)
     # nodes are the DEM's own grid nodes inside the window
     lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(np.arange(db.grid.n_nodes)))
@@ -91,10 +91,12 @@ def test_database_of_another_dem_or_version_is_refused(jacksboro_db, tmp_path):
         load_database(db.path, other)
     raw = bytearray(open(db.path, "rb").read())
     header = raw[12 : 12 + int(np.frombuffer(bytes(raw[8:12]), np.uint32)[0])]
-    patched = header.replace(b'"format_version": 1', b'"format_version": 9')
-    bad = tmp_path / "v9.viperdb"
+    patched = header.replace(b'"format_version": 2', b'"format_version": 1')
+    assert patched != header
+    bad = tmp_path / "v1.viperdb"
     bad.write_bytes(bytes(raw[:12]) + patched + bytes(raw[12 + len(header):]))
-    with pytest.raises(DatabaseError, match="format version 9"):
+    with pytest.raises(DatabaseError, match=r"format version 1, this viper reads version 2; rebuild it with "
+                                            r"`viper precompute jacksboro\S* --out v1.viperdb`"):
         load_database(bad)
     junk = tmp_path / "junk.viperdb"
     junk.write_bytes(b"hello")

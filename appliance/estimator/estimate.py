@@ -27,8 +27,19 @@ from functools import cached_property
 import numpy as np
 
 from appliance.errors import EstimationError, InputError
+from appliance.estimator import parallax
+from appliance.estimator.exact import Fit, Terrain
+from appliance.estimator.exact import refine as refine_exact
+from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import log_likelihood_bounds, posterior_bounds
-from appliance.estimator.search import box_decimate, decimated, ssd_all_shifts, ssd_coarse, ssd_for_shifts
+from appliance.estimator.search import (
+    TauModel,
+    box_decimate,
+    decimated,
+    ssd_all_shifts,
+    ssd_coarse,
+    ssd_for_shifts,
+)
 
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
@@ -37,8 +48,14 @@ RESCORE_MARGIN_NATS = 200.0
 MIN_RESCORE = 64
 #: A region wider than this many map cells is reported as ambiguous.
 AMBIGUOUS_CELLS = 25
-#: How many of the region's most likely nodes the sub-cell refinement examines.
+#: How many of the region's most likely nodes (at least two cells apart) get one exact render, and
+#: how many of those the refinement fits in full.
+SCREEN_NODES = 40
 REFINE_NODES = 3
+#: Refined fits closer than this (cells) to the best are the same answer.
+SAME_ANSWER_CELLS = 2.0
+#: The smallest field of view (deg of valid azimuths) a skyline must cover.
+MIN_FIELD_OF_VIEW_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -53,10 +70,54 @@ class SkylineGrid:
     n_cols: int
     dx_m: float
     dy_m: float
+    #: (n_nodes, n_az) uint8 log-quantised range of each horizon point (255 = none); None = unknown
+    distance_codes: np.ndarray | None = None
+    ground_m: np.ndarray | None = None
+    terrain: Terrain | None = None
+    distance_min_m: float = 1.0
+    distance_log_step: float = 0.05
 
     @property
     def n_azimuths(self) -> int:
         return int(self.codes.shape[1])
+
+    @property
+    def has_parallax(self) -> bool:
+        return self.distance_codes is not None
+
+    @cached_property
+    def rho2_m2(self) -> float:
+        return parallax.offset_variance_m2(self.dx_m, self.dy_m)
+
+    @cached_property
+    def ground_gradient2(self) -> np.ndarray:
+        if self.ground_m is None:
+            return np.zeros(self.codes.shape[0], dtype=np.float32)
+        return parallax.ground_gradient2(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m)
+
+    @cached_property
+    def ground_gradient(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.ground_m is None:
+            zero = np.zeros(self.codes.shape[0])
+            return zero, zero
+        return parallax.ground_gradient(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m)
+
+    @cached_property
+    def convergence_deg(self) -> np.ndarray:
+        if self.terrain is None:
+            return np.zeros(self.codes.shape[0])
+        return np.asarray(self.terrain.convergence_deg, dtype=np.float64)
+
+    @cached_property
+    def inverse_range2(self) -> np.ndarray:
+        return parallax.inverse_range2_table(self.distance_min_m, self.distance_log_step)
+
+    @cached_property
+    def coarse_tau2(self) -> np.ndarray:
+        """The parallax model's variance over each first-pass run of azimuths (uint8 codes)."""
+        assert self.distance_codes is not None
+        return parallax.coarse_tau2_codes(self.codes, self.distance_codes, self.offset_deg, self.step_deg,
+                                          self.ground_gradient2, self.rho2_m2, self.inverse_range2, COARSE_STRIDE)
 
     @cached_property
     def coarse(self) -> tuple[np.ndarray, np.ndarray]:
@@ -102,6 +163,61 @@ class EstimateResult:
     notes: list[str] = field(default_factory=list)
 
 
+def _linearised(grid: SkylineGrid, m: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
+                sig_ref: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted residual sums (deg^2), log-normalisers and moves (east m, north m, heading deg) of
+    ``rows`` at whole ``shifts`` under the linearised parallax model (``parallax.py``)."""
+    assert grid.distance_codes is not None
+    valid = np.isfinite(m)
+    jj = np.nonzero(valid)[0].astype(np.int64)
+    mj = m[jj].astype(np.float64)
+    ge, gn = grid.ground_gradient
+    gamma = grid.convergence_deg
+    out = np.empty(rows.size)
+    pen = np.empty(rows.size)
+    moves = np.empty((rows.size, 4))
+    half = 0.5 * max(grid.dx_m, grid.dy_m)
+    parallax.linearised_fit(grid.codes, grid.distance_codes, grid.offset_deg, grid.step_deg, ge, gn, gamma, jj, mj,
+                            np.asarray(rows, dtype=np.int64), np.asarray(shifts, dtype=np.int64), grid.rho2_m2,
+                            grid.inverse_range2, sig_ref * sig_ref, parallax.LINEARISED_SCALE**2, half * half,
+                            grid.az_step_deg**2, out, pen, moves)
+    return out, pen, moves
+
+
+def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: int, first: int) -> list[int]:
+    """The best node, then the highest-scoring ``nodes`` at least two cells from those chosen."""
+    chosen = [int(first)]
+    for v in nodes[np.argsort(-score[nodes])]:
+        if len(chosen) >= count:
+            break
+        r, c = divmod(int(v), n_cols)
+        if all(max(abs(r - cr), abs(c - cc)) >= 2 for cr, cc in (divmod(u, n_cols) for u in chosen)):
+            chosen.append(int(v))
+    return chosen
+
+
+def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: int, sig_lo: float,
+              sig_hi: float) -> tuple[Fit, bool]:
+    """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
+    node), and whether a fit at another place reaches it with its upper bound."""
+    def near(f: Fit) -> int:
+        r = min(max(int(round(f.row)), 0), grid.n_rows - 1)
+        c = min(max(int(round(f.col)), 0), grid.n_cols - 1)
+        return r * grid.n_cols + c
+
+    ssd = np.array([f.ssd * n / max(f.n, 1) for f in fits])
+    lo, up = log_likelihood_bounds(ssd, n, sig_lo, sig_hi)
+    lp = np.array([log_prior[near(f)] for f in fits])
+    lo, up = lo + lp, up + lp
+    k = int(np.argmax(lo))
+    best = fits[k]
+    rival = any(
+        up[i] >= lo[k] and math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS
+        for i, f in enumerate(fits) if i != k
+    )
+    return best, rival
+
+
 def resample_to_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, n_az: int) -> np.ndarray:
     """Measured skyline on the azimuth grid j * 360 / n_az; NaN where missing.
 
@@ -145,13 +261,16 @@ def estimate(
     sigma_deg: tuple[float, float] = (0.2, 0.4),
     heading_tolerance_deg: float | None = 4.0,
     log_prior: np.ndarray | None = None,
-    min_valid_fraction: float = 0.2,
+    min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
     refine: bool = True,
+    height_m: float | None = None,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
     ``heading_tolerance_deg`` = None means no compass: every heading is searched.  ``log_prior``
-    is a per-node log prior (uniform in heading), e.g. from fusion; None is uniform.
+    is a per-node log prior (uniform in heading), e.g. from fusion; None is uniform.  ``height_m``
+    is the camera's height above the map's surface for the exact refinement (default: the
+    database's).
     """
     t0 = time.perf_counter()
     sig_lo, sig_hi = float(sigma_deg[0]), float(sigma_deg[1])
@@ -161,14 +280,16 @@ def estimate(
     m = resample_to_grid(azimuth_deg, elevation_deg, n_az)
     valid = np.isfinite(m)
     n = int(valid.sum())
-    if n < min_valid_fraction * n_az:
-        raise InputError(
-            f"skyline has {n} valid azimuths of {n_az} ({100.0 * n / n_az:.0f}%), "
-            f"fewer than the {100 * min_valid_fraction:.0f}% needed"
-        )
     step = grid.az_step_deg
+    if n * step < min_field_of_view_deg:
+        raise InputError(
+            f"skyline covers {n * step:.0f} deg of azimuth ({n} valid azimuths of {n_az}), "
+            f"less than the {min_field_of_view_deg:.0f} deg needed to locate anything"
+        )
     n_nodes = grid.codes.shape[0]
     notes: list[str] = []
+    # the parallax model's variances are weighed against sigma's midpoint
+    sig_ref = 0.5 * (sig_lo + sig_hi)
 
     if heading_tolerance_deg is not None:
         if heading_tolerance_deg < 0:
@@ -180,8 +301,11 @@ def estimate(
         k_dec = int(math.ceil(k / COARSE_STRIDE))
         m_dec = box_decimate(m, COARSE_STRIDE)
         scale = n / max(int(np.isfinite(m_dec).sum()), 1)
-        coarse = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec, np.arange(-k_dec, k_dec + 1))
+        tau_c = (grid.coarse_tau2, *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
+        coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
+                                        np.arange(-k_dec, k_dec + 1), tau_c)
         coarse *= np.float32(scale)
+        coarse_pen = coarse_pen.astype(np.float64) * scale
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
     else:
         coarse_best = np.full(n_nodes, np.inf, dtype=np.float64)
@@ -196,26 +320,43 @@ def estimate(
         band = np.arange(-half, half + 1)
         node_shifts = (coarse_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
         coarse = np.repeat(coarse_best[:, None], band.size, axis=1).astype(np.float32)
+        coarse_pen = np.zeros(n_nodes)
 
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
     # the residual grows, so each node's best first-pass shift decides for the node.
     cmin = np.min(coarse, axis=1).astype(np.float64)
     c_lo, c_up = log_likelihood_bounds(cmin, n, sig_lo, sig_hi)
+    c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
     node_up = c_up + lp
     best_lo = float(np.max(c_lo + lp))
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
         rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
-    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore)
+    tau = None
+    if grid.distance_codes is not None:
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2, sig_ref)
+    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
+                           tau=tau)
     ssd_r = ssd_r.astype(np.float64)
+    pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
+    shifts_r = np.asarray(node_shifts[rescore])
+    moves_r = np.zeros((rescore.size, 4))
+    if grid.has_parallax:
+        # each node's skyline moved by its own first-order parallax within its cell: the grid's
+        # spacing no longer decides, what the linear model cannot say does (LINEARISED_SCALE)
+        k_best = np.argmin(ssd_r, axis=1)
+        shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
+        ssd_r, pen_lin, moves_r = _linearised(grid, m, rescore, shifts_r[:, 0], sig_ref)
+        ssd_r = ssd_r[:, None]
+        pen_r = 0.5 * pen_lin[:, None]
 
     # Exact posteriors over the rescored candidates.  The others lie hundreds of nats below the
     # best: their share of the sums is nil, and their own posteriors are their likelihood over the
     # (unchanged) sum of the rest.
-    lp_r = lp[rescore, None]
+    lp_r = lp[rescore, None] - pen_r
     lo_r, up_r = log_likelihood_bounds(ssd_r, n, sig_lo, sig_hi)
     post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
@@ -238,43 +379,92 @@ def estimate(
     node_mid -= np.logaddexp.reduce(node_mid[rescore])
     posterior_mid = np.exp(node_mid)
 
-    shift_steps = float(node_shifts[best_node, best_k])
+    shift_steps = float(shifts_r[best_r, best_k])
     if shift_steps > n_az / 2:
         shift_steps -= n_az
     row, col = divmod(best_node, grid.n_cols)
     frow, fcol, heading = float(row), float(col), shift_steps * step
     rms = math.sqrt(float(ssd_r[best_r, best_k]) / n)
+    rival = False
     if refine:
-        from appliance.estimator.refine import refine_subcell
-
-        # refine the most likely nodes of the region (the best first) and keep the closest fit
         in_rescore = np.zeros(n_nodes, dtype=bool)
         in_rescore[rescore] = True
         scored = region[in_rescore[region]]
-        order = np.argsort(-node_lower[scored])[:REFINE_NODES]
-        tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
-        # scored like the grid: likelihood at sigma's midpoint plus the prior of the nearest node
-        best_fit = (-math.inf, rms, frow, fcol, heading)
-        for cand in tries:
-            k_c = int(np.argmin(ssd_r[np.searchsorted(rescore, cand)]))
-            sh = float(node_shifts[cand, k_c])
-            if sh > n_az / 2:
-                sh -= n_az
-            r_c, c_c, h_c, rms_c = refine_subcell(grid, m, cand, sh * step, math.inf)
-            near = int(round(r_c)) * grid.n_cols + int(round(c_c))
-            score = -n * rms_c * rms_c / (2.0 * mid * mid) + lp[near]
-            if score > best_fit[0]:
-                best_fit = (score, rms_c, r_c, c_c, h_c)
-        if math.isfinite(best_fit[0]):
-            _, rms, frow, fcol, heading = best_fit
+        if grid.terrain is not None:
+            # every distinct mode of the region gets one exact render (heading scanned along it);
+            # the best few of those are fitted in full
+            tries = _distinct_nodes(scored, node_lower, grid.n_cols, SCREEN_NODES, best_node)
+            tol = heading_tolerance_deg
+            bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+            looks = []
+            for cand in tries:
+                ir = int(np.searchsorted(rescore, cand))
+                sh = float(shifts_r[ir, int(np.argmin(ssd_r[ir]))])
+                if sh > n_az / 2:
+                    sh -= n_az
+                c_row, c_col = divmod(cand, grid.n_cols)
+                de, dn, dphi, _ = moves_r[ir]
+                gam = float(grid.convergence_deg[cand])
+                # from the node itself and from where its linearised fit moved it
+                for start, phi0 in (((float(c_row), float(c_col)), sh * step),
+                                    ((c_row - dn / grid.dy_m, c_col + de / grid.dx_m), sh * step + dphi)):
+                    cost, phi = screen_exact(grid.terrain, grid.dx_m, grid.dy_m, m, start[0], start[1], gam, phi0,
+                                             bounds, height_m, sig_lo)
+                    looks.append((cost, cand, start, phi))
+            looks.sort(key=lambda v: v[0])
+            fits = []
+            refined: list[int] = []
+            for cost, cand, start, phi in looks:
+                if not math.isfinite(cost) or len(refined) >= REFINE_NODES:
+                    break
+                if cand in refined:
+                    continue
+                refined.append(cand)
+                c_row, c_col = divmod(cand, grid.n_cols)
+                fit = refine_exact(grid.terrain, grid.dx_m, grid.dy_m, m, c_row, c_col, grid.n_cols, phi, height_m,
+                                   start, sig_lo, bounds)
+                if fit is not None:
+                    fits.append(fit)
+            if fits:
+                best_fit, rival = _best_fit(fits, grid, lp, n, sig_lo, sig_hi)
+                frow, fcol, heading, rms = best_fit.row, best_fit.col, best_fit.heading_deg, best_fit.rms_deg
+                # the cell the exact fit stands in belongs to the region
+                near = (min(max(int(round(frow)), 0), grid.n_rows - 1) * grid.n_cols
+                        + min(max(int(round(fcol)), 0), grid.n_cols - 1))
+                region = np.union1d(region, [near])
+        else:
+            from appliance.estimator.refine import refine_subcell
+
+            # refine the most likely nodes of the region (the best first) and keep the closest fit
+            order = np.argsort(-node_lower[scored])[:REFINE_NODES]
+            tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
+            # scored like the grid: likelihood at sigma's midpoint plus the prior of the nearest node
+            best_blend = (-math.inf, rms, frow, fcol, heading)
+            for cand in tries:
+                k_c = int(np.argmin(ssd_r[np.searchsorted(rescore, cand)]))
+                sh = float(shifts_r[np.searchsorted(rescore, cand), k_c])
+                if sh > n_az / 2:
+                    sh -= n_az
+                r_c, c_c, h_c, rms_c = refine_subcell(grid, m, cand, sh * step, math.inf)
+                near = int(round(r_c)) * grid.n_cols + int(round(c_c))
+                score = -n * rms_c * rms_c / (2.0 * mid * mid) + lp[near]
+                if score > best_blend[0]:
+                    best_blend = (score, rms_c, r_c, c_c, h_c)
+            if math.isfinite(best_blend[0]):
+                _, rms, frow, fcol, heading = best_blend
 
     cell_area = grid.dx_m * grid.dy_m
     area = region.size * cell_area
-    ambiguous = region.size > AMBIGUOUS_CELLS
-    if ambiguous:
+    ambiguous = region.size > AMBIGUOUS_CELLS or rival
+    if region.size > AMBIGUOUS_CELLS:
         notes.append(
             f"ambiguous: {region.size} cells ({area / 1e6:.2f} km^2) are as likely as the best; "
             "the skyline does not single out one position"
+        )
+    if rival:
+        notes.append(
+            f"ambiguous: exact renders at another place, more than {SAME_ANSWER_CELLS:.0f} cells away, "
+            "fit as well as the best"
         )
     if rms > 3.0 * sig_hi:
         notes.append(

@@ -22,6 +22,7 @@ import math
 import numba
 import numpy as np
 
+from appliance.estimator.parallax import tau2_at
 from appliance.numerics import FAST_FINITE
 
 MISSING_CODE = 255
@@ -39,27 +40,47 @@ def _ssd_shifts(
     rows: np.ndarray,
     shifts: np.ndarray,
     out: np.ndarray,
+    dist: np.ndarray,
+    g2: np.ndarray,
+    rho2: float,
+    inv_d2: np.ndarray,
+    sig2: float,
+    use_tau: bool,
+    pen: np.ndarray,
 ) -> None:
-    """out[r, k] = sum_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
+    """out[r, k] = sum_t w_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
 
     Works in each node's code units, (m - offset) / step against the uint8 codes, so a skyline is
-    never decoded; azimuths where the node has no terrain are left out and the sum rescaled.
+    never decoded; azimuths where the node has no terrain are left out and the sum rescaled.  With
+    ``use_tau`` each term is weighted by sigma^2 / (sigma^2 + tau^2) (``parallax.py``) and pen[r]
+    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
     n_t = jj.size
     n_rows = rows.size
     n_blocks = (n_rows + BLOCK - 1) // BLOCK
+    az_step = 360.0 / n_az
     for b in numba.prange(n_blocks):
         mt = np.empty(n_t, dtype=np.float32)
+        wn = np.ones(n_az, dtype=np.float32)
         for r in range(b * BLOCK, min(n_rows, (b + 1) * BLOCK)):
             i = rows[r]
             o = offset[i]
+            pen[r] = 0.0
             if math.isnan(o):
                 for k in range(n_shift):
                     out[r, k] = np.inf
                 continue
             st = step[i]
+            if use_tau:
+                p = 0.0
+                for j in range(n_az):
+                    t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
+                    wn[j] = np.float32(sig2 / (sig2 + t2))
+                for t in range(n_t):
+                    p -= math.log(wn[jj[t]])
+                pen[r] = p
             inv = np.float32(1.0 / st)
             for t in range(n_t):
                 mt[t] = (mj[t] - o) * inv
@@ -75,7 +96,7 @@ def _ssd_shifts(
                     c = codes[i, idx]
                     if c != MISSING_CODE:
                         d = mt[t] - np.float32(c)
-                        acc += d * d
+                        acc += wn[idx] * d * d
                         cnt += 1
                 if cnt == n_t:
                     out[r, k] = acc * scale
@@ -121,8 +142,11 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[n
 
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
-                w: np.ndarray, shifts: np.ndarray, out: np.ndarray) -> None:
-    """out[i, k] = sum_t w_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units."""
+                w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
+                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray) -> None:
+    """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
+    v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
+    node's log-normaliser at shift 0."""
     n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
@@ -130,10 +154,23 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
         n_meas += w[t]
     for i in numba.prange(n):
         o = offset[i]
+        pen[i] = 0.0
         if math.isnan(o):
             for k in range(n_shift):
                 out[i, k] = np.inf
             continue
+        ww = np.empty(d, dtype=np.float32)
+        if use_tau:
+            p = 0.0
+            trow = T[i]
+            for t in range(d):
+                ww[t] = w_lut[trow[t]]
+                if w[t] > 0:
+                    p += p_lut[trow[t]]
+            pen[i] = p
+        else:
+            for t in range(d):
+                ww[t] = 1.0
         st = step[i]
         inv = np.float32(1.0 / st)
         mt = np.empty(d, dtype=np.float32)
@@ -148,24 +185,27 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                 # row slices, indexed by range variables: contiguous and vectorisable
                 head = row[sh:]
                 tail = row[:sh]
+                v_head = ww[sh:]
+                v_tail = ww[:sh]
                 m_head = mt[: d - sh]
                 w_head = w[: d - sh]
                 m_tail = mt[d - sh :]
                 w_tail = w[d - sh :]
                 for t in range(d - sh):
                     e = m_head[t] - np.float32(head[t])
-                    acc += w_head[t] * e * e
+                    acc += w_head[t] * v_head[t] * e * e
                 for t in range(sh):
                     e = m_tail[t] - np.float32(tail[t])
-                    acc += w_tail[t] * e * e
+                    acc += w_tail[t] * v_tail[t] * e * e
                 out[i, k] = acc * scale
             else:
                 cnt = 0.0
                 for t in range(d):
-                    c = row[(t + sh) % d]
+                    ts = (t + sh) % d
+                    c = row[ts]
                     if w[t] > 0 and c != MISSING_CODE:
                         e = mt[t] - np.float32(c)
-                        acc += e * e
+                        acc += ww[ts] * e * e
                         cnt += 1.0
                 if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
                     out[i, k] = np.inf
@@ -175,17 +215,24 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
 
 def ssd_coarse(
     coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
-    measured_dec: np.ndarray, shifts: np.ndarray,
-) -> np.ndarray:
+    measured_dec: np.ndarray, shifts: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """SSD (deg^2) of every node on decimated skylines (:func:`decimated`) for shifts in decimated
-    steps, shape (n_nodes, len(shifts))."""
+    steps, shape (n_nodes, len(shifts)), and each node's log-normaliser.  ``tau`` = (tau^2 codes,
+    weight table, normaliser table) weights the residuals by the model variance."""
     C, partial = coarse
     valid = np.isfinite(measured_dec)
     m = np.where(valid, measured_dec, 0.0).astype(np.float32)
     w = valid.astype(np.float32)
     out = np.empty((C.shape[0], len(shifts)), dtype=np.float32)
-    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out)
-    return out
+    pen = np.empty(C.shape[0], dtype=np.float32)
+    if tau is None:
+        T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
+    else:
+        (T, w_lut, p_lut), use = tau, True
+    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
+                use, pen)
+    return out, pen
 
 
 def ssd_for_shifts(
@@ -196,6 +243,7 @@ def ssd_for_shifts(
     shifts: np.ndarray,
     rows: np.ndarray | None = None,
     stride: int = 1,
+    tau: TauModel | None = None,
 ) -> np.ndarray:
     """SSD (deg^2) of nodes ``rows`` (default all) for each shift (azimuth steps).
 
@@ -214,10 +262,28 @@ def ssd_for_shifts(
         sh = np.broadcast_to(sh, (idx.size, sh.size))
     sh = np.ascontiguousarray(sh)
     out = np.empty((idx.size, sh.shape[1]), dtype=np.float32)
-    _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out)
+    pen = np.empty(idx.size, dtype=np.float64)
+    if tau is None:
+        _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen)
+    else:
+        _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
+                    tau.inv_d2, tau.sigma_ref**2, True, pen)
+        tau.penalty = pen
     if stride > 1:
         out *= float(valid.sum()) / max(float(jj.size), 1.0)
     return out
+
+
+class TauModel:
+    """The parallax model's inputs for the full-resolution kernel (``parallax.py``); ``penalty``
+    receives each scored node's log-normaliser."""
+
+    def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
+                 sigma_ref: float):
+        self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
+        self.sigma_ref = sigma_ref
+        self.penalty = np.zeros(0)
 
 
 def box_decimate(values: np.ndarray, factor: int) -> np.ndarray:

@@ -7,13 +7,19 @@ File layout (little-endian)::
     H bytes   JSON header (format version, DEM identity, grid, camera height, body, refraction,
               azimuth sampling, array offsets), padded with spaces to a multiple of 64
     arrays    codes uint8[n_nodes, n_azimuths]  (255 = no terrain along that azimuth)
+              distance uint8[n_nodes, n_azimuths]  (log-quantised range of the horizon; 255 = none)
               offset_deg float32[n_nodes]       (NaN = node on nodata)
               step_deg float32[n_nodes]
               ground_m float32[n_nodes]
+              convergence_deg float32[n_nodes]  (true azimuth of grid north)
+              terrain_m float32[terrain rows, terrain cols]  (the heights the skylines were built on)
 
 Elevation (deg) = offset + step * code.  The step is 0.1 degree (quantisation error at most 0.05
 degree) unless a node's skyline spans more than 25.4 degrees, where it grows to span/254.
-Azimuth j is ``j * 360 / n_azimuths`` degrees clockwise from true north.
+Azimuth j is ``j * 360 / n_azimuths`` degrees clockwise from true north.  Range (m) =
+DISTANCE_MIN_M * exp(DISTANCE_LOG_STEP * code): 5 % steps from 1 m to 300 km.  The range says how
+fast the skyline moves with position (parallax), and the terrain grid lets the estimator render
+exact skylines between nodes; candidate node (0, 0) is terrain node (row0, col0), same spacing.
 
 Nodes form a regular grid in a metric CRS: the DEM's own when it is a projected CRS with scale
 close to 1, else a transverse Mercator centred on the search area.  Node (row, col) lies at
@@ -24,7 +30,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,6 +41,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS, Transformer
 
+from appliance.atomic import atomic_output
 from appliance.errors import DatabaseError, DemError, InputError
 from appliance.numerics import FAST_FINITE
 from appliance.terrain.dem import Dem
@@ -43,7 +49,9 @@ from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.sweep import HorizonSweeper
 
 MAGIC = b"VIPERDB\0"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+DISTANCE_MIN_M = 1.0
+DISTANCE_LOG_STEP = 0.05
 MISSING_CODE = 255
 BASE_STEP_DEG = 0.1
 MAX_SPAN_DEG = 25.0
@@ -120,6 +128,10 @@ class SkylineDatabase:
     offset_deg: np.ndarray
     step_deg: np.ndarray
     ground_m: np.ndarray
+    distance_codes: np.ndarray
+    convergence_deg: np.ndarray
+    terrain_m: np.ndarray
+    terrain_origin: tuple[int, int]
 
     @property
     def n_azimuths(self) -> int:
@@ -144,6 +156,29 @@ class SkylineDatabase:
         step = np.asarray(self.step_deg[index], dtype=np.float64)
         el = off[..., None] + step[..., None] * codes
         return np.where(codes == MISSING_CODE, np.nan, el)
+
+    def distances_m(self, index: np.ndarray | slice | int) -> np.ndarray:
+        """Range (m) of the terrain forming each azimuth's horizon (NaN = no terrain)."""
+        return decode_distance(np.asarray(self.distance_codes[index]))
+
+    @property
+    def r_eff_m(self) -> float:
+        from appliance.bodies import body_named
+
+        return body_named(self.header["body"]).effective_radius_m(self.header["refraction"])
+
+
+def encode_distance(distance_m: np.ndarray) -> np.ndarray:
+    """uint8 log-quantised ranges (255 where NaN)."""
+    d = np.asarray(distance_m, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = np.rint(np.log(np.maximum(d, DISTANCE_MIN_M) / DISTANCE_MIN_M) / DISTANCE_LOG_STEP)
+    return np.where(np.isfinite(d), np.clip(c, 0, MISSING_CODE - 1), MISSING_CODE).astype(np.uint8)
+
+
+def decode_distance(codes: np.ndarray) -> np.ndarray:
+    c = np.asarray(codes)
+    return np.where(c == MISSING_CODE, np.nan, DISTANCE_MIN_M * np.exp(DISTANCE_LOG_STEP * c.astype(np.float64)))
 
 
 def _metric_grid_crs(dem: Dem, lon_c: float, lat_c: float) -> tuple[CRS, bool]:
@@ -317,19 +352,29 @@ def _atan(x: float) -> float:
 
 
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
-def _store_centidegrees(tan: np.ndarray, out: np.ndarray, j: int) -> None:
-    """out[node, j] = elevation in hundredths of a degree (int16; MISSING_CDEG where NaN)."""
+def _store_centidegrees(tan: np.ndarray, far: np.ndarray, out: np.ndarray, dist: np.ndarray, j: int) -> None:
+    """out[node, j] = elevation in hundredths of a degree (int16; MISSING_CDEG where NaN);
+    dist[node, j] = the horizon's log-quantised range."""
     rows, cols = tan.shape
     scale = 100.0 * 180.0 / math.pi
+    inv_log = 1.0 / DISTANCE_LOG_STEP
     for r in numba.prange(rows):
         line = tan[r]
+        fline = far[r]
         base = r * cols
         for c in range(cols):
             t = line[c]
             if t != t:
                 out[base + c, j] = MISSING_CDEG
+                dist[base + c, j] = MISSING_CODE
             else:
                 out[base + c, j] = np.int16(round(_atan(t) * scale))
+                f = fline[c]
+                if f != f:
+                    dist[base + c, j] = MISSING_CODE
+                else:
+                    code = round(math.log(max(f, DISTANCE_MIN_M) / DISTANCE_MIN_M) * inv_log)
+                    dist[base + c, j] = min(max(code, 0), MISSING_CODE - 1)
 
 
 @numba.njit(cache=True)
@@ -359,14 +404,15 @@ def _quantize_row(row: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: n
 
 
 @numba.njit(cache=True, parallel=True)
-def _turn_and_quantize(cdeg: np.ndarray, shift: np.ndarray, codes: np.ndarray, offs: np.ndarray,
-                       steps: np.ndarray) -> None:
+def _turn_and_quantize(cdeg: np.ndarray, dgrid: np.ndarray, shift: np.ndarray, codes: np.ndarray,
+                       dist: np.ndarray, offs: np.ndarray, steps: np.ndarray) -> None:
     """Resample each node's skyline from grid to true azimuths (true = grid + shift steps, linear on
-    the circle), then quantise it."""
+    the circle; ranges from the nearer azimuth), then quantise it."""
     n, n_az = cdeg.shape
     for i in numba.prange(n):
         row = np.empty(n_az)
         src = cdeg[i]
+        dsrc = dgrid[i]
         sh = shift[i]
         whole = int(math.floor(sh))
         w = sh - whole
@@ -374,6 +420,7 @@ def _turn_and_quantize(cdeg: np.ndarray, shift: np.ndarray, codes: np.ndarray, o
             for j in range(n_az):
                 c = src[j]
                 row[j] = np.nan if c == MISSING_CDEG else c / 100.0
+                dist[i, j] = dsrc[j]
         else:
             # value at grid azimuth j - shift: between j - whole - 1 (weight w) and j - whole (1 - w)
             for j in range(n_az):
@@ -383,8 +430,10 @@ def _turn_and_quantize(cdeg: np.ndarray, shift: np.ndarray, codes: np.ndarray, o
                 b = src[i1]
                 if a == MISSING_CDEG or b == MISSING_CDEG:
                     row[j] = np.nan
+                    dist[i, j] = MISSING_CODE
                 else:
                     row[j] = (a * w + b * (1.0 - w)) / 100.0
+                    dist[i, j] = dsrc[i0] if w >= 0.5 else dsrc[i1]
         _quantize_row(row, codes, offs, steps, i)
 
 
@@ -442,10 +491,12 @@ def build_database(
     step_az = 360.0 / n_azimuths
     n = cand.n_nodes
     cdeg = np.empty((n, n_azimuths), dtype=np.int16)  # centidegrees at grid azimuths
+    dgrid = np.empty((n, n_azimuths), dtype=np.uint8)  # ranges at grid azimuths
     sl = (slice(ro, ro + cand.n_rows), slice(co, co + cand.n_cols))
     sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff)
     for j in range(n_azimuths):
-        _store_centidegrees(sweeper.tan_grid(j * step_az)[sl], cdeg, j)
+        tan = sweeper.tan_grid(j * step_az)
+        _store_centidegrees(tan[sl], sweeper.distance_m[sl], cdeg, dgrid, j)
         if progress is not None:
             progress(j + 1, n_azimuths, "skylines")
 
@@ -465,44 +516,45 @@ def build_database(
             "n_rows": cand.n_rows, "n_cols": cand.n_cols, "dx_m": cand.dx_m, "dy_m": cand.dy_m,
         },
         "search_bounds": list(search_bounds) if search_bounds else list(dem.bounds_lonlat()),
+        "distance_code": {"min_m": DISTANCE_MIN_M, "log_step": DISTANCE_LOG_STEP},
+        "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
     }
     ground = Z[sl].ravel().astype(np.float32)
-    _write(out_path, header, cdeg, gamma.ravel() / step_az, ground)
+    _write(out_path, header, cdeg, dgrid, gamma.ravel(), step_az, ground, Z.astype(np.float32))
     return header
 
 
-def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, shift: np.ndarray, ground: np.ndarray) -> None:
+def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarray, gamma_deg: np.ndarray,
+           step_az: float, ground: np.ndarray, terrain: np.ndarray) -> None:
     n, n_az = cdeg.shape
     layout = {}
     pos = 0
-    for name, nbytes in (("codes", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n), ("ground_m", 4 * n)):
+    sizes = (("codes", n * n_az), ("distance", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n),
+             ("ground_m", 4 * n), ("convergence_deg", 4 * n), ("terrain_m", 4 * terrain.size))
+    for name, nbytes in sizes:
         layout[name] = pos
         pos += -(-nbytes // ALIGN) * ALIGN
     header = dict(header, arrays=layout, n_nodes=n)
     raw = json.dumps(header).encode()
     hlen = -(-(len(raw) + 12) // ALIGN) * ALIGN - 12
     data_start = 12 + hlen
-    out = Path(out_path)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-    try:
-        with tmp.open("wb") as fh:
+    # allocated in full before the memory map touches it: a full disk is a one-line error, not SIGBUS
+    with atomic_output(out_path, preallocate=data_start + pos) as tmp:
+        with tmp.open("r+b") as fh:
             fh.write(MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" "))
-            fh.truncate(data_start + pos)
         mm = np.memmap(tmp, mode="r+", dtype=np.uint8, offset=data_start, shape=(pos,))
         codes = mm[layout["codes"] : layout["codes"] + n * n_az].reshape(n, n_az)
+        dist = mm[layout["distance"] : layout["distance"] + n * n_az].reshape(n, n_az)
         offs = np.empty(n, np.float32)
         steps = np.empty(n, np.float32)
-        _turn_and_quantize(cdeg, np.asarray(shift, dtype=np.float64), codes, offs, steps)
-        for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground)):
-            mm[layout[name] : layout[name] + 4 * n] = arr.view(np.uint8)
+        shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
+        _turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps)
+        gam = np.asarray(gamma_deg, dtype=np.float32)
+        for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground), ("convergence_deg", gam),
+                          ("terrain_m", np.ascontiguousarray(terrain, dtype=np.float32).ravel())):
+            mm[layout[name] : layout[name] + 4 * arr.size] = arr.view(np.uint8)
         mm.flush()
-        del mm, codes
-        with tmp.open("rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, out)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        del mm, codes, dist
 
 
 def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
@@ -521,7 +573,11 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
         raise DatabaseError(f"{p}: unreadable database header ({exc})") from None
     version = header.get("format_version")
     if version != FORMAT_VERSION:
-        raise DatabaseError(f"{p}: database format version {version}, this viper reads {FORMAT_VERSION}")
+        raise DatabaseError(
+            f"{p}: database format version {version}, this viper reads version {FORMAT_VERSION}; rebuild it with "
+            f"`viper precompute {header.get('dem_source', 'DEM')} --out {p.name}` (same --search-bounds, --spacing, "
+            "--height)"
+        )
     if dem is not None and header.get("dem_sha256") != dem.sha256:
         raise DatabaseError(
             f"{p}: built from DEM {header.get('dem_source')} ({str(header.get('dem_sha256'))[:12]}), "
@@ -534,8 +590,13 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
     try:
         mm = np.memmap(p, mode="r", dtype=np.uint8, offset=start)
         codes = mm[lay["codes"] : lay["codes"] + n * n_az].reshape(n, n_az)
-        f32 = {k: mm[lay[k] : lay[k] + 4 * n].view(np.float32) for k in ("offset_deg", "step_deg", "ground_m")}
-    except (ValueError, OSError) as exc:
+        dist = mm[lay["distance"] : lay["distance"] + n * n_az].reshape(n, n_az)
+        f32 = {k: mm[lay[k] : lay[k] + 4 * n].view(np.float32)
+               for k in ("offset_deg", "step_deg", "ground_m", "convergence_deg")}
+        th = header["terrain"]
+        n_t = int(th["n_rows"]) * int(th["n_cols"])
+        terrain = mm[lay["terrain_m"] : lay["terrain_m"] + 4 * n_t].view(np.float32).reshape(th["n_rows"], th["n_cols"])
+    except (ValueError, OSError, KeyError, TypeError) as exc:
         raise DatabaseError(f"{p}: truncated or corrupt database ({exc})") from None
     g = header["grid"]
     grid = NodeGrid(
@@ -543,4 +604,5 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
     )
     if grid.n_nodes != n:
         raise DatabaseError(f"{p}: grid of {grid.n_nodes} nodes but {n} skylines")
-    return SkylineDatabase(str(p), header, grid, codes, f32["offset_deg"], f32["step_deg"], f32["ground_m"])
+    return SkylineDatabase(str(p), header, grid, codes, f32["offset_deg"], f32["step_deg"], f32["ground_m"], dist,
+                           f32["convergence_deg"], terrain, (int(th["row0"]), int(th["col0"])))

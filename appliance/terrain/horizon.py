@@ -3,8 +3,10 @@
 Rays leave the viewpoint as straight lines of an azimuthal equidistant projection centred on it,
 which are geodesics with exact distances, so azimuths are true-north azimuths whatever the DEM's
 CRS (grid convergence and metres-per-degree are handled by the projection).  Terrain is sampled
-bilinearly every half cell.  The apparent drop of a target at distance d is d^2 / (2 R_eff), with
-R_eff = R / (1 - k) folding the body's curvature and atmospheric refraction k into one radius.
+bilinearly on the schedule of :func:`appliance.terrain.raycast.ray_distances`: a fiftieth of a cell
+near the eye, growing with distance to a quarter cell.  The apparent drop of a target at distance d
+is d^2 / (2 R_eff), with R_eff = R / (1 - k) folding the body's curvature and atmospheric
+refraction k into one radius.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pyproj import CRS, Transformer
 from appliance.errors import DemError
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
+from appliance.terrain.raycast import ray_distances
 
 DEFAULT_HEIGHT_M = 1.5
 DEFAULT_MAX_RANGE_M = 60_000.0
@@ -85,23 +88,6 @@ def render_skyline(
         elev[start : start + chunk] = np.where(any_valid, e, np.nan)
         far[start : start + chunk] = np.where(any_valid, dist[best], np.nan)
     return Horizon(az, elev, far, ground)
-
-
-def ray_distances(cell_m: float, reach_m: float, step_m: float | None = None) -> np.ndarray:
-    """Sample distances (m) along a ray: a quarter cell out to 64 cells, half a cell out to 512 cells,
-    a cell beyond (or a uniform ``step_m``).  Near terrain needs the fine steps: a metre of height
-    at 100 m is half a degree."""
-    if step_m is not None:
-        d = np.arange(1, int(np.ceil(reach_m / step_m)) + 1) * float(step_m)
-    else:
-        q = cell_m / 4.0
-        near = np.arange(1, 257) * q
-        mid = near[-1] + np.arange(1, 897) * (2 * q)
-        far_start = mid[-1]
-        n_far = max(0, int(np.ceil((reach_m - far_start) / cell_m)))
-        far = far_start + np.arange(1, n_far + 1) * cell_m
-        d = np.concatenate([near, mid, far])
-    return d[d <= reach_m + 1e-9]
 
 
 def _farthest_corner_m(dem: Dem, lat: float, lon: float) -> float:

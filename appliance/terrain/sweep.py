@@ -59,6 +59,7 @@ def _tangent(hs: np.ndarray, hz: np.ndarray, n: int, s: float, zo: float) -> int
 def _sweep_canonical(
     W: np.ndarray,
     out: np.ndarray,
+    far: np.ndarray,
     tau: float,
     step_m: float,
     height_m: float,
@@ -122,14 +123,16 @@ def _sweep_canonical(
             zo = zn + height_m - s * s * inv2r
             t = _tangent(hs, hz, n, s, zo)
             out[rn, u] = (hz[t] - zo) / (hs[t] - s) + s / r_eff
+            far[rn, u] = hs[t] - s
 
 
 @numba.njit(cache=True, parallel=True)
 def _near_field(
-    W: np.ndarray, out: np.ndarray, tau: float, step_m: float, height_m: float, r_eff: float,
+    W: np.ndarray, out: np.ndarray, far: np.ndarray, tau: float, step_m: float, height_m: float, r_eff: float,
     fractions: np.ndarray,
 ) -> None:
-    """Raise ``out`` (tangents) by terrain sampled on the exact ray at fractions of a column step.
+    """Raise ``out`` (tangents) by terrain sampled on the exact ray at fractions of a column step,
+    and set ``far`` to the distance of each sample that raised it.
 
     For one fraction every node's sample sits at the same offset from it, so the bilinear weights
     are shared and the inner loop runs over contiguous memory.
@@ -159,15 +162,19 @@ def _near_field(
             b1 = W[v + dv0 + 1, du0 + 1 : du0 + 1 + n_u]
             here = W[v, :n_u]
             dest = out[v, :n_u]
+            dest_far = far[v, :n_u]
             for u in range(n_u):
                 z = a0[u] * w00 + a1[u] * w01 + b0[u] * w10 + b1[u] * w11
                 t = (z - here[u] - drop) * inv_d
                 b = dest[u]
                 if t > b or (b != b and t == t):
                     dest[u] = t
+                    dest_far[u] = d
 
 
-NEAR_FIELD_FRACTIONS = np.array([0.25, 0.5, 1.0, 1.5, 2.0])
+#: Near-field samples on the exact ray (columns ahead): a horizon a cell away moves by degrees
+#: within a cell, so the near field is sampled at tenths of a column.
+NEAR_FIELD_FRACTIONS = np.concatenate([np.arange(1, 11) * 0.1, [1.25, 1.5, 1.75, 2.0]])
 NEAR_FIELD_COLUMNS = 2
 #: Rows between neighbouring sweep lines: a node is at most half of it beside its line.
 LINE_SPACING_ROWS = 0.5
@@ -187,8 +194,10 @@ class HorizonSweeper:
         self.dx_m, self.dy_m = float(dx_m), float(dy_m)
         self.height_m, self.r_eff_m = float(height_m), float(r_eff_m)
         self.result = np.full(self.Z.shape, np.nan)
+        self.distance_m = np.full(self.Z.shape, np.nan)
         self._canonical: dict[tuple[bool, bool, bool], np.ndarray] = {}
         self._work: dict[tuple[int, int], np.ndarray] = {}
+        self._work_far: dict[tuple[int, int], np.ndarray] = {}
         n = max(self.Z.shape) + NEAR_FIELD_COLUMNS + 2
         self._scratch = np.empty((int(numba.config.NUMBA_NUM_THREADS), 2, n))  # type: ignore[attr-defined]
 
@@ -204,7 +213,8 @@ class HorizonSweeper:
     def tan_grid(self, grid_azimuth_deg: float) -> np.ndarray:
         """Tangent of the horizon elevation at every node along one grid azimuth (clockwise from grid
         north); NaN where the node is nodata or no terrain lies ahead.  The array is the sweeper's
-        own buffer, overwritten by the next call."""
+        own buffer, overwritten by the next call; ``distance_m`` then holds the ground distance (m)
+        to the terrain point that forms each node's horizon."""
         a = math.radians(grid_azimuth_deg)
         dcol = math.sin(a) / self.dx_m
         drow = -math.cos(a) / self.dy_m
@@ -218,16 +228,21 @@ class HorizonSweeper:
             W = np.ascontiguousarray(self._orient(self.Z, *key))
             self._canonical[key] = W
         out = self._work.get(W.shape)
-        if out is None:
+        far = self._work_far.get(W.shape)
+        if out is None or far is None:
             out = np.empty(W.shape)
+            far = np.empty(W.shape)
             self._work[W.shape] = out
+            self._work_far[W.shape] = far
         out.fill(np.nan)
+        far.fill(np.nan)
         tau = abs(dv / du)
         step = math.hypot(du_m, tau * dv_m)
-        _sweep_canonical(W, out, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS, LINE_SPACING_ROWS,
-                         self._scratch)
-        _near_field(W, out, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS)
+        _sweep_canonical(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
+                         LINE_SPACING_ROWS, self._scratch)
+        _near_field(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS)
         self._orient(self.result, *key)[...] = out
+        self._orient(self.distance_m, *key)[...] = far
         return self.result
 
 

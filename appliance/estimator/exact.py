@@ -1,0 +1,259 @@
+"""Continuous refinement on exact renders: position and heading between nodes, where parallax rules.
+
+The grid search ranks nodes; near terrain moves by parallax between them, so a blend of the nodes'
+skylines cannot say what is seen in between.  Here the skyline at a continuous position is
+rendered from the terrain itself (``terrain/raycast.py``: the heights the database was built on,
+sampled finely near the eye), at the true azimuths the measured skyline maps to under the trial
+heading, and position and heading are fitted by Levenberg-Marquardt on those renders.
+
+The Jacobian is the parallax of every horizon point (``parallax.py``): for range d, elevation e,
+ground gradient g and skyline slope s' along azimuth, a move delta of the camera changes the
+skyline at a fixed azimuth by [sin e cos e (u . delta) - cos^2 e (g . delta) + s' (t . delta)] / d,
+with u the ray's direction and t its right-hand normal; a heading change by s'.  Every trial step
+is checked on a new render, so the answer is the exact render's, not the linear model's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from appliance.terrain.raycast import BLOCK_CELLS, bilinear, block_maxima, march, ray_distances
+
+DEG = 180.0 / math.pi
+MAX_ITERATIONS = 10
+#: Trial steps per iteration before giving up, and the relative reduction of the residual sum
+#: below which the fit has converged.
+MAX_REJECTIONS = 3
+STOP_REDUCTION = 0.005
+#: The map's height error under the camera (m, one sigma): the eye's height floats this much.
+EYE_SIGMA_M = 2.0
+#: Residuals beyond this many standard deviations count ever less (Cauchy).
+ROBUST_SCALE = 3.0
+#: The parameters' spread (cells) when a fit starts, and its shrinking at every iteration.
+START_SPREAD_CELLS = 0.4
+ANNEAL = 0.1
+#: How far (cells) a fit may wander from the node it started at.
+MAX_OFFSET_CELLS = 2.0
+
+
+@dataclass(frozen=True)
+class Terrain:
+    """The heights under a node grid, for exact renders between nodes.
+
+    ``heights_m`` has the node grid's spacing; candidate node (0, 0) is its (row0, col0).
+    ``convergence_deg[node]`` is the true azimuth of grid north at the node."""
+
+    heights_m: np.ndarray
+    row0: int
+    col0: int
+    convergence_deg: np.ndarray
+    height_m: float
+    r_eff_m: float
+    reach_m: float
+
+    @cached_property
+    def block_max(self) -> np.ndarray:
+        return block_maxima(self.heights64)
+
+    @cached_property
+    def heights64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.heights_m, dtype=np.float64)
+
+    def distances(self, cell_m: float) -> np.ndarray:
+        return ray_distances(cell_m, self.reach_m)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A refined candidate: fractional node (row, col), heading correction, residual sum over n."""
+
+    row: float
+    col: float
+    heading_deg: float
+    ssd: float
+    n: int
+    iterations: int
+    eye_offset_m: float = 0.0
+
+    @property
+    def rms_deg(self) -> float:
+        return math.sqrt(self.ssd / max(self.n, 1))
+
+
+def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
+           dist: np.ndarray, height_m: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Elevation (deg), range (m) per grid azimuth and ground height from fractional node (row, col)."""
+    Z = terrain.heights64
+    tr, tc = row + terrain.row0, col + terrain.col0
+    ground = bilinear(Z, tr, tc)
+    tan = np.empty(grid_azimuth_deg.size)
+    far = np.empty(grid_azimuth_deg.size)
+    if not math.isfinite(ground):
+        return np.full(grid_azimuth_deg.size, np.nan), far, ground
+    march(Z, dx_m, dy_m, tr, tc, ground + height_m, np.radians(grid_azimuth_deg), dist, terrain.r_eff_m,
+          terrain.block_max, BLOCK_CELLS, tan, far)
+    return np.degrees(np.arctan(tan)), far, ground
+
+
+def _gradient(terrain: Terrain, row: float, col: float, dx_m: float, dy_m: float) -> tuple[float, float]:
+    """Ground gradient (dz/d east, dz/d north) at fractional node (row, col), central differences."""
+    Z = terrain.heights64
+    tr, tc = row + terrain.row0, col + terrain.col0
+    h = 0.5
+    ge = (bilinear(Z, tr, tc + h) - bilinear(Z, tr, tc - h)) / (2 * h * dx_m)
+    gn = (bilinear(Z, tr - h, tc) - bilinear(Z, tr + h, tc)) / (2 * h * dy_m)
+    return (ge if math.isfinite(ge) else 0.0), (gn if math.isfinite(gn) else 0.0)
+
+
+def screen(
+    terrain: Terrain,
+    dx_m: float,
+    dy_m: float,
+    measured: np.ndarray,
+    row: float,
+    col: float,
+    gamma_deg: float,
+    heading_deg: float,
+    heading_bounds_deg: tuple[float, float],
+    height_m: float | None = None,
+    sigma_deg: float = 0.3,
+) -> tuple[float, float]:
+    """(residual sum, heading) of the best heading (within the bounds) at one position, from one
+    exact render interpolated along azimuth, the eye's height fitted to first order under its prior:
+    a cheap look before a full fit."""
+    n_az = measured.size
+    step = 360.0 / n_az
+    az = np.arange(n_az) * step
+    valid = np.isfinite(measured)
+    h_m = terrain.height_m if height_m is None else float(height_m)
+    s, d, _ = render(terrain, dx_m, dy_m, row, col, az + heading_deg - gamma_deg,
+                     terrain.distances(min(dx_m, dy_m)), h_m)
+    ok_s = np.isfinite(s) & np.isfinite(d)
+    if ok_s.sum() < 0.9 * n_az:
+        return math.inf, heading_deg
+    filled = np.interp(az, az[ok_s], s[ok_s], period=360.0)
+    dz = np.interp(az, az[ok_s], -DEG * np.cos(np.radians(s[ok_s])) ** 2 / d[ok_s], period=360.0)
+    lo, hi = heading_bounds_deg
+    trial = heading_deg + np.arange(-8.0, 8.0 + 1e-9, 0.1)
+    trial = trial[(trial >= lo) & (trial <= hi)]
+    if trial.size == 0:
+        trial = np.array([min(max(heading_deg, lo), hi)])
+    pos = (np.arange(n_az)[None, :] + (trial[:, None] - heading_deg) / step) % n_az
+    model = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
+    r = np.where(valid[None, :], measured[None, :] - model, 0.0)
+    # the eye's height, to first order, with its prior
+    jz = np.where(valid, dz, 0.0)
+    prior = (sigma_deg / EYE_SIGMA_M) ** 2
+    h = (r @ jz) / (jz @ jz + prior)
+    cost = np.sum(r * r, axis=1) - h * (r @ jz)
+    k = int(np.argmin(cost))
+    return float(cost[k]), float(trial[k])
+
+
+def refine(
+    terrain: Terrain,
+    dx_m: float,
+    dy_m: float,
+    measured: np.ndarray,
+    node_row: int,
+    node_col: int,
+    n_cols: int,
+    heading_deg: float,
+    height_m: float | None = None,
+    start: tuple[float, float] | None = None,
+    sigma_deg: float = 0.3,
+    heading_bounds_deg: tuple[float, float] = (-180.0, 180.0),
+) -> Fit | None:
+    """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
+    NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
+    node.  The eye's height above the map's surface is ``height_m`` plus an offset with a
+    Gaussian prior of EYE_SIGMA_M: the map's own height error under the camera."""
+    n_az = measured.size
+    step = 360.0 / n_az
+    az = np.arange(n_az) * step
+    valid = np.isfinite(measured)
+    n_valid = int(valid.sum())
+    h_m = terrain.height_m if height_m is None else float(height_m)
+    dist = terrain.distances(min(dx_m, dy_m))
+    gamma = float(terrain.convergence_deg[node_row * n_cols + node_col])
+    sig2 = sigma_deg * sigma_deg
+    lo_h, hi_h = heading_bounds_deg
+
+    def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        s, d, _ = render(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, dist, h_m + p[3])
+        ok = valid & np.isfinite(s)
+        r = np.where(ok, measured - np.where(ok, s, 0.0), 0.0)
+        if ok.sum() < 0.9 * n_valid or not ok.any():
+            return math.inf, r, s, d, ok
+        return float(np.sum(r * r)) * n_valid / ok.sum(), r, s, d, ok
+
+    def clamp(q: np.ndarray) -> np.ndarray:
+        q[0] = min(max(q[0], node_row - MAX_OFFSET_CELLS), node_row + MAX_OFFSET_CELLS)
+        q[1] = min(max(q[1], node_col - MAX_OFFSET_CELLS), node_col + MAX_OFFSET_CELLS)
+        q[2] = min(max(q[2], lo_h), hi_h)
+        return q
+
+    r0, c0 = (float(node_row), float(node_col)) if start is None else start
+    p = clamp(np.array([r0, c0, float(heading_deg), 0.0]))
+    cost, r, s, d, ok = evaluate(p)
+    if not math.isfinite(cost):
+        return None
+    # Annealed weights: each azimuth counts by 1 / (sigma^2 + J var J^T), with var the spread of
+    # the parameters still in doubt.  Far from the optimum the near ridges, whose skyline swings by
+    # degrees within a cell, count for little and the far ones steer; as the fit closes in, the
+    # spread shrinks and every azimuth counts fully.  Cauchy weights keep a ridge that jumped to
+    # another one near the eye from pulling the fit.
+    spread = np.array([START_SPREAD_CELLS**2, START_SPREAD_CELLS**2, (0.5 * step) ** 2, EYE_SIGMA_M**2])
+    prior = np.array([0.0, 0.0, 0.0, sig2 / EYE_SIGMA_M**2])
+    lam = 1e-3
+    iterations = 0
+    while iterations < MAX_ITERATIONS:
+        iterations += 1
+        okd = ok & np.isfinite(d)
+        beta = np.radians(az + p[2] - gamma)
+        e = np.radians(np.where(okd, s, 0.0))
+        dd = np.where(okd, d, 1.0)
+        slope = (np.roll(s, -1) - np.roll(s, 1)) / (2.0 * step)
+        slope = np.where(np.isfinite(slope), slope, 0.0)
+        ge, gn = _gradient(terrain, p[0], p[1], dx_m, dy_m)
+        se, ce2 = np.sin(e) * np.cos(e), np.cos(e) ** 2
+        ue, un = np.sin(beta), np.cos(beta)
+        te, tn = np.cos(beta), -np.sin(beta)
+        d_east = DEG * (se * ue - ce2 * ge + slope * te) / dd
+        d_north = DEG * (se * un - ce2 * gn + slope * tn) / dd
+        d_eye = -DEG * ce2 / dd
+        J_all = np.where(okd[:, None], np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1), 0.0)
+        var = sig2 + (J_all * J_all) @ spread
+        w_all = np.where(ok, 1.0 / (var * (1.0 + r * r / (ROBUST_SCALE**2 * var))), 0.0)
+        A = J_all.T @ (J_all * w_all[:, None]) + np.diag(prior / sig2)
+        g = J_all.T @ (w_all * r) - prior / sig2 * np.array([0.0, 0.0, 0.0, p[3]])
+        here = float(np.sum(w_all * r * r)) + prior[3] / sig2 * p[3] ** 2
+        improved = False
+        for _ in range(MAX_REJECTIONS):
+            try:
+                delta = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
+            except np.linalg.LinAlgError:
+                break
+            # the linear model's promised reduction: too small to be worth a render
+            promised = float(2.0 * g @ delta - delta @ A @ delta)
+            if promised < STOP_REDUCTION * here + 1e-12:
+                break
+            q = clamp(p + delta)
+            c2, r2, s2, d2, ok2 = evaluate(q)
+            there = float(np.sum(w_all * r2 * r2)) + prior[3] / sig2 * q[3] ** 2
+            if math.isfinite(c2) and there < here:
+                gain = here - there
+                p, cost, r, s, d, ok = q, c2, r2, s2, d2, ok2
+                lam = max(lam / 4.0, 1e-6)
+                improved = gain >= STOP_REDUCTION * there
+                break
+            lam *= 8.0
+        annealing = bool(spread[0] > 1e-4)
+        spread *= ANNEAL
+        if not improved and not annealing:
+            break
+    return Fit(float(p[0]), float(p[1]), float(p[2]), cost, n_valid, iterations, float(p[3]))

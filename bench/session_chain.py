@@ -1,0 +1,142 @@
+"""The demo's field-session chain over many seeds, without waiting in simulated time.
+
+For each seed, as ``viper demo`` draws it (``simulated_config``): a random position on the
+jacksboro map away from its edges, a random platform heading and tripod tilt.  Then the chain the
+session runs, on the same parts: the camera twin's photo-like frames (``render_photo_from``) at
+the capture ring's stage angles, tagged with a compass heading off by up to +-3 deg and with the
+tilt left after levelling (up to +-0.3 deg); the panorama stitched by the session's
+``stitch_frames``; the skyline found by ``detect_skyline``; the estimate on the demo's database
+with the session's estimator settings.  The serial protocols and the simulated clock are left out:
+they do not change what the estimator sees.
+
+Targets (issue: no gross misses): >= 98 % within two cells, median <= 0.15 cells, truth inside
+the region >= 95 %, median region <= 20 cells where right, every miss flagged ambiguous.
+
+    python bench/session_chain.py [--seeds 100] [--first 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from appliance.acquisition.onboard import stitch_frames  # noqa: E402
+from appliance.acquisition.platform import Frame  # noqa: E402
+from appliance.acquisition.procedures import TaggedFrame, capture_angles  # noqa: E402
+from appliance.acquisition.session import random_position  # noqa: E402
+from appliance.config import EstimatorConfig, SessionConfig  # noqa: E402
+from appliance.demo import demo_database  # noqa: E402
+from appliance.position import locate, skyline_grid  # noqa: E402
+from appliance.terrain.dem import load_dem  # noqa: E402
+from appliance.terrain.horizon import render_skyline  # noqa: E402
+from appliance.vision.camera import CameraPose  # noqa: E402
+from appliance.vision.intrinsics import CameraIntrinsics  # noqa: E402
+from appliance.vision.skyline_detect import detect_skyline  # noqa: E402
+from appliance.vision.synth import render_photo_from  # noqa: E402
+
+#: The world's skyline is rendered once per seed at this azimuth step and interpolated.
+WORLD_STEP_DEG = 0.2
+
+
+def world_skyline_fn(dem, lat: float, lon: float, height_m: float):
+    az = np.arange(0.0, 360.0, WORLD_STEP_DEG)
+    h = render_skyline(dem, lat, lon, height_m=height_m, azimuths_deg=az)
+    el, dist = h.elevation_deg, h.distance_m
+
+    def fn(azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        a = np.mod(np.asarray(azimuth_deg, dtype=np.float64), 360.0)
+        return np.interp(a, az, el, period=360.0), np.interp(a, az, dist, period=360.0)
+
+    return fn
+
+
+def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: EstimatorConfig, ses: SessionConfig):
+    rng = np.random.default_rng(seed)
+    lat, lon = random_position(dem, db, rng)
+    heading = float(rng.uniform(0.0, 360.0))
+    compass_error = float(rng.uniform(-3.0, 3.0))
+    pitch, roll = (float(v) for v in rng.uniform(-0.3, 0.3, 2))
+    fn = world_skyline_fn(dem, lat, lon, 1.5)
+    frames = []
+    for i, stage in enumerate(capture_angles(intr.hfov_deg, ses.capture_overlap)):
+        true_yaw = (heading + stage) % 360.0
+        img = render_photo_from(fn, CameraPose(true_yaw, pitch, roll), intr, rng, scene_seed=seed)
+        frame = Frame(i, img)
+        frames.append(TaggedFrame(i, frame, float(stage), (true_yaw + compass_error) % 360.0, roll, pitch))
+    sky = detect_skyline(stitch_frames(frames, intr))
+    pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid)
+    _, _, err = dem.geod.inv(lon, lat, pos.lon, pos.lat)
+    x, y = db.grid.lonlat_to_xy(lon, lat)
+    r, c = db.grid.xy_to_rc(x, y)
+    truth_node = int(round(float(r))) * db.grid.n_cols + int(round(float(c)))
+    inside = bool(np.isin(truth_node, pos.result.region_nodes))
+    return float(err), pos, inside, float(np.isfinite(sky.elevation_deg).mean())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--first", type=int, default=1)
+    args = ap.parse_args()
+    dem = load_dem("jacksboro")
+    cache = Path(tempfile.gettempdir()) / "viper-bench-db"
+    cache.mkdir(exist_ok=True)
+    db = demo_database(dem, cache)
+    grid = skyline_grid(db)
+    cell_m = float(np.sqrt(db.grid.dx_m * db.grid.dy_m))
+    intr = CameraIntrinsics.from_fov(640, 480, 60.0)
+    est, ses = EstimatorConfig(), SessionConfig()
+    rows = []
+    t0 = time.monotonic()
+    for seed in range(args.first, args.first + args.seeds):
+        err, pos, inside, seen = one_session(seed, dem, db, grid, intr, est, ses)
+        r = pos.result
+        cells = err / cell_m
+        rows.append((seed, cells, inside, r.region_nodes.size, r.ambiguous, r.elapsed_s))
+        flag = "ambiguous" if r.ambiguous else "ok"
+        print(f"seed {seed}: {err:7.1f} m ({cells:5.2f} cells), region {r.region_nodes.size} cells, truth "
+              f"{'inside' if inside else 'OUTSIDE'}, {flag}, skyline {seen:.0%}, estimate {r.elapsed_s * 1e3:.0f} ms",
+              flush=True)
+    wall = time.monotonic() - t0
+    cells = np.array([x[1] for x in rows])
+    inside = np.array([x[2] for x in rows])
+    region = np.array([x[3] for x in rows])
+    amb = np.array([x[4] for x in rows])
+    ms = np.array([x[5] for x in rows]) * 1e3
+    right = cells <= 2.0
+    confident_wrong = int(np.sum(~right & ~amb))
+    summary = (
+        f"| {date.today()} | {len(rows)} (from {args.first}) | {cell_m:.0f} m | {100 * right.mean():.1f} % (>= 98) | "
+        f"{np.median(cells):.3f} (<= 0.15) | {100 * inside.mean():.1f} % (>= 95) | "
+        f"{np.median(region[right]) if right.any() else float('nan'):.0f} (<= 20) | {100 * amb.mean():.0f} % | "
+        f"{confident_wrong} (0) | {np.median(ms):.0f} ms | {wall / 60:.1f} min, {os.cpu_count()} cores, "
+        f"load {os.getloadavg()[0]:.1f} |\n"
+    )
+    print(summary)
+    out = HERE / "results" / "session_chain.md"
+    if not out.exists():
+        out.write_text(
+            "# The demo's session chain over many seeds (bench/session_chain.py)\n\n"
+            "Frames from the camera twin, stitched, skyline detected, estimated on the demo database (jacksboro at "
+            "its own spacing), compass error up to +-3 deg, tilt up to +-0.3 deg.  Cells: error over the geometric "
+            "mean node spacing.  Region: median over the estimates within two cells.\n\n"
+            "| date | seeds | cell | within 2 cells | median (cells) | truth in region | median region (cells) | "
+            "ambiguous | wrong and not ambiguous | estimate time | run |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|\n")
+    with out.open("a") as fh:
+        fh.write(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
