@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import sys
 import types
 import typing
@@ -46,6 +47,15 @@ class EstimatorConfig:
     heading_tolerance_deg: float = 4.0
     heading_step_deg: float = 1.0
     min_valid_fraction: float = 0.2
+    # prior share of azimuths hidden by what the map lacks (trees, buildings): one-sided likelihood
+    occlusion_weight: float = 0.05
+    map_vertical_sigma_m: float = 0.0  # the map's own height error (1 sigma)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.occlusion_weight < 1.0:
+            raise ConfigError(f"estimator.occlusion_weight: expected 0 <= w < 1, got {self.occlusion_weight}")
+        if not (math.isfinite(self.map_vertical_sigma_m) and self.map_vertical_sigma_m >= 0.0):
+            raise ConfigError(f"estimator.map_vertical_sigma_m: expected >= 0, got {self.map_vertical_sigma_m}")
 
 
 @dataclass(frozen=True)
@@ -98,6 +108,8 @@ class SessionConfig:
     stage_tolerance_deg: float = 1.0  # stage considered stalled if it ends farther than this
     black_frame_max_mean: float = 8.0  # a frame whose mean grey level is below this is rejected
     database: Path | None = None  # skyline database of the onboard estimate (None: the demo map's, in sim)
+    # stage angles (deg, [from, to]) where the platform's own body, mast or antenna stands in the view
+    body_mask_deg: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,7 @@ class Position:
                 "cells_truncated": len(cells) > MAX_REGION_CELLS_IN_JSON,
             },
             "ambiguous": r.ambiguous,
+            "status": estimate_status(db, self, truth),
             "rms_residual_deg": round(r.rms_residual_deg, 4),
             "valid_azimuths": r.n_valid,
             "sigma_deg": list(r.sigma_deg),
@@ -82,6 +83,23 @@ class Position:
                 _, _, d = geod.inv(self.lon, self.lat, truth[1], truth[0])
                 out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(float(d), 2)}
         return out
+
+
+def truth_in_region(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> bool:
+    """Whether the node nearest the true (lat, lon) belongs to the estimate's region."""
+    x, y = db.grid.lonlat_to_xy(truth[1], truth[0])
+    fr, fc = db.grid.xy_to_rc(x, y)
+    r, c = int(round(float(fr))), int(round(float(fc)))
+    if not (0 <= r < db.grid.n_rows and 0 <= c < db.grid.n_cols):
+        return False
+    return bool(np.isin(r * db.grid.n_cols + c, pos.result.region_nodes))
+
+
+def estimate_status(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None = None) -> str:
+    """'ambiguous' when the region is too large, or the truth (where known) lies outside it; else 'ok'."""
+    if pos.result.ambiguous or (truth is not None and not truth_in_region(db, pos, truth)):
+        return "ambiguous"
+    return "ok"
 
 
 def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
@@ -113,9 +131,18 @@ def locate(
     log_prior: np.ndarray | None = None,
     source: str = "",
     grid: SkylineGrid | None = None,
+    height_m: float | None = None,
+    occlusion_weight: float = 0.0,
+    map_sigma_m: float = 0.0,
 ) -> Position:
+    """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
+    surface for the exact refinement (default: the database's).  The skyline's confidence weighs
+    its azimuths; ``occlusion_weight`` and ``map_sigma_m`` are those of
+    :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
-    res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior)
+    res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
+                   height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
+                   map_sigma_m=map_sigma_m)
     return place(db, res, source)
 
 
@@ -125,6 +152,9 @@ def locate_sequence(
     moves: list[Move],
     sigma_deg: tuple[float, float],
     heading_tolerance_deg: float | None,
+    height_m: float | None = None,
+    occlusion_weight: float = 0.0,
+    map_sigma_m: float = 0.0,
 ) -> list[Position]:
     """Fuse a sequence: each skyline's prior is the previous posterior moved by ``moves[i-1]``.
 
@@ -136,7 +166,8 @@ def locate_sequence(
     out: list[Position] = []
     prior = None
     for i, (name, sky) in enumerate(skylines):
-        pos = locate(db, sky, sigma_deg, heading_tolerance_deg, prior, name, g)
+        pos = locate(db, sky, sigma_deg, heading_tolerance_deg, prior, name, g, height_m, occlusion_weight,
+                     map_sigma_m)
         out.append(pos)
         if i < len(moves):
             mv = moves[i]

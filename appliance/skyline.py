@@ -18,18 +18,29 @@ from appliance.atomic import write_text_atomic
 from appliance.errors import InputError
 
 HEADER = ("azimuth_deg", "elevation_deg")
+#: The optional third column: the detector's confidence in each azimuth (0..1), a weight in the likelihood.
+HEADER_WITH_CONFIDENCE = ("azimuth_deg", "elevation_deg", "confidence")
 
 
 @dataclass(frozen=True)
 class Skyline:
-    """Elevation of the skyline (degrees above the local horizontal) per azimuth; NaN = missing."""
+    """Elevation of the skyline (degrees above the local horizontal) per azimuth; NaN = missing.
+    ``confidence`` (0..1 per azimuth, optional) says how much the detector trusts each one."""
 
     azimuth_deg: np.ndarray
     elevation_deg: np.ndarray
+    confidence: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.azimuth_deg.shape != self.elevation_deg.shape or self.azimuth_deg.ndim != 1:
             raise InputError("skyline: azimuth and elevation must be 1-D arrays of the same length")
+        c = self.confidence
+        if c is not None:
+            if c.shape != self.azimuth_deg.shape:
+                raise InputError("skyline: one confidence per azimuth")
+            ok = np.isfinite(self.elevation_deg)
+            if not np.all((c[ok] >= 0.0) & (c[ok] <= 1.0)):
+                raise InputError("skyline: confidence outside [0, 1]")
 
     @property
     def valid(self) -> np.ndarray:
@@ -58,16 +69,26 @@ def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
     if not rows:
         raise InputError(f"{name}: empty skyline file")
     header = tuple(c.strip() for c in rows[0])
-    if header != HEADER:
-        raise InputError(f"{name}: expected header 'azimuth_deg,elevation_deg', got {','.join(header)!r}")
+    if header not in (HEADER, HEADER_WITH_CONFIDENCE):
+        raise InputError(f"{name}: expected header 'azimuth_deg,elevation_deg[,confidence]', "
+                         f"got {','.join(header)!r}")
     if len(rows) < 2:
         raise InputError(f"{name}: no skyline rows after the header")
+    fields = len(header)
     az = np.empty(len(rows) - 1)
     el = np.empty(len(rows) - 1)
+    conf = np.ones(len(rows) - 1)
     for i, row in enumerate(rows[1:]):
         line = i + 2
-        if len(row) != 2:
-            raise InputError(f"{name}: line {line}: expected 2 fields, got {len(row)}")
+        if len(row) != fields:
+            raise InputError(f"{name}: line {line}: expected {fields} fields, got {len(row)}")
+        if fields == 3 and row[2].strip() not in ("", "nan"):
+            try:
+                conf[i] = float(row[2])
+            except ValueError:
+                raise InputError(f"{name}: line {line}: confidence {row[2]!r} is not a number") from None
+            if not 0.0 <= conf[i] <= 1.0:
+                raise InputError(f"{name}: line {line}: confidence {conf[i]} outside [0, 1]")
         try:
             az[i] = float(row[0])
         except ValueError:
@@ -84,15 +105,19 @@ def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
             raise InputError(f"{name}: line {line}: elevation {el[i]} outside [-90, 90] degrees")
     if not np.all(np.isfinite(az)):
         raise InputError(f"{name}: azimuths must be finite")
-    return Skyline(np.mod(az, 360.0), el)
+    return Skyline(np.mod(az, 360.0), el, conf if fields == 3 else None)
 
 
 def format_skyline_csv(skyline: Skyline, decimals: int = 4) -> str:
     out = io.StringIO()
-    out.write(",".join(HEADER) + "\n")
-    for a, e in zip(skyline.azimuth_deg, skyline.elevation_deg):
+    conf = skyline.confidence
+    out.write(",".join(HEADER if conf is None else HEADER_WITH_CONFIDENCE) + "\n")
+    for i, (a, e) in enumerate(zip(skyline.azimuth_deg, skyline.elevation_deg)):
         el = "" if not math.isfinite(e) else f"{e:.{decimals}f}"
-        out.write(f"{a:g},{el}\n")
+        if conf is None:
+            out.write(f"{a:g},{el}\n")
+        else:
+            out.write(f"{a:g},{el},{'' if not el else f'{conf[i]:.3f}'}\n")
     return out.getvalue()
 
 

@@ -100,7 +100,24 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
         raise EstimationError(
             f"skyline has {skyline.valid_fraction:.0%} valid azimuths, below {cfg.min_valid_fraction:.0%}"
         )
-    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, source=source)
+    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, source=source,
+                  occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m)
+
+
+def mask_stage_angles(skyline: Skyline, platform_heading_deg: float,
+                      stage_ranges_deg: Sequence[tuple[float, float]]) -> Skyline:
+    """The skyline with the azimuths that the platform's own body hides removed: each range is in
+    stage angles (deg, from..to clockwise), placed on true azimuths by the platform's heading."""
+    if not stage_ranges_deg:
+        return skyline
+    rel = np.mod(skyline.azimuth_deg - platform_heading_deg, 360.0)
+    hidden = np.zeros(rel.shape, dtype=bool)
+    for lo, hi in stage_ranges_deg:
+        width = (hi - lo) % 360.0
+        hidden |= np.mod(rel - lo, 360.0) <= width
+    el = np.where(hidden, np.nan, skyline.elevation_deg)
+    conf = None if skyline.confidence is None else np.where(hidden, 0.0, skyline.confidence)
+    return Skyline(skyline.azimuth_deg, el, conf)
 
 
 def region_features(db: SkylineDatabase, pos: Position) -> list[dict[str, Any]]:

@@ -35,6 +35,8 @@ EARTH_RADIUS_M = 6_371_008.8
 
 class Status(str, enum.Enum):
     OK = "ok"
+    #: the estimate may be wrong: its region is large (the skyline does not single out a place)
+    AMBIGUOUS = "ambiguous"
     DEGRADED = "degraded"
     FAILED = "failed"
 

@@ -201,12 +201,15 @@ def _fmt(v: float | None, spec: str = ".1f") -> str:
     return "" if v is None or not math.isfinite(v) else format(v, spec)
 
 
-def summary_rows(results: list[ReplayResult]) -> list[dict[str, str]]:
+def summary_rows(results: list[ReplayResult], db: SkylineDatabase) -> list[dict[str, str]]:
+    from appliance.position import estimate_status
+
     rows = []
     for r in results:
         p = r.position
         rows.append({
             "log": str(r.data.path),
+            "status": "" if p is None else estimate_status(db, p, r.data.truth),
             "frames": str(len(r.data.frames)),
             "complete": "yes" if r.data.complete else "no",
             "lat": "" if p is None else f"{p.lat:.6f}",
@@ -235,7 +238,7 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
         pano_png = out_dir / f"{r.name}.panorama.png"
         panorama_picture(r, db, pano_png)
         r.pictures = [map_png, pano_png]
-    rows = summary_rows(results)
+    rows = summary_rows(results, db)
     csv_path = out_dir / "summary.csv"
     table = io.StringIO(newline="")
     writer = csv.DictWriter(table, fieldnames=list(rows[0]) if rows else ["log"])
@@ -262,8 +265,11 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
         if r.failure:
             parts.append(f"<p><b>no estimate:</b> {html.escape(r.failure)}</p>")
         if r.position is not None:
+            from appliance.position import estimate_status
+
             err = "no GPS truth" if r.error_m is None else f"{r.error_m:.1f} m from the GPS truth"
-            parts.append(f"<p>estimate {r.position.lat:.6f}, {r.position.lon:.6f}: {err}; "
+            status = estimate_status(db, r.position, r.data.truth)
+            parts.append(f"<p>estimate {r.position.lat:.6f}, {r.position.lon:.6f} <b>{status}</b>: {err}; "
                          f"results log <code>{html.escape(str(r.results_log))}</code></p>")
         for pic in r.pictures:
             parts.append(f"<p><img src='{html.escape(pic.name)}' alt='{html.escape(pic.stem)}'></p>")

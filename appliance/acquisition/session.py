@@ -98,7 +98,10 @@ class Session:
 
     def outcome(self, name: str, status: Status, reason: str = "", **extra: Any) -> None:
         self.result.outcomes[name] = status.value
-        if status is not Status.OK and self.result.status is Status.OK:
+        if status is Status.AMBIGUOUS:
+            if self.result.status is Status.OK:
+                self.result.status = Status.AMBIGUOUS
+        elif status is not Status.OK and self.result.status in (Status.OK, Status.AMBIGUOUS):
             self.result.status = Status.DEGRADED
         payload = {"procedure": name, "status": status.value, "reason": reason, **extra}
         self.log.write_json(t.PROCEDURE, "viper.Procedure", payload, self.now())
@@ -301,6 +304,10 @@ class Session:
                 t.PANORAMA, m.compressed_image(self.now(), jpeg.tobytes(), frame_id="panorama"), self.now()
             )
         sky = detect_skyline(pano)
+        tagged = [f for f in frames if f.heading_deg is not None]
+        if self.cfg.session.body_mask_deg and tagged:
+            platform_heading = (float(tagged[0].heading_deg or 0.0) - tagged[0].stage_deg) % 360.0
+            sky = onboard.mask_stage_angles(sky, platform_heading, self.cfg.session.body_mask_deg)
         self.result.skyline = sky
         self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), self.now())
         self.on_status("estimate: searching the skyline database")
@@ -311,11 +318,16 @@ class Session:
             where = (truth.lat_deg, truth.lon_deg)
         rec = write_estimate(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
+        flag = "ambiguous" if pos.result.ambiguous else "ok"
         if rec.error_m is not None:
-            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f}: {rec.error_m:.0f} m from the GPS truth")
+            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} ({flag}): {rec.error_m:.0f} m from the GPS truth")
         else:
-            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} (no GPS truth to compare)")
-        self.outcome("estimate", Status.OK)
+            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} ({flag}; no GPS truth to compare)")
+        if pos.result.ambiguous:
+            self.outcome("estimate", Status.AMBIGUOUS, "; ".join(pos.result.notes) or "region too large",
+                         region_cells=int(pos.result.region_nodes.size))
+        else:
+            self.outcome("estimate", Status.OK)
 
 
 def skyline_payload(sky: Skyline) -> dict[str, Any]:

@@ -74,8 +74,11 @@ def run(args: argparse.Namespace) -> int:
         p = r.estimate
         cell = (p.cell_size_m[0] * p.cell_size_m[1]) ** 0.5
         err = "no GPS truth" if r.error_m is None else f"{r.error_m:.0f} m from the GPS truth"
-        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {err} ({great_circle_m(p.lat, p.lon, lat, lon):.0f} m from "
-              f"the true position; database nodes {cell:.0f} m apart)")
+        flag = "AMBIGUOUS" if p.result.ambiguous else "ok"
+        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {flag}: {err} ({great_circle_m(p.lat, p.lon, lat, lon):.0f} m "
+              f"from the true position; database nodes {cell:.0f} m apart)")
+        for note in p.result.notes:
+            print(f"  note       {note}")
         print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells), "
               f"heading correction {p.result.heading_correction_deg:+.1f} deg, "
               f"{360 - p.result.n_valid} of 360 azimuths missing")
@@ -99,7 +102,8 @@ def run_skyline_only(args: argparse.Namespace) -> int:
     print(f"  truth      {r.truth_lat:.6f}, {r.truth_lon:.6f}  (camera 1.5 m above the ground)")
     print(f"  skyline    {r.skyline_path}: noise 0.2 deg, {360 - p.result.n_valid} of 360 azimuths missing, "
           f"compass error {r.compass_error_deg:+.1f} deg")
-    print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  heading correction {p.result.heading_correction_deg:+.1f} deg"
+    print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {'AMBIGUOUS' if p.result.ambiguous else 'ok'}"
+          f"  heading correction {p.result.heading_correction_deg:+.1f} deg"
           f"  in {p.result.elapsed_s * 1e3:.0f} ms over {p.result.candidates} candidates")
     print(f"  error      {r.error_m:.0f} m ({r.error_m / cell:.2f} cells of {cell:.0f} m)")
     print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells)"

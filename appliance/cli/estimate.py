@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -41,6 +42,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     head.add_argument("--unknown-heading", action="store_true", help="no compass: search every heading")
     p.add_argument("--sigma", help="sigma interval LO,HI in degrees (default: [estimator] sigma_deg)")
     p.add_argument("--config", help="configuration TOML")
+    p.add_argument("--occlusion-weight", type=float, metavar="W",
+                   help="prior share of azimuths hidden by what the map lacks, trees or buildings (0 = none; "
+                        "default: [estimator] occlusion_weight)")
+    p.add_argument("--map-sigma", type=float, metavar="M",
+                   help="the map's vertical error, 1 sigma in metres (default: [estimator] map_vertical_sigma_m)")
+    p.add_argument("--height", type=float, metavar="M",
+                   help="camera height above the map's surface (default: the database's); a camera on a roof "
+                        "that the map holds stands a few metres above it")
     p.add_argument("--json", action="store_true", help="one JSON object per skyline, one per line")
     p.add_argument("--fuse", action="store_true",
                    help="fuse the skylines as a sequence of stations (needs one --move per gap)")
@@ -73,10 +82,20 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--move is only used with --fuse")
     skylines = [(s, read_skyline_csv(s)) for s in args.skylines]
     db = load_database(args.db)
+    height = args.height
+    if height is not None and not (math.isfinite(height) and -100.0 < height < 1000.0):
+        raise InputError(f"--height {height}: expected a height in metres above the map's surface, -100..1000")
+    occ = cfg.occlusion_weight if args.occlusion_weight is None else args.occlusion_weight
+    if not (math.isfinite(occ) and 0.0 <= occ < 1.0):
+        raise InputError(f"--occlusion-weight {occ}: expected 0 <= W < 1")
+    map_sigma = cfg.map_vertical_sigma_m if args.map_sigma is None else args.map_sigma
+    if not (math.isfinite(map_sigma) and 0.0 <= map_sigma < 1000.0):
+        raise InputError(f"--map-sigma {map_sigma}: expected metres, 0..1000")
     if args.fuse:
-        positions = locate_sequence(db, skylines, moves, sigma, tolerance)
+        positions = locate_sequence(db, skylines, moves, sigma, tolerance, height, occ, map_sigma)
     else:
-        positions = [locate(db, sky, sigma, tolerance, source=name) for name, sky in skylines]
+        positions = [locate(db, sky, sigma, tolerance, source=name, height_m=height, occlusion_weight=occ,
+                            map_sigma_m=map_sigma) for name, sky in skylines]
     report = Path(args.report) if args.report else None
     if report is not None:
         names = [f"{i + 1:02d}-{Path(s).stem}{e}" for i, s in enumerate(args.skylines) for e in REPORT_FILES]
@@ -95,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(record), flush=True)
         else:
             err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
-            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}"
+            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  {record['status']}"
                   f"  heading correction {pos.result.heading_correction_deg:+.1f} deg"
                   f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")

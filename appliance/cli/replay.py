@@ -92,7 +92,10 @@ def run(args: argparse.Namespace) -> int:
         assert p is not None
         err = "no GPS truth" if r.error_m is None else f"error {r.error_m:.1f} m"
         was = "" if r.data.onboard_error_m is None else f" (onboard {r.data.onboard_error_m:.1f} m)"
-        print(f"{r.data.path}: {p.lat:.6f}, {p.lon:.6f}  {err}{was}  [{len(r.data.frames)} frames]")
+        status = estimate_status(db, p, r.data.truth)
+        print(f"{r.data.path}: {p.lat:.6f}, {p.lon:.6f}  {status}  {err}{was}  [{len(r.data.frames)} frames]")
+
+    from appliance.position import estimate_status
 
     results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
     print(f"report: {page}  table: {out / 'summary.csv'}")

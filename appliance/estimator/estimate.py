@@ -28,10 +28,10 @@ import numpy as np
 
 from appliance.errors import EstimationError, InputError
 from appliance.estimator import parallax
-from appliance.estimator.exact import Fit, Terrain
+from appliance.estimator.exact import Fit, Model, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
-from appliance.estimator.likelihood import log_likelihood_bounds, posterior_bounds
+from appliance.estimator.likelihood import log_likelihood_bounds, occlusion_cap_deg2, posterior_bounds
 from appliance.estimator.search import (
     TauModel,
     box_decimate,
@@ -113,11 +113,19 @@ class SkylineGrid:
         return parallax.inverse_range2_table(self.distance_min_m, self.distance_log_step)
 
     @cached_property
-    def coarse_tau2(self) -> np.ndarray:
-        """The parallax model's variance over each first-pass run of azimuths (uint8 codes)."""
+    def _coarse_tau2_cache(self) -> dict[float, np.ndarray]:
+        return {}
+
+    def coarse_tau2(self, map_sigma_m: float = 0.0) -> np.ndarray:
+        """The model's variance (parallax, the map's height error) over each first-pass run of
+        azimuths (uint8 codes); made once per map error."""
         assert self.distance_codes is not None
-        return parallax.coarse_tau2_codes(self.codes, self.distance_codes, self.offset_deg, self.step_deg,
-                                          self.ground_gradient2, self.rho2_m2, self.inverse_range2, COARSE_STRIDE)
+        cache = self._coarse_tau2_cache
+        if map_sigma_m not in cache:
+            cache[map_sigma_m] = parallax.coarse_tau2_codes(
+                self.codes, self.distance_codes, self.offset_deg, self.step_deg, self.ground_gradient2, self.rho2_m2,
+                self.inverse_range2, COARSE_STRIDE, map_sigma_m)
+        return cache[map_sigma_m]
 
     @cached_property
     def coarse(self) -> tuple[np.ndarray, np.ndarray]:
@@ -163,8 +171,8 @@ class EstimateResult:
     notes: list[str] = field(default_factory=list)
 
 
-def _linearised(grid: SkylineGrid, m: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
-                sig_ref: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
+                sig_ref: float, cap: float, map_sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted residual sums (deg^2), log-normalisers and moves (east m, north m, heading deg) of
     ``rows`` at whole ``shifts`` under the linearised parallax model (``parallax.py``)."""
     assert grid.distance_codes is not None
@@ -180,7 +188,8 @@ def _linearised(grid: SkylineGrid, m: np.ndarray, rows: np.ndarray, shifts: np.n
     parallax.linearised_fit(grid.codes, grid.distance_codes, grid.offset_deg, grid.step_deg, ge, gn, gamma, jj, mj,
                             np.asarray(rows, dtype=np.int64), np.asarray(shifts, dtype=np.int64), grid.rho2_m2,
                             grid.inverse_range2, sig_ref * sig_ref, parallax.LINEARISED_SCALE**2, half * half,
-                            grid.az_step_deg**2, out, pen, moves)
+                            grid.az_step_deg**2, w[jj].astype(np.float64), float(min(cap, 1e30)),
+                            map_sigma_m * map_sigma_m, out, pen, moves)
     return out, pen, moves
 
 
@@ -196,7 +205,7 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
     return chosen
 
 
-def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: int, sig_lo: float,
+def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
               sig_hi: float) -> tuple[Fit, bool]:
     """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
     node), and whether a fit at another place reaches it with its upper bound."""
@@ -264,13 +273,20 @@ def estimate(
     min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
     refine: bool = True,
     height_m: float | None = None,
+    occlusion_weight: float = 0.0,
+    weights: np.ndarray | None = None,
+    map_sigma_m: float = 0.0,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
     ``heading_tolerance_deg`` = None means no compass: every heading is searched.  ``log_prior``
     is a per-node log prior (uniform in heading), e.g. from fusion; None is uniform.  ``height_m``
     is the camera's height above the map's surface for the exact refinement (default: the
-    database's).
+    database's).  ``occlusion_weight`` is the prior share of azimuths hidden by something the map
+    does not hold (trees, buildings): measurements above the prediction then cost at most
+    :func:`occlusion_cap_deg2`.  ``weights`` (0..1 per input azimuth: the detector's confidence, a
+    mask) weigh the measurements.  ``map_sigma_m`` is the map's vertical error (1 sigma, metres):
+    it adds (sigma_v / d)^2 to each azimuth's variance.
     """
     t0 = time.perf_counter()
     sig_lo, sig_hi = float(sigma_deg[0]), float(sigma_deg[1])
@@ -278,6 +294,19 @@ def estimate(
         raise InputError(f"sigma interval [{sig_lo}, {sig_hi}] must satisfy 0 < lo <= hi")
     n_az = grid.n_azimuths
     m = resample_to_grid(azimuth_deg, elevation_deg, n_az)
+    if weights is not None:
+        wts = np.asarray(weights, dtype=float)
+        if wts.shape != np.shape(elevation_deg) or not np.all((wts >= 0) & (wts <= 1) | np.isnan(wts)):
+            raise InputError("weights: one value in [0, 1] per measured azimuth")
+        w_grid = resample_to_grid(azimuth_deg, np.where(np.isfinite(elevation_deg), wts, np.nan), n_az)
+        m = np.where(np.isfinite(w_grid) & (w_grid > 0), m, np.nan)
+        w_grid = np.where(np.isfinite(m), w_grid, 0.0)
+    else:
+        w_grid = np.isfinite(m).astype(float)
+    if not 0.0 <= occlusion_weight < 1.0:
+        raise InputError(f"occlusion weight {occlusion_weight}: expected 0 <= w < 1")
+    if not (math.isfinite(map_sigma_m) and map_sigma_m >= 0.0):
+        raise InputError(f"map vertical sigma {map_sigma_m} m: expected >= 0")
     valid = np.isfinite(m)
     n = int(valid.sum())
     step = grid.az_step_deg
@@ -290,6 +319,9 @@ def estimate(
     notes: list[str] = []
     # the parallax model's variances are weighed against sigma's midpoint
     sig_ref = 0.5 * (sig_lo + sig_hi)
+    cap = occlusion_cap_deg2(occlusion_weight, sig_ref)
+    # the likelihood's sample count: the measurements' total weight
+    n_eff = float(w_grid.sum())
 
     if heading_tolerance_deg is not None:
         if heading_tolerance_deg < 0:
@@ -300,10 +332,11 @@ def estimate(
         # every heading of the band lies within half a run of one of them
         k_dec = int(math.ceil(k / COARSE_STRIDE))
         m_dec = box_decimate(m, COARSE_STRIDE)
-        scale = n / max(int(np.isfinite(m_dec).sum()), 1)
-        tau_c = (grid.coarse_tau2, *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
+        w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
+        scale = n / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n, 1)
+        tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
         coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
-                                        np.arange(-k_dec, k_dec + 1), tau_c)
+                                        np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), cap)
         coarse *= np.float32(scale)
         coarse_pen = coarse_pen.astype(np.float64) * scale
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
@@ -325,7 +358,7 @@ def estimate(
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
     # the residual grows, so each node's best first-pass shift decides for the node.
     cmin = np.min(coarse, axis=1).astype(np.float64)
-    c_lo, c_up = log_likelihood_bounds(cmin, n, sig_lo, sig_hi)
+    c_lo, c_up = log_likelihood_bounds(cmin, n_eff, sig_lo, sig_hi)
     c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
     node_up = c_up + lp
@@ -335,9 +368,10 @@ def estimate(
         rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
     tau = None
     if grid.distance_codes is not None:
-        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2, sig_ref)
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2, sig_ref,
+                       map_sigma_m)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
-                           tau=tau)
+                           tau=tau, weights=w_grid, cap_deg2=cap)
     ssd_r = ssd_r.astype(np.float64)
     pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
     if not np.isfinite(ssd_r).any():
@@ -349,7 +383,7 @@ def estimate(
         # spacing no longer decides, what the linear model cannot say does (LINEARISED_SCALE)
         k_best = np.argmin(ssd_r, axis=1)
         shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
-        ssd_r, pen_lin, moves_r = _linearised(grid, m, rescore, shifts_r[:, 0], sig_ref)
+        ssd_r, pen_lin, moves_r = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0], sig_ref, cap, map_sigma_m)
         ssd_r = ssd_r[:, None]
         pen_r = 0.5 * pen_lin[:, None]
 
@@ -357,7 +391,7 @@ def estimate(
     # best: their share of the sums is nil, and their own posteriors are their likelihood over the
     # (unchanged) sum of the rest.
     lp_r = lp[rescore, None] - pen_r
-    lo_r, up_r = log_likelihood_bounds(ssd_r, n, sig_lo, sig_hi)
+    lo_r, up_r = log_likelihood_bounds(ssd_r, n_eff, sig_lo, sig_hi)
     post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
     best_r, best_k = divmod(best_flat, ssd_r.shape[1])
@@ -396,6 +430,7 @@ def estimate(
             tries = _distinct_nodes(scored, node_lower, grid.n_cols, SCREEN_NODES, best_node)
             tol = heading_tolerance_deg
             bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+            exact_model = Model(w_grid, occlusion_cap_deg2(occlusion_weight, sig_lo), map_sigma_m)
             looks = []
             for cand in tries:
                 ir = int(np.searchsorted(rescore, cand))
@@ -409,7 +444,7 @@ def estimate(
                 for start, phi0 in (((float(c_row), float(c_col)), sh * step),
                                     ((c_row - dn / grid.dy_m, c_col + de / grid.dx_m), sh * step + dphi)):
                     cost, phi = screen_exact(grid.terrain, grid.dx_m, grid.dy_m, m, start[0], start[1], gam, phi0,
-                                             bounds, height_m, sig_lo)
+                                             bounds, height_m, sig_lo, exact_model)
                     looks.append((cost, cand, start, phi))
             looks.sort(key=lambda v: v[0])
             fits = []
@@ -422,11 +457,11 @@ def estimate(
                 refined.append(cand)
                 c_row, c_col = divmod(cand, grid.n_cols)
                 fit = refine_exact(grid.terrain, grid.dx_m, grid.dy_m, m, c_row, c_col, grid.n_cols, phi, height_m,
-                                   start, sig_lo, bounds)
+                                   start, sig_lo, bounds, exact_model)
                 if fit is not None:
                     fits.append(fit)
             if fits:
-                best_fit, rival = _best_fit(fits, grid, lp, n, sig_lo, sig_hi)
+                best_fit, rival = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi)
                 frow, fcol, heading, rms = best_fit.row, best_fit.col, best_fit.heading_deg, best_fit.rms_deg
                 # the cell the exact fit stands in belongs to the region
                 near = (min(max(int(round(frow)), 0), grid.n_rows - 1) * grid.n_cols

@@ -68,6 +68,34 @@ class Terrain:
 
 
 @dataclass(frozen=True)
+class Model:
+    """How measurements meet renders: per-azimuth weights (confidence, masks; None = 1), the
+    occlusion cap (deg^2, ``likelihood.occlusion_cap_deg2``) and the map's vertical error (m)."""
+
+    measurement_weights: np.ndarray | None = None
+    cap_deg2: float = math.inf
+    map_sigma_m: float = 0.0
+
+    def weights_for(self, valid: np.ndarray) -> np.ndarray:
+        w = self.measurement_weights
+        return valid.astype(float) if w is None else np.where(valid, w, 0.0)
+
+    def weights(self, valid: np.ndarray, distance_m: np.ndarray, sigma_deg: float) -> np.ndarray:
+        """Each azimuth's weight sigma^2 / (sigma^2 + (sigma_v / d)^2), times its measurement weight."""
+        u = self.weights_for(valid)
+        if self.map_sigma_m > 0.0:
+            m2 = (DEG * self.map_sigma_m / np.maximum(distance_m, 1.0)) ** 2
+            u = u * sigma_deg**2 / (sigma_deg**2 + m2)
+        return u
+
+    def cost(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Sum over the last axis of u r^2, each term above the prediction capped (an occluder)."""
+        q = u * r * r
+        q = np.where((r > 0) & (q > self.cap_deg2), self.cap_deg2, q)
+        return np.sum(q, axis=-1)
+
+
+@dataclass(frozen=True)
 class Fit:
     """A refined candidate: fractional node (row, col), heading correction, residual sum over n."""
 
@@ -121,10 +149,12 @@ def screen(
     heading_bounds_deg: tuple[float, float],
     height_m: float | None = None,
     sigma_deg: float = 0.3,
+    model: Model | None = None,
 ) -> tuple[float, float]:
     """(residual sum, heading) of the best heading (within the bounds) at one position, from one
     exact render interpolated along azimuth, the eye's height fitted to first order under its prior:
     a cheap look before a full fit."""
+    mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
     az = np.arange(n_az) * step
@@ -143,13 +173,15 @@ def screen(
     if trial.size == 0:
         trial = np.array([min(max(heading_deg, lo), hi)])
     pos = (np.arange(n_az)[None, :] + (trial[:, None] - heading_deg) / step) % n_az
-    model = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
-    r = np.where(valid[None, :], measured[None, :] - model, 0.0)
+    sky = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
+    r = np.where(valid[None, :], measured[None, :] - sky, 0.0)
+    u = mdl.weights(valid, d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0), sigma_deg)
     # the eye's height, to first order, with its prior
     jz = np.where(valid, dz, 0.0)
     prior = (sigma_deg / EYE_SIGMA_M) ** 2
-    h = (r @ jz) / (jz @ jz + prior)
-    cost = np.sum(r * r, axis=1) - h * (r @ jz)
+    h = ((r * u) @ jz) / ((u * jz) @ jz + prior)
+    r = r - h[:, None] * jz[None, :]
+    cost = mdl.cost(r, u) + prior * h * h
     k = int(np.argmin(cost))
     return float(cost[k]), float(trial[k])
 
@@ -167,11 +199,15 @@ def refine(
     start: tuple[float, float] | None = None,
     sigma_deg: float = 0.3,
     heading_bounds_deg: tuple[float, float] = (-180.0, 180.0),
+    model: Model | None = None,
 ) -> Fit | None:
     """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
     NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
     node.  The eye's height above the map's surface is ``height_m`` plus an offset with a
-    Gaussian prior of EYE_SIGMA_M: the map's own height error under the camera."""
+    Gaussian prior of EYE_SIGMA_M: the map's own height error under the camera.  ``model`` holds
+    the measurement weights, the occlusion cap and the map's vertical error; the fit's ``ssd`` is
+    its cost (:meth:`Model.cost`)."""
+    mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
     az = np.arange(n_az) * step
@@ -185,11 +221,12 @@ def refine(
 
     def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         s, d, _ = render(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, dist, h_m + p[3])
-        ok = valid & np.isfinite(s)
+        ok = valid & np.isfinite(s) & np.isfinite(d)
         r = np.where(ok, measured - np.where(ok, s, 0.0), 0.0)
         if ok.sum() < 0.9 * n_valid or not ok.any():
             return math.inf, r, s, d, ok
-        return float(np.sum(r * r)) * n_valid / ok.sum(), r, s, d, ok
+        u = mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg)
+        return float(mdl.cost(r, u)) * n_valid / ok.sum(), r, s, d, ok
 
     def clamp(q: np.ndarray) -> np.ndarray:
         q[0] = min(max(q[0], node_row - MAX_OFFSET_CELLS), node_row + MAX_OFFSET_CELLS)
@@ -227,8 +264,12 @@ def refine(
         d_north = DEG * (se * un - ce2 * gn + slope * tn) / dd
         d_eye = -DEG * ce2 / dd
         J_all = np.where(okd[:, None], np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1), 0.0)
+        u = mdl.weights(ok, dd, sigma_deg)
         var = sig2 + (J_all * J_all) @ spread
-        w_all = np.where(ok, 1.0 / (var * (1.0 + r * r / (ROBUST_SCALE**2 * var))), 0.0)
+        # Cauchy weights keep a ridge that jumped to another one near the eye from pulling the fit;
+        # an occluded azimuth does not pull at all
+        w_all = np.where(ok, u / (var * (1.0 + r * r / (ROBUST_SCALE**2 * var))), 0.0)
+        w_all = np.where((r > 0) & (u * r * r > mdl.cap_deg2), 0.0, w_all)
         A = J_all.T @ (J_all * w_all[:, None]) + np.diag(prior / sig2)
         g = J_all.T @ (w_all * r) - prior / sig2 * np.array([0.0, 0.0, 0.0, p[3]])
         here = float(np.sum(w_all * r * r)) + prior[3] / sig2 * p[3] ** 2

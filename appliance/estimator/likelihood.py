@@ -30,13 +30,13 @@ import numpy as np
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def log_likelihood(ssd: np.ndarray, n: int, sigma_deg: float) -> np.ndarray:
+def log_likelihood(ssd: np.ndarray, n: float, sigma_deg: float) -> np.ndarray:
     """log L for squared-residual sums ``ssd`` (deg^2) over ``n`` samples at one sigma (deg)."""
     s2 = sigma_deg * sigma_deg
     return -0.5 * n * (LOG_2PI + math.log(s2)) - ssd / (2.0 * s2)
 
 
-def log_likelihood_bounds(ssd: np.ndarray, n: int, sigma_lo: float, sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
+def log_likelihood_bounds(ssd: np.ndarray, n: float, sigma_lo: float, sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper log-likelihood over sigma in [sigma_lo, sigma_hi] (deg)."""
     if not 0 < sigma_lo <= sigma_hi:
         raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
@@ -94,3 +94,35 @@ def posterior_bounds(log_lo: np.ndarray, log_up: np.ndarray, log_prior: np.ndarr
     log_lower = lo - np.logaddexp(lo, rest_up)
     log_upper = up - np.logaddexp(up, rest_lo)
     return PosteriorBounds(log_lower.reshape(log_lo.shape), log_upper.reshape(log_lo.shape))
+
+
+#: The span (deg) above the terrain over which an occluder's top may lie, for the occlusion component.
+OCCLUDER_SPAN_DEG = 20.0
+
+
+def occlusion_cap_deg2(weight: float, sigma_deg: float) -> float:
+    """The most a measurement *above* the predicted skyline may cost, as a squared residual (deg^2).
+
+    An occluder in front of the terrain (a tree, a building, the rover's mast) can only raise the
+    measured skyline, never lower it.  Each azimuth's likelihood is the mixture
+
+        p(m | s) = (1 - w) N(m; s, sigma^2) + w U(m; s, s + H)          (U: uniform above s),
+
+    with w the occlusion weight and H = OCCLUDER_SPAN_DEG.  Below the prediction only the Gaussian
+    speaks, so a measured skyline well below the rendered one stays strong evidence against the
+    place; above it, -2 sigma^2 log p levels off at
+
+        C = 2 sigma^2 log(1 / kappa),   kappa = w sqrt(2 pi) sigma / ((1 - w) H),
+
+    which is where the occlusion component takes over.  Residuals enter the n-sample Gaussian of
+    the interval posterior as min(r^2, C) above the prediction, so the region keeps its closed form.
+    ``weight`` = 0 gives the plain Gaussian (C infinite).
+    """
+    if not weight > 0.0:
+        return math.inf
+    if weight >= 1.0:
+        return 0.0
+    kappa = weight * math.sqrt(2.0 * math.pi) * sigma_deg / ((1.0 - weight) * OCCLUDER_SPAN_DEG)
+    if kappa >= 1.0:
+        return 0.0
+    return 2.0 * sigma_deg * sigma_deg * math.log(1.0 / kappa)

@@ -86,9 +86,18 @@ def tau2_at(codes: np.ndarray, dist: np.ndarray, i: int, j: int, n_az: int, off:
     return rho2 * inv_d2[dc] * (se * se + ce * ce * g2 + slope * slope)
 
 
+@numba.njit(cache=True, inline="always")
+def map_var_at(dist: np.ndarray, i: int, j: int, map2: float, inv_d2: np.ndarray) -> float:
+    """The map's own height error seen at the horizon point (deg^2): sigma_v^2 / d^2."""
+    dc = dist[i, j]
+    if dc == MISSING_CODE:
+        return 0.0
+    return map2 * inv_d2[dc]
+
+
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _coarse_tau2(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, g2: np.ndarray,
-                 rho2: float, inv_d2: np.ndarray, factor: int, out: np.ndarray) -> None:
+                 rho2: float, inv_d2: np.ndarray, factor: int, map2: float, out: np.ndarray) -> None:
     n, n_az = codes.shape
     n_dec = n_az // factor
     az_step = 360.0 / n_az
@@ -104,6 +113,7 @@ def _coarse_tau2(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: 
             acc = 0.0
             for j in range(t * factor, (t + 1) * factor):
                 acc += tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
+                acc += map_var_at(dist, i, j, map2, inv_d2)
             v = acc / factor
             if v <= TAU2_MIN_DEG2:
                 out[i, t] = 0
@@ -112,11 +122,13 @@ def _coarse_tau2(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: 
 
 
 def coarse_tau2_codes(codes: np.ndarray, dist: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray,
-                      g2: np.ndarray, rho2: float, inv_d2: np.ndarray, factor: int) -> np.ndarray:
-    """Mean tau^2 over runs of ``factor`` azimuths, as uint8 log codes, shape (n_nodes, n_az / factor)."""
+                      g2: np.ndarray, rho2: float, inv_d2: np.ndarray, factor: int,
+                      map_sigma_m: float = 0.0) -> np.ndarray:
+    """Mean tau^2 (parallax and the map's height error) over runs of ``factor`` azimuths, as uint8
+    log codes, shape (n_nodes, n_az / factor)."""
     n, n_az = codes.shape
     out = np.empty((n, n_az // factor), dtype=np.uint8)
-    _coarse_tau2(codes, dist, offset_deg, step_deg, g2, rho2, inv_d2, factor, out)
+    _coarse_tau2(codes, dist, offset_deg, step_deg, g2, rho2, inv_d2, factor, map_sigma_m * map_sigma_m, out)
     return out
 
 
@@ -150,8 +162,8 @@ def ground_gradient(ground_m: np.ndarray, n_rows: int, n_cols: int, dx_m: float,
 def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, ge: np.ndarray,
                    gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, mj: np.ndarray, rows: np.ndarray,
                    shifts: np.ndarray, rho2: float, inv_d2: np.ndarray, sig2: float, lin2: float,
-                   offset_prior_m2: float, heading_prior_deg2: float, out: np.ndarray, pen: np.ndarray,
-                   delta: np.ndarray) -> None:
+                   offset_prior_m2: float, heading_prior_deg2: float, wj: np.ndarray, cap: float, map2: float,
+                   out: np.ndarray, pen: np.ndarray, delta: np.ndarray) -> None:
     """For node rows[r] at whole shift shifts[r]: the best move (east m, north m, heading deg, eye
     height m) of its skyline under the first-order parallax model, and the weighted residual sum.
 
@@ -160,7 +172,10 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
     azimuth's residual is weighted by sigma^2 / (sigma^2 + lin2 * tau^2); the move has a Gaussian
     prior (``offset_prior_m2`` per axis, ``heading_prior_deg2``, and for the height the ground's
     rise over the offset).  out[r] is the minimum of the weighted sum plus the prior's term, in
-    deg^2; pen[r] the log-normaliser."""
+    deg^2; pen[r] the log-normaliser.  ``wj`` weighs each measured azimuth (the detector's
+    confidence); a residual above the model whose weighted square exceeds ``cap`` is an occluder
+    (``likelihood.occlusion_cap_deg2``): it adds ``cap`` and leaves the fit alone.  ``map2`` is the
+    map's height variance (m^2)."""
     n_az = codes.shape[1]
     n_t = jj.size
     az_step = 360.0 / n_az
@@ -193,8 +208,13 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
             e_deg = o + st * c
             res = mj[t] - e_deg
             t2 = lin2 * tau2_at(codes, dist, i, idx, n_az, o, st, az_step, g2, rho2, inv_d2)
+            t2 += map_var_at(dist, i, idx, map2, inv_d2)
             w = sig2 / (sig2 + t2)
-            p += math.log1p(t2 / sig2)
+            p += wj[t] * math.log1p(t2 / sig2)
+            if res > 0.0 and w * res * res > cap:
+                rr += wj[t] * cap
+                continue
+            w *= wj[t]
             dc = dist[i, idx]
             jp = idx + 1 if idx + 1 < n_az else 0
             jm = idx - 1 if idx > 0 else n_az - 1

@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from appliance.estimator.parallax import tau2_at
+from appliance.estimator.parallax import map_var_at, tau2_at
 from appliance.numerics import FAST_FINITE
 
 MISSING_CODE = 255
@@ -47,13 +47,18 @@ def _ssd_shifts(
     sig2: float,
     use_tau: bool,
     pen: np.ndarray,
+    wj: np.ndarray,
+    cap: float,
+    map2: float,
 ) -> None:
     """out[r, k] = sum_t w_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
 
     Works in each node's code units, (m - offset) / step against the uint8 codes, so a skyline is
     never decoded; azimuths where the node has no terrain are left out and the sum rescaled.  With
     ``use_tau`` each term is weighted by sigma^2 / (sigma^2 + tau^2) (``parallax.py``) and pen[r]
-    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.
+    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.  ``wj`` weighs the
+    measured azimuths; a measurement above the model whose weighted square passes ``cap`` (deg^2)
+    counts ``cap``: an occluder, not evidence against the node.
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
@@ -77,14 +82,16 @@ def _ssd_shifts(
                 p = 0.0
                 for j in range(n_az):
                     t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
+                    t2 += map_var_at(dist, i, j, map2, inv_d2)
                     wn[j] = np.float32(sig2 / (sig2 + t2))
                 for t in range(n_t):
-                    p -= math.log(wn[jj[t]])
+                    p -= wj[t] * math.log(wn[jj[t]])
                 pen[r] = p
             inv = np.float32(1.0 / st)
             for t in range(n_t):
                 mt[t] = (mj[t] - o) * inv
             scale = np.float32(st * st)
+            cap_c = np.float32(cap / (st * st))
             for k in range(n_shift):
                 sh = shifts[r, k] % n_az
                 acc = np.float32(0.0)
@@ -96,7 +103,10 @@ def _ssd_shifts(
                     c = codes[i, idx]
                     if c != MISSING_CODE:
                         d = mt[t] - np.float32(c)
-                        acc += wn[idx] * d * d
+                        q = wn[idx] * d * d
+                        if d > 0 and q > cap_c:
+                            q = cap_c
+                        acc += wj[t] * q
                         cnt += 1
                 if cnt == n_t:
                     out[r, k] = acc * scale
@@ -143,10 +153,11 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[n
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                 w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
-                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray) -> None:
+                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float) -> None:
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
-    node's log-normaliser at shift 0."""
+    node's log-normaliser at shift 0.  A measurement above the model whose weighted square passes
+    ``cap`` (deg^2) counts ``cap`` (an occluder)."""
     n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
@@ -165,8 +176,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
             trow = T[i]
             for t in range(d):
                 ww[t] = w_lut[trow[t]]
-                if w[t] > 0:
-                    p += p_lut[trow[t]]
+                p += w[t] * p_lut[trow[t]]
             pen[i] = p
         else:
             for t in range(d):
@@ -177,6 +187,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
         for t in range(d):
             mt[t] = (m[t] - o) * inv
         scale = np.float32(st * st)
+        cap_c = np.float32(cap / (st * st))
         row = C[i]
         for k in range(n_shift):
             sh = shifts[k] % d
@@ -193,10 +204,16 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                 w_tail = w[d - sh :]
                 for t in range(d - sh):
                     e = m_head[t] - np.float32(head[t])
-                    acc += w_head[t] * v_head[t] * e * e
+                    q = v_head[t] * e * e
+                    if e > 0 and q > cap_c:
+                        q = cap_c
+                    acc += w_head[t] * q
                 for t in range(sh):
                     e = m_tail[t] - np.float32(tail[t])
-                    acc += w_tail[t] * v_tail[t] * e * e
+                    q = v_tail[t] * e * e
+                    if e > 0 and q > cap_c:
+                        q = cap_c
+                    acc += w_tail[t] * q
                 out[i, k] = acc * scale
             else:
                 cnt = 0.0
@@ -205,8 +222,11 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                     c = row[ts]
                     if w[t] > 0 and c != MISSING_CODE:
                         e = mt[t] - np.float32(c)
-                        acc += ww[ts] * e * e
-                        cnt += 1.0
+                        q = ww[ts] * e * e
+                        if e > 0 and q > cap_c:
+                            q = cap_c
+                        acc += w[t] * q
+                        cnt += w[t]
                 if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
                     out[i, k] = np.inf
                 else:
@@ -216,14 +236,16 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
 def ssd_coarse(
     coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
     measured_dec: np.ndarray, shifts: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    weights_dec: np.ndarray | None = None, cap_deg2: float = math.inf,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SSD (deg^2) of every node on decimated skylines (:func:`decimated`) for shifts in decimated
     steps, shape (n_nodes, len(shifts)), and each node's log-normaliser.  ``tau`` = (tau^2 codes,
-    weight table, normaliser table) weights the residuals by the model variance."""
+    weight table, normaliser table) weights the residuals by the model variance; ``weights_dec``
+    weighs the measured azimuths (default 1); ``cap_deg2`` is the occlusion cap."""
     C, partial = coarse
     valid = np.isfinite(measured_dec)
     m = np.where(valid, measured_dec, 0.0).astype(np.float32)
-    w = valid.astype(np.float32)
+    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
     out = np.empty((C.shape[0], len(shifts)), dtype=np.float32)
     pen = np.empty(C.shape[0], dtype=np.float32)
     if tau is None:
@@ -231,7 +253,7 @@ def ssd_coarse(
     else:
         (T, w_lut, p_lut), use = tau, True
     _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
-                use, pen)
+                use, pen, float(min(cap_deg2, 1e30)))
     return out, pen
 
 
@@ -244,6 +266,8 @@ def ssd_for_shifts(
     rows: np.ndarray | None = None,
     stride: int = 1,
     tau: TauModel | None = None,
+    weights: np.ndarray | None = None,
+    cap_deg2: float = math.inf,
 ) -> np.ndarray:
     """SSD (deg^2) of nodes ``rows`` (default all) for each shift (azimuth steps).
 
@@ -256,6 +280,8 @@ def ssd_for_shifts(
     used = valid & (np.arange(measured_deg.size) % stride == 0)
     jj = np.nonzero(used)[0].astype(np.int64)
     mj = np.asarray(measured_deg)[jj].astype(np.float32)
+    wj = np.ones(jj.size, np.float32) if weights is None else np.asarray(weights, np.float32)[jj]
+    cap = float(min(cap_deg2, 1e30))
     idx = np.arange(codes.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     sh = np.asarray(shifts, dtype=np.int64)
     if sh.ndim == 1:
@@ -265,10 +291,10 @@ def ssd_for_shifts(
     pen = np.empty(idx.size, dtype=np.float64)
     if tau is None:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
-                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen)
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, wj, cap, 0.0)
     else:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
-                    tau.inv_d2, tau.sigma_ref**2, True, pen)
+                    tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2)
         tau.penalty = pen
     if stride > 1:
         out *= float(valid.sum()) / max(float(jj.size), 1.0)
@@ -280,9 +306,9 @@ class TauModel:
     receives each scored node's log-normaliser."""
 
     def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
-                 sigma_ref: float):
+                 sigma_ref: float, map_sigma_m: float = 0.0):
         self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
-        self.sigma_ref = sigma_ref
+        self.sigma_ref, self.map_sigma_m = sigma_ref, map_sigma_m
         self.penalty = np.zeros(0)
 
 

@@ -52,6 +52,17 @@ class LogSummary:
             self.estimate["lat"], self.estimate["lon"], self.truth["lat"], self.truth["lon"]
         )
 
+    @property
+    def estimate_status(self) -> str:
+        """'ambiguous' when the estimate's region was too large (or the truth lies outside it), 'ok'
+        otherwise, 'unknown' for a log without the full estimate record."""
+        if self.estimate is None or "ambiguous" not in self.estimate:
+            return "unknown"
+        if self.estimate["ambiguous"]:
+            region = self.estimate.get("region", {})
+            return f"ambiguous ({region.get('n_cells', '?')} cells as likely as the best)"
+        return "ok"
+
     def lines(self) -> list[str]:
         state = "complete" if self.complete else f"INCOMPLETE: {self.problem} (try 'viper log recover')"
         out = [f"{self.path}: {self.size_bytes} bytes, {self.message_count} messages, {state}"]
@@ -64,7 +75,8 @@ class LogSummary:
         if self.truth is not None:
             out.append(f"GPS truth: lat {self.truth['lat']:.6f} lon {self.truth['lon']:.6f}")
         if self.estimate is not None:
-            out.append(f"estimate:  lat {self.estimate['lat']:.6f} lon {self.estimate['lon']:.6f}")
+            e = self.estimate
+            out.append(f"estimate:  lat {e['lat']:.6f} lon {e['lon']:.6f}  {self.estimate_status}")
         err = self.error_m
         if err is not None:
             out.append(f"estimate error vs GPS truth: {err:.1f} m")

@@ -87,7 +87,7 @@ def render_skyline(
         e = np.degrees(np.arctan(tan[rows, best]))
         elev[start : start + chunk] = np.where(any_valid, e, np.nan)
         far[start : start + chunk] = np.where(any_valid, dist[best], np.nan)
-    return Horizon(az, elev, far, ground)
+    return Horizon(az, elev, distance_m=far, ground_m=ground)
 
 
 def _farthest_corner_m(dem: Dem, lat: float, lon: float) -> float:

@@ -330,7 +330,9 @@ def resample_photo(sky: PhotoSkyline, step_deg: float) -> Skyline:
     span = np.where(usable, rel[i + 1] - rel[i], 1.0)
     t = np.where(usable, (q - rel[i]) / span, 0.0)
     out_el = np.where(usable, el[i] * (1 - t) + el[np.minimum(i + 1, el.size - 1)] * t, np.nan)
-    return Skyline(out_az, out_el)
+    c = sky.confidence
+    out_conf = np.where(np.isfinite(out_el), np.clip(np.minimum(c[i], c[np.minimum(i + 1, c.size - 1)]), 0, 1), 0.0)
+    return Skyline(out_az, out_el, out_conf)
 
 
 def skyline_pixels(photo: Photo, skyline: Skyline) -> tuple[np.ndarray, np.ndarray]:

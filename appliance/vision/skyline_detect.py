@@ -529,7 +529,9 @@ def resample(columns: ColumnSkyline, pano: Panorama, step_deg: float) -> Skyline
     e0, e1 = columns.elevation_deg[i0], columns.elevation_deg[i1]
     val = e0 * (1 - frac) + e1 * frac
     el = np.where(ok & np.isfinite(e0) & np.isfinite(e1), val, np.nan)
-    return Skyline(out_az, el)
+    # an azimuth is as trustworthy as the weaker of the two columns it comes from
+    conf = np.where(np.isfinite(el), np.clip(np.minimum(columns.confidence[i0], columns.confidence[i1]), 0, 1), 0.0)
+    return Skyline(out_az, el, conf)
 
 
 def detect_skyline(
