@@ -74,7 +74,9 @@ def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: Estimator
         frame = Frame(i, img)
         frames.append(TaggedFrame(i, frame, float(stage), (true_yaw + compass_error) % 360.0, roll, pitch))
     sky = detect_skyline(stitch_frames(frames, intr))
-    pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid)
+    # as the session's onboard estimate does (acquisition/onboard.locate_skyline)
+    pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid, occlusion_weight=est.occlusion_weight,
+                 map_sigma_m=est.map_vertical_sigma_m)
     _, _, err = dem.geod.inv(lon, lat, pos.lon, pos.lat)
     x, y = db.grid.lonlat_to_xy(lon, lat)
     r, c = db.grid.xy_to_rc(x, y)
@@ -83,30 +85,47 @@ def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: Estimator
     return float(err), pos, inside, float(np.isfinite(sky.elevation_deg).mean())
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--seeds", type=int, default=100)
-    ap.add_argument("--first", type=int, default=1)
-    args = ap.parse_args()
+_STATE: dict = {}
+
+
+def _setup() -> None:
     dem = load_dem("jacksboro")
     cache = Path(tempfile.gettempdir()) / "viper-bench-db"
     cache.mkdir(exist_ok=True)
     db = demo_database(dem, cache)
-    grid = skyline_grid(db)
-    cell_m = float(np.sqrt(db.grid.dx_m * db.grid.dy_m))
-    intr = CameraIntrinsics.from_fov(640, 480, 60.0)
-    est, ses = EstimatorConfig(), SessionConfig()
-    rows = []
+    _STATE.update(dem=dem, db=db, grid=skyline_grid(db), intr=CameraIntrinsics.from_fov(640, 480, 60.0),
+                  est=EstimatorConfig(), ses=SessionConfig(), cell_m=float(np.sqrt(db.grid.dx_m * db.grid.dy_m)))
+
+
+def _run(seed: int) -> tuple:
+    st = _STATE
+    err, pos, inside, seen = one_session(seed, st["dem"], st["db"], st["grid"], st["intr"], st["est"], st["ses"])
+    r = pos.result
+    cells = err / st["cell_m"]
+    flag = "ambiguous" if r.ambiguous else "ok"
+    print(f"seed {seed}: {err:7.1f} m ({cells:5.2f} cells), region {r.region_nodes.size} cells, truth "
+          f"{'inside' if inside else 'OUTSIDE'}, {flag}, skyline {seen:.0%}, estimate {r.elapsed_s * 1e3:.0f} ms",
+          flush=True)
+    return seed, cells, inside, r.region_nodes.size, r.ambiguous, r.elapsed_s
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--first", type=int, default=1)
+    ap.add_argument("--jobs", type=int, default=1, help="worker processes (each loads the database)")
+    args = ap.parse_args()
+    _setup()  # builds the database once, before any worker starts
+    cell_m = _STATE["cell_m"]
+    seeds = list(range(args.first, args.first + args.seeds))
     t0 = time.monotonic()
-    for seed in range(args.first, args.first + args.seeds):
-        err, pos, inside, seen = one_session(seed, dem, db, grid, intr, est, ses)
-        r = pos.result
-        cells = err / cell_m
-        rows.append((seed, cells, inside, r.region_nodes.size, r.ambiguous, r.elapsed_s))
-        flag = "ambiguous" if r.ambiguous else "ok"
-        print(f"seed {seed}: {err:7.1f} m ({cells:5.2f} cells), region {r.region_nodes.size} cells, truth "
-              f"{'inside' if inside else 'OUTSIDE'}, {flag}, skyline {seen:.0%}, estimate {r.elapsed_s * 1e3:.0f} ms",
-              flush=True)
+    if args.jobs > 1:
+        import multiprocessing
+
+        with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+            rows = sorted(pool.map(_run, seeds, chunksize=1))
+    else:
+        rows = [_run(seed) for seed in seeds]
     wall = time.monotonic() - t0
     cells = np.array([x[1] for x in rows])
     inside = np.array([x[2] for x in rows])

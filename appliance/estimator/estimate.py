@@ -31,7 +31,13 @@ from appliance.estimator import parallax
 from appliance.estimator.exact import Fit, Model, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
-from appliance.estimator.likelihood import log_likelihood_bounds, occlusion_cap_deg2, posterior_bounds
+from appliance.estimator.likelihood import (
+    OCCLUDER_SPAN_DEG,
+    log_likelihood,
+    mixture_log_likelihood_bounds,
+    occlusion_cap_deg2,
+    posterior_bounds,
+)
 from appliance.estimator.search import (
     TauModel,
     box_decimate,
@@ -172,9 +178,11 @@ class EstimateResult:
 
 
 def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
-                sig_ref: float, cap: float, map_sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted residual sums (deg^2), log-normalisers and moves (east m, north m, heading deg) of
-    ``rows`` at whole ``shifts`` under the linearised parallax model (``parallax.py``)."""
+                sig_ref: float, cap: float,
+                map_sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted residual sums (deg^2), log-normalisers, moves (east m, north m, heading deg, eye m)
+    and occluded weights of ``rows`` at whole ``shifts`` under the linearised parallax model
+    (``parallax.py``)."""
     assert grid.distance_codes is not None
     valid = np.isfinite(m)
     jj = np.nonzero(valid)[0].astype(np.int64)
@@ -183,14 +191,15 @@ def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarra
     gamma = grid.convergence_deg
     out = np.empty(rows.size)
     pen = np.empty(rows.size)
+    occ = np.empty(rows.size)
     moves = np.empty((rows.size, 4))
     half = 0.5 * max(grid.dx_m, grid.dy_m)
     parallax.linearised_fit(grid.codes, grid.distance_codes, grid.offset_deg, grid.step_deg, ge, gn, gamma, jj, mj,
                             np.asarray(rows, dtype=np.int64), np.asarray(shifts, dtype=np.int64), grid.rho2_m2,
                             grid.inverse_range2, sig_ref * sig_ref, parallax.LINEARISED_SCALE**2, half * half,
                             grid.az_step_deg**2, w[jj].astype(np.float64), float(min(cap, 1e30)),
-                            map_sigma_m * map_sigma_m, out, pen, moves)
-    return out, pen, moves
+                            map_sigma_m * map_sigma_m, out, pen, moves, occ)
+    return out, pen, moves, occ
 
 
 def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: int, first: int) -> list[int]:
@@ -205,8 +214,21 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
     return chosen
 
 
+def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
+    """Residual sums with each occluded measurement counting the cap: what ranks headings."""
+    return ssd if not math.isfinite(cap) else ssd + occluded * cap
+
+
+def _mixture_at(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma: float, weight: float) -> np.ndarray:
+    """The occlusion mixture's log-likelihood at one sigma (``likelihood.mixture_log_likelihood_bounds``)."""
+    if not weight > 0.0:
+        return log_likelihood(ssd, n, sigma)
+    n_g = np.maximum(n - occluded, 1.0)
+    return log_likelihood(ssd, n_g, sigma) + occluded * math.log(weight / OCCLUDER_SPAN_DEG) + n_g * math.log1p(-weight)
+
+
 def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
-              sig_hi: float) -> tuple[Fit, bool]:
+              sig_hi: float, occlusion_weight: float) -> tuple[Fit, bool]:
     """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
     node), and whether a fit at another place reaches it with its upper bound."""
     def near(f: Fit) -> int:
@@ -215,7 +237,8 @@ def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: floa
         return r * grid.n_cols + c
 
     ssd = np.array([f.ssd * n / max(f.n, 1) for f in fits])
-    lo, up = log_likelihood_bounds(ssd, n, sig_lo, sig_hi)
+    occ = np.array([f.occluded * n / max(f.n, 1) for f in fits])
+    lo, up = mixture_log_likelihood_bounds(ssd, n, occ, sig_lo, sig_hi, occlusion_weight)
     lp = np.array([log_prior[near(f)] for f in fits])
     lo, up = lo + lp, up + lp
     k = int(np.argmax(lo))
@@ -335,9 +358,11 @@ def estimate(
         w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
         scale = n / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n, 1)
         tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
+        coarse_occ = np.empty((n_nodes, 2 * k_dec + 1), dtype=np.float32)
         coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
-                                        np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), cap)
+                                        np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), cap, coarse_occ)
         coarse *= np.float32(scale)
+        coarse_occ *= np.float32(scale)
         coarse_pen = coarse_pen.astype(np.float64) * scale
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
     else:
@@ -353,12 +378,16 @@ def estimate(
         band = np.arange(-half, half + 1)
         node_shifts = (coarse_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
         coarse = np.repeat(coarse_best[:, None], band.size, axis=1).astype(np.float32)
+        coarse_occ = np.zeros_like(coarse)
         coarse_pen = np.zeros(n_nodes)
 
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
-    # the residual grows, so each node's best first-pass shift decides for the node.
-    cmin = np.min(coarse, axis=1).astype(np.float64)
-    c_lo, c_up = log_likelihood_bounds(cmin, n_eff, sig_lo, sig_hi)
+    # the residual grows, so each node's best first-pass shift decides for the node (an occluded
+    # measurement counting the cap there).
+    k_c = np.argmin(_capped(coarse, coarse_occ, cap), axis=1)
+    cmin = np.take_along_axis(coarse, k_c[:, None], axis=1)[:, 0].astype(np.float64)
+    cocc = np.take_along_axis(coarse_occ, k_c[:, None], axis=1)[:, 0].astype(np.float64)
+    c_lo, c_up = mixture_log_likelihood_bounds(cmin, n_eff, cocc, sig_lo, sig_hi, occlusion_weight)
     c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
     node_up = c_up + lp
@@ -370,9 +399,11 @@ def estimate(
     if grid.distance_codes is not None:
         tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2, sig_ref,
                        map_sigma_m)
+    occ_r32 = np.empty((rescore.size, node_shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
-                           tau=tau, weights=w_grid, cap_deg2=cap)
+                           tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
     ssd_r = ssd_r.astype(np.float64)
+    occ_r = occ_r32.astype(np.float64)
     pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
@@ -381,17 +412,18 @@ def estimate(
     if grid.has_parallax:
         # each node's skyline moved by its own first-order parallax within its cell: the grid's
         # spacing no longer decides, what the linear model cannot say does (LINEARISED_SCALE)
-        k_best = np.argmin(ssd_r, axis=1)
+        k_best = np.argmin(_capped(ssd_r, occ_r, cap), axis=1)
         shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
-        ssd_r, pen_lin, moves_r = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0], sig_ref, cap, map_sigma_m)
-        ssd_r = ssd_r[:, None]
+        ssd_lin, pen_lin, moves_r, occ_lin = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0], sig_ref, cap,
+                                                         map_sigma_m)
+        ssd_r, occ_r = ssd_lin[:, None], occ_lin[:, None]
         pen_r = 0.5 * pen_lin[:, None]
 
     # Exact posteriors over the rescored candidates.  The others lie hundreds of nats below the
     # best: their share of the sums is nil, and their own posteriors are their likelihood over the
     # (unchanged) sum of the rest.
     lp_r = lp[rescore, None] - pen_r
-    lo_r, up_r = log_likelihood_bounds(ssd_r, n_eff, sig_lo, sig_hi)
+    lo_r, up_r = mixture_log_likelihood_bounds(ssd_r, n_eff, occ_r, sig_lo, sig_hi, occlusion_weight)
     post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
     best_r, best_k = divmod(best_flat, ssd_r.shape[1])
@@ -408,7 +440,7 @@ def estimate(
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     mid = 0.5 * (sig_lo + sig_hi)
     node_mid = np.full(n_nodes, -np.inf)
-    ll_mid = -ssd_r / (2.0 * mid * mid) + lp_r
+    ll_mid = _mixture_at(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
     node_mid -= np.logaddexp.reduce(node_mid[rescore])
     posterior_mid = np.exp(node_mid)
@@ -461,8 +493,12 @@ def estimate(
                 if fit is not None:
                     fits.append(fit)
             if fits:
-                best_fit, rival = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi)
-                frow, fcol, heading, rms = best_fit.row, best_fit.col, best_fit.heading_deg, best_fit.rms_deg
+                best_fit, rival = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi, occlusion_weight)
+                frow, fcol, heading = best_fit.row, best_fit.col, best_fit.heading_deg
+                rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
+                if best_fit.occluded > 0.05 * best_fit.n:
+                    notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
+                                 "terrain (trees, buildings, masts?) and were left out")
                 # the cell the exact fit stands in belongs to the region
                 near = (min(max(int(round(frow)), 0), grid.n_rows - 1) * grid.n_cols
                         + min(max(int(round(fcol)), 0), grid.n_cols - 1))

@@ -76,6 +76,12 @@ class Model:
     cap_deg2: float = math.inf
     map_sigma_m: float = 0.0
 
+    @property
+    def eye_sigma_m(self) -> float:
+        """How far the eye may float from the map's surface (1 sigma): the map's error, at least
+        EYE_SIGMA_M."""
+        return max(EYE_SIGMA_M, self.map_sigma_m)
+
     def weights_for(self, valid: np.ndarray) -> np.ndarray:
         w = self.measurement_weights
         return valid.astype(float) if w is None else np.where(valid, w, 0.0)
@@ -88,11 +94,18 @@ class Model:
             u = u * sigma_deg**2 / (sigma_deg**2 + m2)
         return u
 
-    def cost(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Sum over the last axis of u r^2, each term above the prediction capped (an occluder)."""
+    def split(self, r: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Over the last axis: the sum of u r^2 over the measurements the terrain explains, and the
+        weight of those above it by more than the cap (occluders)."""
         q = u * r * r
-        q = np.where((r > 0) & (q > self.cap_deg2), self.cap_deg2, q)
-        return np.sum(q, axis=-1)
+        hidden = (r > 0) & (q > self.cap_deg2)
+        return np.sum(np.where(hidden, 0.0, q), axis=-1), np.sum(np.where(hidden, u, 0.0), axis=-1)
+
+    def cost(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Sum over the last axis of u r^2, each occluded term counting the cap: the residual sum at
+        sigma's reference, which ranks trial positions and headings."""
+        ssd, occ = self.split(r, u)
+        return ssd + occ * min(self.cap_deg2, 1e30)
 
 
 @dataclass(frozen=True)
@@ -106,6 +119,7 @@ class Fit:
     n: int
     iterations: int
     eye_offset_m: float = 0.0
+    occluded: float = 0.0  # weight of the measurements taken for occluders (not in ssd)
 
     @property
     def rms_deg(self) -> float:
@@ -178,12 +192,32 @@ def screen(
     u = mdl.weights(valid, d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0), sigma_deg)
     # the eye's height, to first order, with its prior
     jz = np.where(valid, dz, 0.0)
-    prior = (sigma_deg / EYE_SIGMA_M) ** 2
+    prior = (sigma_deg / mdl.eye_sigma_m) ** 2
     h = ((r * u) @ jz) / ((u * jz) @ jz + prior)
     r = r - h[:, None] * jz[None, :]
     cost = mdl.cost(r, u) + prior * h * h
     k = int(np.argmin(cost))
     return float(cost[k]), float(trial[k])
+
+
+def jacobian(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
+             elevation_deg: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
+    """d(elevation)/d(row, col, heading, eye height) per azimuth (deg per cell, deg per deg, deg per
+    metre), from the parallax of each horizon point of the skyline rendered at (row, col)."""
+    step = 360.0 / grid_azimuth_deg.size
+    s = np.asarray(elevation_deg, dtype=float)
+    slope = (np.roll(s, -1) - np.roll(s, 1)) / (2.0 * step)
+    slope = np.where(np.isfinite(slope), slope, 0.0)
+    beta = np.radians(grid_azimuth_deg)
+    e = np.radians(np.where(np.isfinite(s), s, 0.0))
+    ge, gn = _gradient(terrain, row, col, dx_m, dy_m)
+    se, ce2 = np.sin(e) * np.cos(e), np.cos(e) ** 2
+    ue, un = np.sin(beta), np.cos(beta)
+    te, tn = np.cos(beta), -np.sin(beta)
+    d_east = DEG * (se * ue - ce2 * ge + slope * te) / distance_m
+    d_north = DEG * (se * un - ce2 * gn + slope * tn) / distance_m
+    d_eye = -DEG * ce2 / distance_m
+    return np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1)
 
 
 def refine(
@@ -204,7 +238,7 @@ def refine(
     """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
     NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
     node.  The eye's height above the map's surface is ``height_m`` plus an offset with a
-    Gaussian prior of EYE_SIGMA_M: the map's own height error under the camera.  ``model`` holds
+    Gaussian prior (``Model.eye_sigma_m``): the map's own height error under the camera.  ``model`` holds
     the measurement weights, the occlusion cap and the map's vertical error; the fit's ``ssd`` is
     its cost (:meth:`Model.cost`)."""
     mdl = Model() if model is None else model
@@ -244,26 +278,16 @@ def refine(
     # degrees within a cell, count for little and the far ones steer; as the fit closes in, the
     # spread shrinks and every azimuth counts fully.  Cauchy weights keep a ridge that jumped to
     # another one near the eye from pulling the fit.
-    spread = np.array([START_SPREAD_CELLS**2, START_SPREAD_CELLS**2, (0.5 * step) ** 2, EYE_SIGMA_M**2])
-    prior = np.array([0.0, 0.0, 0.0, sig2 / EYE_SIGMA_M**2])
+    eye2 = mdl.eye_sigma_m**2
+    spread = np.array([START_SPREAD_CELLS**2, START_SPREAD_CELLS**2, (0.5 * step) ** 2, eye2])
+    prior = np.array([0.0, 0.0, 0.0, sig2 / eye2])
     lam = 1e-3
     iterations = 0
     while iterations < MAX_ITERATIONS:
         iterations += 1
         okd = ok & np.isfinite(d)
-        beta = np.radians(az + p[2] - gamma)
-        e = np.radians(np.where(okd, s, 0.0))
         dd = np.where(okd, d, 1.0)
-        slope = (np.roll(s, -1) - np.roll(s, 1)) / (2.0 * step)
-        slope = np.where(np.isfinite(slope), slope, 0.0)
-        ge, gn = _gradient(terrain, p[0], p[1], dx_m, dy_m)
-        se, ce2 = np.sin(e) * np.cos(e), np.cos(e) ** 2
-        ue, un = np.sin(beta), np.cos(beta)
-        te, tn = np.cos(beta), -np.sin(beta)
-        d_east = DEG * (se * ue - ce2 * ge + slope * te) / dd
-        d_north = DEG * (se * un - ce2 * gn + slope * tn) / dd
-        d_eye = -DEG * ce2 / dd
-        J_all = np.where(okd[:, None], np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1), 0.0)
+        J_all = np.where(okd[:, None], jacobian(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, s, dd), 0.0)
         u = mdl.weights(ok, dd, sigma_deg)
         var = sig2 + (J_all * J_all) @ spread
         # Cauchy weights keep a ridge that jumped to another one near the eye from pulling the fit;
@@ -297,4 +321,9 @@ def refine(
         spread *= ANNEAL
         if not improved and not annealing:
             break
-    return Fit(float(p[0]), float(p[1]), float(p[2]), cost, n_valid, iterations, float(p[3]))
+    # the eye's departure from the map's surface is paid for under its prior
+    ssd_u, occ_u = mdl.split(r, mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg))
+    k = n_valid / max(int(ok.sum()), 1)
+    ssd, occ = float(ssd_u) * k, float(occ_u) * k
+    return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2, n_valid, iterations,
+               float(p[3]), occ)

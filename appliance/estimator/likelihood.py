@@ -30,17 +30,18 @@ import numpy as np
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def log_likelihood(ssd: np.ndarray, n: float, sigma_deg: float) -> np.ndarray:
+def log_likelihood(ssd: np.ndarray, n: float | np.ndarray, sigma_deg: float) -> np.ndarray:
     """log L for squared-residual sums ``ssd`` (deg^2) over ``n`` samples at one sigma (deg)."""
     s2 = sigma_deg * sigma_deg
     return -0.5 * n * (LOG_2PI + math.log(s2)) - ssd / (2.0 * s2)
 
 
-def log_likelihood_bounds(ssd: np.ndarray, n: float, sigma_lo: float, sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
+def log_likelihood_bounds(ssd: np.ndarray, n: float | np.ndarray, sigma_lo: float,
+                          sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper log-likelihood over sigma in [sigma_lo, sigma_hi] (deg)."""
     if not 0 < sigma_lo <= sigma_hi:
         raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
-    star = np.sqrt(np.maximum(ssd, 0.0) / max(n, 1))
+    star = np.sqrt(np.maximum(ssd, 0.0) / np.maximum(n, 1))
     s_best = np.clip(star, sigma_lo, sigma_hi)
     upper = -0.5 * n * (LOG_2PI + 2.0 * np.log(s_best)) - ssd / (2.0 * s_best**2)
     lower = np.minimum(log_likelihood(ssd, n, sigma_lo), log_likelihood(ssd, n, sigma_hi))
@@ -126,3 +127,20 @@ def occlusion_cap_deg2(weight: float, sigma_deg: float) -> float:
     if kappa >= 1.0:
         return 0.0
     return 2.0 * sigma_deg * sigma_deg * math.log(1.0 / kappa)
+
+
+def mixture_log_likelihood_bounds(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma_lo: float,
+                                  sigma_hi: float, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper log-likelihood over sigma of the occlusion mixture (:func:`occlusion_cap_deg2`).
+
+    ``occluded`` measurements (by weight) are those the occluder explains: each contributes
+    log(w / H), whatever sigma; the other n - occluded contribute the n-sample Gaussian of their
+    residual sum ``ssd`` and log(1 - w) each.  With ``weight`` = 0 this is :func:`log_likelihood_bounds`.
+    """
+    if not weight > 0.0:
+        return log_likelihood_bounds(ssd, n, sigma_lo, sigma_hi)
+    occ = np.asarray(occluded, dtype=np.float64)
+    n_g = np.maximum(n - occ, 1.0)
+    lo, up = log_likelihood_bounds(ssd, n_g, sigma_lo, sigma_hi)
+    const = occ * math.log(weight / OCCLUDER_SPAN_DEG) + n_g * math.log1p(-weight)
+    return lo + const, up + const

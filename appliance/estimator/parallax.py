@@ -163,7 +163,7 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
                    gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, mj: np.ndarray, rows: np.ndarray,
                    shifts: np.ndarray, rho2: float, inv_d2: np.ndarray, sig2: float, lin2: float,
                    offset_prior_m2: float, heading_prior_deg2: float, wj: np.ndarray, cap: float, map2: float,
-                   out: np.ndarray, pen: np.ndarray, delta: np.ndarray) -> None:
+                   out: np.ndarray, pen: np.ndarray, delta: np.ndarray, occ_out: np.ndarray) -> None:
     """For node rows[r] at whole shift shifts[r]: the best move (east m, north m, heading deg, eye
     height m) of its skyline under the first-order parallax model, and the weighted residual sum.
 
@@ -174,8 +174,8 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
     rise over the offset).  out[r] is the minimum of the weighted sum plus the prior's term, in
     deg^2; pen[r] the log-normaliser.  ``wj`` weighs each measured azimuth (the detector's
     confidence); a residual above the model whose weighted square exceeds ``cap`` is an occluder
-    (``likelihood.occlusion_cap_deg2``): it adds ``cap`` and leaves the fit alone.  ``map2`` is the
-    map's height variance (m^2)."""
+    (``likelihood.occlusion_cap_deg2``): it leaves the fit and the sum alone and is counted, by its
+    weight, in occ_out[r].  ``map2`` is the map's height variance (m^2)."""
     n_az = codes.shape[1]
     n_t = jj.size
     az_step = 360.0 / n_az
@@ -185,6 +185,7 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
         pen[r] = 0.0
         for q in range(4):
             delta[r, q] = 0.0
+        occ_out[r] = 0.0
         if math.isnan(o):
             out[r] = np.inf
             continue
@@ -195,6 +196,7 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
         row = np.zeros(4)
         rr = 0.0
         p = 0.0
+        occ = 0.0
         cnt = 0
         g2 = ge[i] * ge[i] + gn[i] * gn[i]
         for t in range(n_t):
@@ -212,7 +214,7 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
             w = sig2 / (sig2 + t2)
             p += wj[t] * math.log1p(t2 / sig2)
             if res > 0.0 and w * res * res > cap:
-                rr += wj[t] * cap
+                occ += wj[t]
                 continue
             w *= wj[t]
             dc = dist[i, idx]
@@ -256,3 +258,4 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
             delta[r, q] = x[q]
         out[r] = max(rr - (b[0] * x[0] + b[1] * x[1] + b[2] * x[2] + b[3] * x[3]), 0.0) * scale
         pen[r] = p * scale
+        occ_out[r] = occ * scale

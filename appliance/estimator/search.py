@@ -50,6 +50,7 @@ def _ssd_shifts(
     wj: np.ndarray,
     cap: float,
     map2: float,
+    occ_out: np.ndarray,
 ) -> None:
     """out[r, k] = sum_t w_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
 
@@ -58,7 +59,8 @@ def _ssd_shifts(
     ``use_tau`` each term is weighted by sigma^2 / (sigma^2 + tau^2) (``parallax.py``) and pen[r]
     is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.  ``wj`` weighs the
     measured azimuths; a measurement above the model whose weighted square passes ``cap`` (deg^2)
-    counts ``cap``: an occluder, not evidence against the node.
+    is an occluder, not evidence against the node: it is left out of the sum and counted (by its
+    weight) in occ_out[r, k].
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
@@ -76,6 +78,7 @@ def _ssd_shifts(
             if math.isnan(o):
                 for k in range(n_shift):
                     out[r, k] = np.inf
+                    occ_out[r, k] = 0.0
                 continue
             st = step[i]
             if use_tau:
@@ -95,6 +98,7 @@ def _ssd_shifts(
             for k in range(n_shift):
                 sh = shifts[r, k] % n_az
                 acc = np.float32(0.0)
+                occ = np.float32(0.0)
                 cnt = 0
                 for t in range(n_t):
                     idx = jj[t] + sh
@@ -105,15 +109,19 @@ def _ssd_shifts(
                         d = mt[t] - np.float32(c)
                         q = wn[idx] * d * d
                         if d > 0 and q > cap_c:
-                            q = cap_c
-                        acc += wj[t] * q
+                            occ += wj[t]
+                        else:
+                            acc += wj[t] * q
                         cnt += 1
                 if cnt == n_t:
                     out[r, k] = acc * scale
+                    occ_out[r, k] = occ
                 elif cnt < (1.0 - MAX_MISSING_FRACTION) * n_t:
                     out[r, k] = np.inf
+                    occ_out[r, k] = 0.0
                 else:
                     out[r, k] = acc * scale * n_t / cnt
+                    occ_out[r, k] = occ * n_t / cnt
 
 
 @numba.njit(cache=True, parallel=True)
@@ -153,11 +161,11 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[n
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                 w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
-                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float) -> None:
+                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float, occ_out: np.ndarray) -> None:
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
     node's log-normaliser at shift 0.  A measurement above the model whose weighted square passes
-    ``cap`` (deg^2) counts ``cap`` (an occluder)."""
+    ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k]."""
     n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
@@ -169,6 +177,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
         if math.isnan(o):
             for k in range(n_shift):
                 out[i, k] = np.inf
+                occ_out[i, k] = 0.0
             continue
         ww = np.empty(d, dtype=np.float32)
         if use_tau:
@@ -192,6 +201,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
         for k in range(n_shift):
             sh = shifts[k] % d
             acc = np.float32(0.0)
+            occ = np.float32(0.0)
             if not partial[i]:
                 # row slices, indexed by range variables: contiguous and vectorisable
                 head = row[sh:]
@@ -205,16 +215,17 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                 for t in range(d - sh):
                     e = m_head[t] - np.float32(head[t])
                     q = v_head[t] * e * e
-                    if e > 0 and q > cap_c:
-                        q = cap_c
-                    acc += w_head[t] * q
+                    hidden = e > 0 and q > cap_c
+                    acc += w_head[t] * (np.float32(0.0) if hidden else q)
+                    occ += w_head[t] if hidden else np.float32(0.0)
                 for t in range(sh):
                     e = m_tail[t] - np.float32(tail[t])
                     q = v_tail[t] * e * e
-                    if e > 0 and q > cap_c:
-                        q = cap_c
-                    acc += w_tail[t] * q
+                    hidden = e > 0 and q > cap_c
+                    acc += w_tail[t] * (np.float32(0.0) if hidden else q)
+                    occ += w_tail[t] if hidden else np.float32(0.0)
                 out[i, k] = acc * scale
+                occ_out[i, k] = occ
             else:
                 cnt = 0.0
                 for t in range(d):
@@ -224,24 +235,28 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                         e = mt[t] - np.float32(c)
                         q = ww[ts] * e * e
                         if e > 0 and q > cap_c:
-                            q = cap_c
-                        acc += w[t] * q
+                            occ += w[t]
+                        else:
+                            acc += w[t] * q
                         cnt += w[t]
                 if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
                     out[i, k] = np.inf
+                    occ_out[i, k] = 0.0
                 else:
                     out[i, k] = acc * scale * n_meas / cnt
+                    occ_out[i, k] = occ * n_meas / cnt
 
 
 def ssd_coarse(
     coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
     measured_dec: np.ndarray, shifts: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    weights_dec: np.ndarray | None = None, cap_deg2: float = math.inf,
+    weights_dec: np.ndarray | None = None, cap_deg2: float = math.inf, occluded: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SSD (deg^2) of every node on decimated skylines (:func:`decimated`) for shifts in decimated
     steps, shape (n_nodes, len(shifts)), and each node's log-normaliser.  ``tau`` = (tau^2 codes,
     weight table, normaliser table) weights the residuals by the model variance; ``weights_dec``
-    weighs the measured azimuths (default 1); ``cap_deg2`` is the occlusion cap."""
+    weighs the measured azimuths (default 1); ``cap_deg2`` is the occlusion cap, and ``occluded``
+    (same shape as the result) receives the weight of the measurements taken for occluders."""
     C, partial = coarse
     valid = np.isfinite(measured_dec)
     m = np.where(valid, measured_dec, 0.0).astype(np.float32)
@@ -252,8 +267,9 @@ def ssd_coarse(
         T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
     else:
         (T, w_lut, p_lut), use = tau, True
+    occ = np.empty_like(out) if occluded is None else occluded
     _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
-                use, pen, float(min(cap_deg2, 1e30)))
+                use, pen, float(min(cap_deg2, 1e30)), occ)
     return out, pen
 
 
@@ -268,13 +284,16 @@ def ssd_for_shifts(
     tau: TauModel | None = None,
     weights: np.ndarray | None = None,
     cap_deg2: float = math.inf,
+    occluded: np.ndarray | None = None,
 ) -> np.ndarray:
     """SSD (deg^2) of nodes ``rows`` (default all) for each shift (azimuth steps).
 
     ``shifts`` is 1-D (the same for every node) or (len(rows), k) per node.  ``measured_deg`` is on
     the database's azimuth grid with NaN where missing.  With ``stride`` > 1 only every stride-th
     azimuth is used and the sum is scaled to the full count: a cheap first pass.  inf marks nodes
-    that cannot be candidates (nodata, or too many azimuths without terrain).
+    that cannot be candidates (nodata, or too many azimuths without terrain).  ``weights`` weigh
+    the measured azimuths; measurements above a node's skyline by more than ``cap_deg2`` (weighted
+    square) are occluders, left out of the sum and counted in ``occluded`` (same shape as the result).
     """
     valid = np.isfinite(measured_deg)
     used = valid & (np.arange(measured_deg.size) % stride == 0)
@@ -289,12 +308,13 @@ def ssd_for_shifts(
     sh = np.ascontiguousarray(sh)
     out = np.empty((idx.size, sh.shape[1]), dtype=np.float32)
     pen = np.empty(idx.size, dtype=np.float64)
+    occ = np.empty(out.shape, dtype=np.float32) if occluded is None else occluded
     if tau is None:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
-                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, wj, cap, 0.0)
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, wj, cap, 0.0, occ)
     else:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
-                    tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2)
+                    tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2, occ)
         tau.penalty = pen
     if stride > 1:
         out *= float(valid.sum()) / max(float(jj.size), 1.0)

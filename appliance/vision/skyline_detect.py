@@ -412,7 +412,60 @@ def _dp_rows(
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
     sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
     conf = np.minimum(conf, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
+    bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t)
+    if bridged is not None:
+        path2, conf2 = bridged
+        take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
+        rows = np.where(take, _refine(drop, path2), rows)
+        conf = np.where(take, conf2, conf)
     return rows, conf
+
+
+def _bridge(
+    drop: np.ndarray,
+    llr: np.ndarray,
+    path: np.ndarray,
+    conf: np.ndarray,
+    cfg: DetectionConfig,
+    masked: np.ndarray,
+    wrap: bool,
+    prior_t: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """A second path through the columns the first one left unconfident, kept within ``2 band_px``
+    rows of the line joining the confident columns on either side, and its confidence.
+
+    A faint edge (a hazy far horizon) loses the first path to a stronger edge lower down, in the
+    terrain; behind an occluder the first path may cut through it.  The window keeps the second path
+    on the skyline's course, and the second path must pass the same confidence test, so a rock or a
+    person filling the window stays missing (no sky above the line) while a faint horizon with sky
+    above it and ground below is found.
+    """
+    h, w = drop.shape
+    good = (conf >= cfg.min_confidence) & ~masked
+    weak = ~good & ~masked
+    if not weak.any() or good.sum() < max(8, w // 50):
+        return None
+    cols = np.arange(w, dtype=np.float64)
+    anchors = cols[good]
+    anchor_rows = path[good].astype(np.float64)
+    if wrap:
+        line = np.interp(cols, anchors, anchor_rows, period=float(w))
+    else:
+        line = np.interp(cols, anchors, anchor_rows)
+    window = 2 * cfg.band_px
+    rr = np.arange(h, dtype=np.float64)[None, :]
+    outside = np.abs(rr - line[:, None]) > window
+    cost_t = _path_cost(drop, llr, cfg, masked, cfg.edge_weight)
+    # confident columns keep their row: the second path leaves and rejoins the first one there
+    pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
+    cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
+    path2 = _run_dp(np.ascontiguousarray(cost_t), cfg, wrap)
+    conf2 = _confidence(drop, llr, path2, cfg, prior_t)
+    sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
+    conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
+    # a column the path could only reach by leaving the window is not the window's answer
+    conf2 = np.where(np.abs(path2 - line) <= window, conf2, 0.0)
+    return path2, conf2
 
 
 def _learn_llr(

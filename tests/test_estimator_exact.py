@@ -1,0 +1,169 @@
+"""Exactness where near terrain forms the horizon: the renderer's near field, the database's ranges,
+the parallax Jacobian, the refinement between nodes, the eye's height per estimate, occluders."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from appliance.estimator import estimate
+from appliance.estimator.exact import jacobian, render
+from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, occlusion_cap_deg2
+from appliance.estimator.search import ssd_for_shifts
+from appliance.position import estimate_status, place, skyline_grid
+from appliance.terrain.database import build_database, load_database
+from appliance.terrain.dem import load_dem
+from appliance.terrain.horizon import render_skyline
+from tests.reference_render import reference_skyline
+
+#: A valley of jacksboro: terrain within 1 km forms 86 % of the horizon, 0.37 rows and 0.29 columns
+#: away from the nearest database node (found from the database's ranges).
+VALLEY = (36.52885833333333, -84.25440833333333)
+WINDOW = (-84.275, 36.51, -84.235, 36.545)
+
+
+@pytest.fixture(scope="module")
+def valley_db(tmp_path_factory):
+    dem = load_dem("jacksboro")
+    path = tmp_path_factory.mktemp("db") / "valley.viperdb"
+    build_database(dem, path, search_bounds=WINDOW, progress=None)
+    return dem, load_database(path, dem)
+
+
+def _error_m(dem, pos, lat, lon):
+    _, _, d = dem.geod.inv(lon, lat, pos.lon, pos.lat)
+    return float(d)
+
+
+def test_render_matches_a_fiftieth_cell_march_where_the_terrain_is_close():
+    # the issue's viewpoint: the old quarter-cell steps left the skyline up to 0.8 deg low here
+    dem = load_dem("jacksboro")
+    lat, lon = 36.5521, -84.1911
+    ours = render_skyline(dem, lat, lon, max_range_m=3000.0)
+    ref = reference_skyline(dem, lat, lon, max_range_m=3000.0)
+    ok = np.isfinite(ref)
+    e = ours.elevation_deg[ok] - ref[ok]
+    assert np.mean(ours.distance_m[ok] < 300.0) > 0.05  # close terrain does form part of this horizon
+    assert math.sqrt(float(np.mean(e**2))) < 0.02
+    assert float(np.max(np.abs(e))) < 0.06
+
+
+def test_database_ranges_are_those_of_the_renderer(valley_db):
+    dem, db = valley_db
+    rng = np.random.default_rng(3)
+    rel = []
+    for node in rng.choice(db.grid.n_nodes, 12, replace=False):
+        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(int(node)))
+        h = render_skyline(dem, float(lat), float(lon), db.height_m)
+        same = np.abs(db.skylines_deg(int(node)) - h.elevation_deg) < 0.05  # the same horizon point
+        ours = db.distances_m(int(node))
+        ok = same & np.isfinite(ours) & np.isfinite(h.distance_m)
+        rel.append(np.abs(ours[ok] / h.distance_m[ok] - 1.0))
+    r = np.concatenate(rel)
+    assert r.size > 1000
+    # log-quantised to 5 % steps (2.5 % at most) on a line sweep whose lines pass within a quarter row
+    assert np.median(r) < 0.05 and np.percentile(r, 90) < 0.25
+
+
+def test_parallax_jacobian_predicts_small_moves(valley_db):
+    _, db = valley_db
+    g = skyline_grid(db)
+    t = g.terrain
+    dist = t.distances(min(g.dx_m, g.dy_m))
+    az = np.arange(360.0)
+    row, col = 10.4, 11.3
+    s0, d0, _ = render(t, g.dx_m, g.dy_m, row, col, az, dist, 1.5)
+    J = jacobian(t, g.dx_m, g.dy_m, row, col, az, s0, d0)
+    eps = 0.01
+    for k, (dr, dc) in enumerate(((eps, 0.0), (0.0, eps))):
+        s1, _, _ = render(t, g.dx_m, g.dy_m, row + dr, col + dc, az, dist, 1.5)
+        numeric = (s1 - s0) / eps
+        far = d0 > 3 * max(g.dx_m, g.dy_m)  # away from the horizon points that switch within a step
+        assert np.corrcoef(numeric[far], J[far, k])[0, 1] > 0.9
+    s_up, _, _ = render(t, g.dx_m, g.dy_m, row, col, az, dist, 1.5 + 0.5)
+    assert np.corrcoef((s_up - s0) / 0.5, J[:, 3])[0, 1] > 0.95
+
+
+def test_a_valley_between_nodes_is_located_exactly(valley_db):
+    dem, db = valley_db
+    lat, lon = VALLEY
+    truth = render_skyline(dem, lat, lon, 1.5)
+    assert np.mean(truth.distance_m < 1000.0) >= 0.6
+    rng = np.random.default_rng(5)
+    compass = 2.5
+    az = np.arange(360.0)
+    el = np.interp((az + compass) % 360, az, truth.elevation_deg, period=360) + rng.normal(0, 0.2, 360)
+    el[rng.choice(360, 36, replace=False)] = np.nan
+    res = estimate(skyline_grid(db), az, el, (0.3, 0.8), 4.0)
+    pos = place(db, res)
+    cell = math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert _error_m(dem, pos, lat, lon) < 0.1 * cell
+    assert abs(res.heading_correction_deg - compass) < 0.3
+    assert res.rms_residual_deg < 0.3  # the exact render fits down to the sensor's noise
+    assert estimate_status(db, pos, (lat, lon)) == "ok"
+    # a truth two kilometres away lies outside the region: replay says so
+    assert estimate_status(db, pos, (lat + 0.018, lon)) == "ambiguous"
+
+
+def test_the_camera_height_is_given_per_estimate(valley_db):
+    dem, db = valley_db
+    lat, lon = VALLEY
+    sky = render_skyline(dem, lat, lon, 12.0)  # on a roof the map does not hold
+    g = skyline_grid(db)
+    right = estimate(g, sky.azimuth_deg, sky.elevation_deg, (0.3, 0.8), 4.0, height_m=12.0)
+    assert _error_m(dem, place(db, right), lat, lon) < 5.0
+    wrong = estimate(g, sky.azimuth_deg, sky.elevation_deg, (0.3, 0.8), 4.0)
+    assert wrong.rms_residual_deg > 3 * right.rms_residual_deg
+
+
+def test_the_occlusion_cap_is_where_the_mixture_levels_off():
+    sigma = 0.5
+    assert occlusion_cap_deg2(0.0, sigma) == math.inf
+    for w in (0.01, 0.1, 0.3):
+        r = 12 * sigma  # far above the prediction: only the occluder explains it
+
+        def nll(x: float, w: float = w) -> float:
+            gauss = (1 - w) * math.exp(-x * x / (2 * sigma * sigma)) / (math.sqrt(2 * math.pi) * sigma)
+            return -2 * sigma * sigma * math.log(gauss + w / OCCLUDER_SPAN_DEG)
+
+        assert nll(r) - nll(0.0) == pytest.approx(occlusion_cap_deg2(w, sigma), rel=0.02)
+    assert occlusion_cap_deg2(0.3, sigma) < occlusion_cap_deg2(0.01, sigma)
+
+
+def test_only_measurements_above_the_terrain_are_capped(valley_db):
+    _, db = valley_db
+    node = 200
+    truth = db.skylines_deg(node)
+    cap = 1.0
+    up, down = truth.copy(), truth.copy()
+    up[100:120] += 5.0  # a tree in front of the ridge
+    down[100:120] -= 5.0  # a skyline below the terrain: no occluder can do that
+    args = (db.codes, db.offset_deg, db.step_deg)
+
+    def score(measured: np.ndarray) -> tuple[float, float]:
+        occ = np.empty((1, 1), dtype=np.float32)
+        ssd = ssd_for_shifts(*args, measured, np.array([0]), rows=np.array([node]), cap_deg2=cap, occluded=occ)
+        return float(ssd[0, 0]), float(occ[0, 0])
+
+    base, base_occ = score(truth)
+    raised, raised_occ = score(up)
+    lowered, lowered_occ = score(down)
+    assert base_occ == 0 and lowered_occ == 0
+    assert raised_occ == 20 and raised == pytest.approx(base, abs=0.1)  # the tree is no evidence against
+    assert lowered - base == pytest.approx(20 * 25.0, rel=0.05)  # a skyline below the terrain is
+
+
+def test_trees_in_front_of_the_ridge_leave_the_estimate_in_place(valley_db):
+    dem, db = valley_db
+    lat, lon = VALLEY
+    truth = render_skyline(dem, lat, lon, 1.5)
+    rng = np.random.default_rng(9)
+    el = truth.elevation_deg + rng.normal(0, 0.2, 360)
+    for start in (40, 200):  # two stands of trees, 25 deg wide, 2 to 6 deg above the terrain
+        el[start : start + 25] += rng.uniform(2.0, 6.0)
+    res = estimate(skyline_grid(db), truth.azimuth_deg, el, (0.3, 0.8), 4.0, occlusion_weight=0.1)
+    pos = place(db, res)
+    assert _error_m(dem, pos, lat, lon) < 0.25 * math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert estimate_status(db, pos, (lat, lon)) == "ok"
