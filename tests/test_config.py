@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 
@@ -61,3 +62,25 @@ def test_every_section_has_defaults():
     cfg = Config()
     for f in dataclasses.fields(cfg):
         assert dataclasses.is_dataclass(getattr(cfg, f.name))
+
+
+def test_the_example_configurations_load():
+    examples = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.toml"))
+    assert len(examples) >= 2
+    tripod = load_config(examples[[p.name for p in examples].index("tripod.toml")])
+    assert tripod.platform.kind == "hardware" and tripod.session.body_mask_deg == ((170.0, 190.0),)
+    assert tripod.estimator.occlusion_weight == 0.05 and tripod.estimator.map_vertical_sigma_m == 5.0
+    for p in examples:
+        load_config(p)
+
+
+@pytest.mark.parametrize("text,name", [
+    ("[estimator]\nocclusion_weight = 1.0\n", "estimator.occlusion_weight"),
+    ("[estimator]\nmap_vertical_sigma_m = -1.0\n", "estimator.map_vertical_sigma_m"),
+    ("[session]\nbody_mask_deg = [[1.0]]\n", "session.body_mask_deg"),
+])
+def test_estimator_and_mask_settings_are_checked(tmp_path, text, name):
+    p = tmp_path / "v.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=name.replace(".", r"\.")):
+        load_config(p)
