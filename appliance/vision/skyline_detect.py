@@ -460,7 +460,7 @@ def _bridge(
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
     cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
     path2 = _run_dp(np.ascontiguousarray(cost_t), cfg, wrap)
-    conf2 = _confidence(drop, llr, path2, cfg, prior_t)
+    conf2 = _confidence(drop, llr, path2, cfg, prior_t, haze_below=True)
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
@@ -508,9 +508,19 @@ def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: i
 
 
 def _confidence(
-    drop: np.ndarray, llr: np.ndarray, path: np.ndarray, cfg: DetectionConfig, prior_t: np.ndarray
+    drop: np.ndarray,
+    llr: np.ndarray,
+    path: np.ndarray,
+    cfg: DetectionConfig,
+    prior_t: np.ndarray,
+    haze_below: bool = False,
 ) -> np.ndarray:
-    """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge."""
+    """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
+
+    With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
+    sky and clearly less sky-like than those above it (far terrain seen through haze), while those
+    above it must look like the learnt sky.
+    """
     h, w = drop.shape
     cols = np.arange(w)
     gap, depth = 2, 8
@@ -534,6 +544,11 @@ def _confidence(
     strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
     c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
+    if haze_below:
+        contrast = np.clip((sky_above + ground_below - 0.3) / 0.4, 0.0, 1.0) * (ground_below > -0.2)
+        c_ground = np.maximum(c_ground, contrast)
+        # and the pixels just above must be the learnt sky itself, not a paler band of far terrain
+        c_sky = np.minimum(c_sky, np.clip((sky_above - 0.2) / 0.3, 0.0, 1.0))
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
     conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)
     return np.where(_steep_runs(path, cfg), 0.0, conf)
