@@ -104,7 +104,8 @@ def main() -> int:
             "60 % of azimuths; measured skyline from the dense reference march, noise 0.2 deg, 10 % missing, "
             "compass error within +-4 deg.\n\n"
             "| date | positions | within 2 cells | median (cells) | truth in region | wrong and not ambiguous | "
-            "median region where right | ambiguous | estimate time | run |\n|---|---|---|---|---|---|---|---|---|---|\n")
+            "median region where right | ambiguous | estimate time | run |\n"
+            "|---|---|---|---|---|---|---|---|---|---|\n")
     with out.open("a") as fh:
         fh.write(line)
     return 0

@@ -58,6 +58,15 @@ AMBIGUOUS_CELLS = 25
 #: how many of those the refinement fits in full.
 SCREEN_NODES = 40
 REFINE_NODES = 3
+#: A fit down to this many times sigma's low end has found the place; RIVAL_LOOKS more modes are
+#: then looked at, and fitted only if their look comes within LOOK_MARGIN times its residual sum.
+CONVERGED_RMS = 1.5
+RIVAL_LOOKS = 4
+LOOK_MARGIN = 2.0
+#: Modes whose upper log-posterior lies further than this below the best's get no look.
+SCREEN_MARGIN_NATS = 30.0
+#: A look stands for the neighbourhood of its point, this spread (1 sigma, cells) around it.
+SCREEN_SPREAD_CELLS = 0.3
 #: Refined fits closer than this (cells) to the best are the same answer.
 SAME_ANSWER_CELLS = 2.0
 #: The smallest field of view (deg of valid azimuths) a skyline must cover.
@@ -175,6 +184,79 @@ class EstimateResult:
     candidates: int
     elapsed_s: float
     notes: list[str] = field(default_factory=list)
+
+
+class _RefineContext:
+    """What the exact refinement of one estimate shares: looks (one render per start, heading
+    scanned) and full fits of the best-looking ones."""
+
+    def __init__(self, grid: SkylineGrid, m: np.ndarray, rescore: np.ndarray, shifts_r: np.ndarray,
+                 ssd_r: np.ndarray, moves_r: np.ndarray, bounds: tuple[float, float], height_m: float | None,
+                 sigma: float, model: Model) -> None:
+        self.grid, self.m, self.rescore, self.shifts_r, self.ssd_r, self.moves_r = grid, m, rescore, shifts_r, ssd_r, \
+            moves_r
+        self.bounds, self.height_m, self.sigma, self.model = bounds, height_m, sigma, model
+
+    def _start(self, cand: int) -> tuple[tuple[float, float], tuple[float, float], float, float]:
+        """The node, where its linearised fit moved it, and the headings of both (deg)."""
+        g, n_az = self.grid, self.m.size
+        step = 360.0 / n_az
+        ir = int(np.searchsorted(self.rescore, cand))
+        sh = float(self.shifts_r[ir, int(np.argmin(self.ssd_r[ir]))])
+        if sh > n_az / 2:
+            sh -= n_az
+        c_row, c_col = divmod(cand, g.n_cols)
+        de, dn, dphi, _ = self.moves_r[ir]
+        return (float(c_row), float(c_col)), (c_row - dn / g.dy_m, c_col + de / g.dx_m), sh * step, sh * step + dphi
+
+    def fit_from_linear(self, cand: int) -> Fit | None:
+        g = self.grid
+        assert g.terrain is not None
+        _, moved, _, phi = self._start(cand)
+        c_row, c_col = divmod(cand, g.n_cols)
+        return refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, moved,
+                            self.sigma, self.bounds, self.model)
+
+    def look_at(self, fit: Fit) -> float:
+        """The cost of a look from where a fit ended (what other looks must come near to rival it)."""
+        g = self.grid
+        assert g.terrain is not None
+        node = min(max(int(round(fit.row)), 0), g.n_rows - 1) * g.n_cols + min(max(int(round(fit.col)), 0),
+                                                                                g.n_cols - 1)
+        cost, _ = screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, fit.row, fit.col, float(g.convergence_deg[node]),
+                               fit.heading_deg, self.bounds, self.height_m, self.sigma, self.model,
+                               SCREEN_SPREAD_CELLS)
+        return cost
+
+    def look_and_fit(self, nodes: list[int], beat: float = math.inf) -> list[Fit]:
+        """One look at each node (from the node and from its linearised move); full fits of the
+        best-looking REFINE_NODES of them, of those only whose look comes within LOOK_MARGIN of
+        ``beat`` (the look from a fit already made) when one is given."""
+        g = self.grid
+        assert g.terrain is not None
+        looks = []
+        for cand in nodes:
+            node, moved, phi_node, phi_moved = self._start(cand)
+            for start, phi0 in ((node, phi_node), (moved, phi_moved)):
+                cost, phi = screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1],
+                                         float(g.convergence_deg[cand]), phi0, self.bounds, self.height_m, self.sigma,
+                                         self.model, SCREEN_SPREAD_CELLS)
+                looks.append((cost, cand, start, phi))
+        looks.sort(key=lambda v: v[0])
+        fits: list[Fit] = []
+        refined: list[int] = []
+        for cost, cand, start, phi in looks:
+            if not math.isfinite(cost) or len(refined) >= REFINE_NODES or cost > LOOK_MARGIN * beat:
+                break
+            if cand in refined:
+                continue
+            refined.append(cand)
+            c_row, c_col = divmod(cand, g.n_cols)
+            fit = refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, start,
+                               self.sigma, self.bounds, self.model)
+            if fit is not None:
+                fits.append(fit)
+        return fits
 
 
 def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
@@ -459,39 +541,22 @@ def estimate(
         if grid.terrain is not None:
             # every distinct mode of the region gets one exact render (heading scanned along it);
             # the best few of those are fitted in full
-            tries = _distinct_nodes(scored, node_lower, grid.n_cols, SCREEN_NODES, best_node)
             tol = heading_tolerance_deg
             bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
             exact_model = Model(w_grid, occlusion_cap_deg2(occlusion_weight, sig_lo), map_sigma_m)
-            looks = []
-            for cand in tries:
-                ir = int(np.searchsorted(rescore, cand))
-                sh = float(shifts_r[ir, int(np.argmin(ssd_r[ir]))])
-                if sh > n_az / 2:
-                    sh -= n_az
-                c_row, c_col = divmod(cand, grid.n_cols)
-                de, dn, dphi, _ = moves_r[ir]
-                gam = float(grid.convergence_deg[cand])
-                # from the node itself and from where its linearised fit moved it
-                for start, phi0 in (((float(c_row), float(c_col)), sh * step),
-                                    ((c_row - dn / grid.dy_m, c_col + de / grid.dx_m), sh * step + dphi)):
-                    cost, phi = screen_exact(grid.terrain, grid.dx_m, grid.dy_m, m, start[0], start[1], gam, phi0,
-                                             bounds, height_m, sig_lo, exact_model)
-                    looks.append((cost, cand, start, phi))
-            looks.sort(key=lambda v: v[0])
-            fits = []
-            refined: list[int] = []
-            for cost, cand, start, phi in looks:
-                if not math.isfinite(cost) or len(refined) >= REFINE_NODES:
-                    break
-                if cand in refined:
-                    continue
-                refined.append(cand)
-                c_row, c_col = divmod(cand, grid.n_cols)
-                fit = refine_exact(grid.terrain, grid.dx_m, grid.dy_m, m, c_row, c_col, grid.n_cols, phi, height_m,
-                                   start, sig_lo, bounds, exact_model)
-                if fit is not None:
-                    fits.append(fit)
+            ctx = _RefineContext(grid, m, rescore, shifts_r, ssd_r, moves_r, bounds, height_m, sig_lo, exact_model)
+            # the modes worth a look: those whose upper posterior comes within SCREEN_MARGIN_NATS of
+            # the best's (the region itself is wider by the whole of sigma's interval)
+            top_up = float(np.max(node_upper[scored]))
+            worth = scored[node_upper[scored] >= top_up - SCREEN_MARGIN_NATS]
+            modes = _distinct_nodes(worth, node_lower, grid.n_cols, SCREEN_NODES, best_node)
+            # the best mode first, fitted straight from where its linearised fit moved it; when that
+            # comes down to the sensor's noise, a few more looks check for a rival, else all of them
+            first = ctx.fit_from_linear(modes[0])
+            if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
+                fits = [first] + ctx.look_and_fit(modes[1 : 1 + RIVAL_LOOKS], ctx.look_at(first))
+            else:
+                fits = ([] if first is None else [first]) + ctx.look_and_fit(modes)
             if fits:
                 best_fit, rival = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi, occlusion_weight)
                 frow, fcol, heading = best_fit.row, best_fit.col, best_fit.heading_deg

@@ -29,8 +29,13 @@ MAX_ITERATIONS = 10
 #: below which the fit has converged.
 MAX_REJECTIONS = 3
 STOP_REDUCTION = 0.005
+#: The looks' distance schedule (``Terrain.look_distances``).
+LOOK_RELATIVE_STEP = 0.02
+LOOK_COARSE_CELLS = 1.0
 #: The map's height error under the camera (m, one sigma): the eye's height floats this much.
 EYE_SIGMA_M = 2.0
+#: A fit whose RMS residual is within this many sigma is at the noise: annealing stops there.
+CONVERGED_NOISE = 1.5
 #: Residuals beyond this many standard deviations count ever less (Cauchy).
 ROBUST_SCALE = 3.0
 #: The parameters' spread (cells) when a fit starts, and its shrinking at every iteration.
@@ -65,6 +70,11 @@ class Terrain:
 
     def distances(self, cell_m: float) -> np.ndarray:
         return ray_distances(cell_m, self.reach_m)
+
+    def look_distances(self, cell_m: float) -> np.ndarray:
+        """A coarser schedule for looks (two per cent of the distance, a cell at most): a quarter
+        of the samples on a large map, angular errors of a few hundredths of a degree."""
+        return ray_distances(cell_m, self.reach_m, relative=LOOK_RELATIVE_STEP, coarse_cells=LOOK_COARSE_CELLS)
 
 
 @dataclass(frozen=True)
@@ -164,10 +174,16 @@ def screen(
     height_m: float | None = None,
     sigma_deg: float = 0.3,
     model: Model | None = None,
+    spread_cells: float = 0.0,
 ) -> tuple[float, float]:
-    """(residual sum, heading) of the best heading (within the bounds) at one position, from one
-    exact render interpolated along azimuth, the eye's height fitted to first order under its prior:
-    a cheap look before a full fit."""
+    """(cost, heading) of the best heading (within the bounds) at one position, from one exact
+    render interpolated along azimuth, the eye's height fitted to first order under its prior: a
+    cheap look before a full fit.
+
+    With ``spread_cells`` > 0 the look stands for a neighbourhood of that spread (1 sigma, cells):
+    each azimuth's variance grows by its parallax over the spread (J var J^T), and the cost is
+    -2 sigma^2 log of the Gaussian with that variance, so a point near a sharp optimum is not
+    judged by the near ridges that swing across it."""
     mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
@@ -175,7 +191,7 @@ def screen(
     valid = np.isfinite(measured)
     h_m = terrain.height_m if height_m is None else float(height_m)
     s, d, _ = render(terrain, dx_m, dy_m, row, col, az + heading_deg - gamma_deg,
-                     terrain.distances(min(dx_m, dy_m)), h_m)
+                     terrain.look_distances(min(dx_m, dy_m)), h_m)
     ok_s = np.isfinite(s) & np.isfinite(d)
     if ok_s.sum() < 0.9 * n_az:
         return math.inf, heading_deg
@@ -189,13 +205,20 @@ def screen(
     pos = (np.arange(n_az)[None, :] + (trial[:, None] - heading_deg) / step) % n_az
     sky = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
     r = np.where(valid[None, :], measured[None, :] - sky, 0.0)
-    u = mdl.weights(valid, d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0), sigma_deg)
+    d_all = d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0)
+    u = mdl.weights(valid, d_all, sigma_deg)
+    log_var = 0.0
+    if spread_cells > 0.0:
+        J = jacobian(terrain, dx_m, dy_m, row, col, az + heading_deg - gamma_deg, filled, d_all)
+        ratio = 1.0 + (J[:, 0] ** 2 + J[:, 1] ** 2) * spread_cells**2 / sigma_deg**2
+        u = u / ratio
+        log_var = sigma_deg**2 * float(np.sum(np.where(valid, np.log(ratio), 0.0)))
     # the eye's height, to first order, with its prior
     jz = np.where(valid, dz, 0.0)
     prior = (sigma_deg / mdl.eye_sigma_m) ** 2
     h = ((r * u) @ jz) / ((u * jz) @ jz + prior)
     r = r - h[:, None] * jz[None, :]
-    cost = mdl.cost(r, u) + prior * h * h
+    cost = mdl.cost(r, u) + prior * h * h + log_var
     k = int(np.argmin(cost))
     return float(cost[k]), float(trial[k])
 
@@ -319,7 +342,8 @@ def refine(
             lam *= 8.0
         annealing = bool(spread[0] > 1e-4)
         spread *= ANNEAL
-        if not improved and not annealing:
+        # done when no step helps and either the spread is spent or the fit is down to the noise
+        if not improved and (not annealing or cost <= (CONVERGED_NOISE * sigma_deg) ** 2 * n_valid):
             break
     # the eye's departure from the map's surface is paid for under its prior
     ssd_u, occ_u = mdl.split(r, mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg))

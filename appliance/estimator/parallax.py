@@ -179,10 +179,18 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
     n_az = codes.shape[1]
     n_t = jj.size
     az_step = 360.0 / n_az
+    sin_az = np.empty(n_az)
+    cos_az = np.empty(n_az)
+    for j in range(n_az):
+        sin_az[j] = math.sin(j * az_step / DEG)
+        cos_az[j] = math.cos(j * az_step / DEG)
     for r in numba.prange(rows.size):
         i = rows[r]
         o = offset[i]
         pen[r] = 0.0
+        # grid azimuth = true azimuth - convergence: turn the tables by the node's convergence
+        sg = math.sin(gamma_deg[i] / DEG)
+        cg = math.cos(gamma_deg[i] / DEG)
         for q in range(4):
             delta[r, q] = 0.0
         occ_out[r] = 0.0
@@ -232,9 +240,8 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
                 e = e_deg / DEG
                 se = e * (1.0 - 0.6666667 * e * e)
                 ce = 1.0 - e * e
-                beta = (idx * az_step - gamma_deg[i]) / DEG
-                sb = math.sin(beta)
-                cb = math.cos(beta)
+                sb = sin_az[idx] * cg - cos_az[idx] * sg
+                cb = cos_az[idx] * cg + sin_az[idx] * sg
                 row[0] = inv_d * (se * sb - ce * ge[i] + slope * cb)
                 row[1] = inv_d * (se * cb - ce * gn[i] - slope * sb)
                 row[3] = -inv_d * ce

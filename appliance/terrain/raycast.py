@@ -28,19 +28,20 @@ RELATIVE_STEP = 0.005
 COARSE_STEP_CELLS = 0.25
 
 
-def ray_distances(cell_m: float, reach_m: float, step_m: float | None = None) -> np.ndarray:
+def ray_distances(cell_m: float, reach_m: float, step_m: float | None = None, relative: float = RELATIVE_STEP,
+                  coarse_cells: float = COARSE_STEP_CELLS) -> np.ndarray:
     """Sample distances (m) along a ray out to ``reach_m``: steps of max(FINE_STEP_CELLS cells,
-    RELATIVE_STEP * distance), at most COARSE_STEP_CELLS cells (or a uniform ``step_m``)."""
+    ``relative`` * distance), at most ``coarse_cells`` cells (or a uniform ``step_m``)."""
     if step_m is not None:
         d = np.arange(1, int(np.ceil(reach_m / step_m)) + 1) * float(step_m)
         return d[d <= reach_m + 1e-9]
     fine = FINE_STEP_CELLS * cell_m
-    coarse = COARSE_STEP_CELLS * cell_m
-    d1 = fine / RELATIVE_STEP  # where the relative step overtakes the finest
-    d2 = coarse / RELATIVE_STEP  # where the coarsest step takes over
+    coarse = coarse_cells * cell_m
+    d1 = fine / relative  # where the relative step overtakes the finest
+    d2 = coarse / relative  # where the coarsest step takes over
     near = np.arange(1, int(round(d1 / fine)) + 1) * fine
-    n_geo = int(math.ceil(math.log(d2 / d1) / math.log1p(RELATIVE_STEP)))
-    mid = d1 * (1.0 + RELATIVE_STEP) ** np.arange(1, n_geo + 1)
+    n_geo = int(math.ceil(math.log(d2 / d1) / math.log1p(relative)))
+    mid = d1 * (1.0 + relative) ** np.arange(1, n_geo + 1)
     start = mid[-1] if mid.size else d1
     n_far = max(0, int(math.ceil((reach_m - start) / coarse)))
     far = start + np.arange(1, n_far + 1) * coarse
