@@ -27,6 +27,32 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 T = TypeVar("T")
 
 
+def _require(ok: bool, key: str, expected: str, value: Any) -> None:
+    """Raise a ConfigError naming ``key`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{key}: expected {expected}, got {value!r}")
+
+
+def _positive(key: str, value: float) -> None:
+    _require(math.isfinite(value) and value > 0, key, "a finite number > 0", value)
+
+
+def _non_negative(key: str, value: float) -> None:
+    _require(math.isfinite(value) and value >= 0, key, "a finite number >= 0", value)
+
+
+def _within(key: str, value: float, lo: float, hi: float) -> None:
+    _require(math.isfinite(value) and lo <= value <= hi, key, f"a number in [{lo:g}, {hi:g}]", value)
+
+
+def _finite(key: str, value: float) -> None:
+    _require(math.isfinite(value), key, "a finite number", value)
+
+
+def _baud(key: str, value: int) -> None:
+    _require(50 <= value <= 4_000_000, key, "a baud rate in [50, 4000000]", value)
+
+
 @dataclass(frozen=True)
 class TerrainConfig:
     """How skylines are rendered from a DEM."""
@@ -36,6 +62,13 @@ class TerrainConfig:
     refraction: float | None = None  # None: the body's default (0.13 on Earth, 0 elsewhere)
     azimuths: int = 360
     body: str | None = None  # None: inferred from the DEM's CRS
+
+    def __post_init__(self) -> None:
+        _positive("terrain.camera_height_m", self.camera_height_m)
+        _positive("terrain.max_range_m", self.max_range_m)
+        if self.refraction is not None:
+            _within("terrain.refraction", self.refraction, -1.0, 1.0)
+        _require(1 <= self.azimuths <= 36_000, "terrain.azimuths", "an integer in [1, 36000]", self.azimuths)
 
 
 @dataclass(frozen=True)
@@ -52,6 +85,12 @@ class EstimatorConfig:
     map_vertical_sigma_m: float = 0.0  # the map's own height error (1 sigma)
 
     def __post_init__(self) -> None:
+        lo, hi = self.sigma_deg
+        _require(math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi, "estimator.sigma_deg",
+                 "[lo, hi] with 0 < lo <= hi", [lo, hi])
+        _within("estimator.heading_tolerance_deg", self.heading_tolerance_deg, 0.0, 180.0)
+        _positive("estimator.heading_step_deg", self.heading_step_deg)
+        _within("estimator.min_valid_fraction", self.min_valid_fraction, 0.0, 1.0)
         if not 0.0 <= self.occlusion_weight < 1.0:
             raise ConfigError(f"estimator.occlusion_weight: expected 0 <= w < 1, got {self.occlusion_weight}")
         if not (math.isfinite(self.map_vertical_sigma_m) and self.map_vertical_sigma_m >= 0.0):
@@ -80,8 +119,10 @@ class LogbookConfig:
     reserve_bytes: int = 65_536  # freed on a full disk so the log can still be sealed
 
     def __post_init__(self) -> None:
-        if not self.fsync_interval_s > 0:
-            raise ConfigError(f"logbook.fsync_interval_s: must be positive, got {self.fsync_interval_s}")
+        _positive("logbook.fsync_interval_s", self.fsync_interval_s)
+        _require(self.chunk_size_bytes >= 1024, "logbook.chunk_size_bytes", "an integer >= 1024",
+                 self.chunk_size_bytes)
+        _require(self.reserve_bytes >= 0, "logbook.reserve_bytes", "an integer >= 0", self.reserve_bytes)
         if self.compression not in ("zstd", "lz4", "none"):
             allowed = "'zstd', 'lz4' or 'none'"
             raise ConfigError(f"logbook.compression: expected {allowed}, got {self.compression!r}")
@@ -111,6 +152,29 @@ class SessionConfig:
     # stage angles (deg, [from, to]) where the platform's own body, mast or antenna stands in the view
     body_mask_deg: tuple[tuple[float, float], ...] = ()
 
+    def __post_init__(self) -> None:
+        _positive("session.interval_s", self.interval_s)
+        _require(self.max_sessions >= 0, "session.max_sessions", "an integer >= 0", self.max_sessions)
+        _require(math.isfinite(self.watchdog_margin) and 0.0 < self.watchdog_margin <= 1.0,
+                 "session.watchdog_margin", "a number in (0, 1]", self.watchdog_margin)
+        _positive("session.step_timeout_s", self.step_timeout_s)
+        _within("session.level_tolerance_deg", self.level_tolerance_deg, 0.0, 90.0)
+        _non_negative("session.level_timeout_s", self.level_timeout_s)
+        _positive("session.level_poll_s", self.level_poll_s)
+        _require(self.compass_steps >= 3, "session.compass_steps", "an integer >= 3", self.compass_steps)
+        _positive("session.compass_max_residual", self.compass_max_residual)
+        _non_negative("session.truth_duration_s", self.truth_duration_s)
+        _require(self.truth_min_fixes >= 1, "session.truth_min_fixes", "an integer >= 1", self.truth_min_fixes)
+        _positive("session.truth_max_hdop", self.truth_max_hdop)
+        _require(math.isfinite(self.capture_overlap) and 0.0 <= self.capture_overlap < 1.0,
+                 "session.capture_overlap", "a number in [0, 1)", self.capture_overlap)
+        _non_negative("session.settle_s", self.settle_s)
+        _positive("session.stage_tolerance_deg", self.stage_tolerance_deg)
+        _within("session.black_frame_max_mean", self.black_frame_max_mean, 0.0, 255.0)
+        for i, (a, b) in enumerate(self.body_mask_deg):
+            _finite(f"session.body_mask_deg[{i}][0]", a)
+            _finite(f"session.body_mask_deg[{i}][1]", b)
+
 
 @dataclass(frozen=True)
 class GpsDeviceConfig:
@@ -121,6 +185,14 @@ class GpsDeviceConfig:
     read_timeout_s: float = 0.5
     reconnect_initial_s: float = 0.1
     reconnect_max_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _baud("devices.gps.baudrate", self.baudrate)
+        _positive("devices.gps.read_timeout_s", self.read_timeout_s)
+        _positive("devices.gps.reconnect_initial_s", self.reconnect_initial_s)
+        _require(math.isfinite(self.reconnect_max_s) and self.reconnect_max_s >= self.reconnect_initial_s,
+                 "devices.gps.reconnect_max_s", f"a number >= reconnect_initial_s ({self.reconnect_initial_s:g})",
+                 self.reconnect_max_s)
 
 
 @dataclass(frozen=True)
@@ -139,6 +211,20 @@ class CompassConfig:
         1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0,
     )
 
+    def __post_init__(self) -> None:
+        _require(self.kind in ("hmc5883l", "nmea"), "devices.compass.kind", "'hmc5883l' or 'nmea'", self.kind)
+        _require(self.i2c_bus >= 0, "devices.compass.i2c_bus", "an integer >= 0", self.i2c_bus)
+        _require(0x03 <= self.i2c_address <= 0x77, "devices.compass.i2c_address", "a 7-bit address in [3, 119]",
+                 self.i2c_address)
+        _require(0 <= self.gain <= 7, "devices.compass.gain", "a gain code in [0, 7]", self.gain)
+        _baud("devices.compass.baudrate", self.baudrate)
+        _require(math.isfinite(self.tnt_angle_scale_deg) and self.tnt_angle_scale_deg != 0.0,
+                 "devices.compass.tnt_angle_scale_deg", "a finite non-zero number", self.tnt_angle_scale_deg)
+        for i, v in enumerate(self.hard_iron_offset):
+            _finite(f"devices.compass.hard_iron_offset[{i}]", v)
+        for i, v in enumerate(self.soft_iron_matrix):
+            _finite(f"devices.compass.soft_iron_matrix[{i}]", v)
+
 
 @dataclass(frozen=True)
 class InclinometerConfig:
@@ -153,6 +239,16 @@ class InclinometerConfig:
     nmea_source: str = ""
     baudrate: int = 4800
 
+    def __post_init__(self) -> None:
+        _require(self.kind in ("adxl345", "nmea"), "devices.inclinometer.kind", "'adxl345' or 'nmea'", self.kind)
+        _require(self.i2c_bus >= 0, "devices.inclinometer.i2c_bus", "an integer >= 0", self.i2c_bus)
+        _require(0x03 <= self.i2c_address <= 0x77, "devices.inclinometer.i2c_address",
+                 "a 7-bit address in [3, 119]", self.i2c_address)
+        _require(self.samples >= 1, "devices.inclinometer.samples", "an integer >= 1", self.samples)
+        _within("devices.inclinometer.pitch_offset_deg", self.pitch_offset_deg, -90.0, 90.0)
+        _within("devices.inclinometer.roll_offset_deg", self.roll_offset_deg, -90.0, 90.0)
+        _baud("devices.inclinometer.baudrate", self.baudrate)
+
 
 @dataclass(frozen=True)
 class StageConfig:
@@ -164,6 +260,14 @@ class StageConfig:
     move_timeout_s: float = 30.0
     speed_deg_s: float = 30.0
     position_tolerance: int = 0  # positions a move may end from its target before it counts as missed
+
+    def __post_init__(self) -> None:
+        _baud("devices.stage.baudrate", self.baudrate)
+        _positive("devices.stage.timeout_s", self.timeout_s)
+        _positive("devices.stage.move_timeout_s", self.move_timeout_s)
+        _positive("devices.stage.speed_deg_s", self.speed_deg_s)
+        _require(self.position_tolerance >= 0, "devices.stage.position_tolerance", "an integer >= 0",
+                 self.position_tolerance)
 
 
 @dataclass(frozen=True)
@@ -177,6 +281,13 @@ class CameraDeviceConfig:
     gain: float = 0.0
     flush_frames: int = 4  # frames read and dropped before each still
     intrinsics_file: Path | None = None  # camera calibration TOML
+
+    def __post_init__(self) -> None:
+        _require(self.width >= 1, "devices.camera.width", "an integer >= 1", self.width)
+        _require(self.height >= 1, "devices.camera.height", "an integer >= 1", self.height)
+        _non_negative("devices.camera.exposure", self.exposure)
+        _non_negative("devices.camera.gain", self.gain)
+        _require(self.flush_frames >= 0, "devices.camera.flush_frames", "an integer >= 0", self.flush_frames)
 
 
 @dataclass(frozen=True)
@@ -215,6 +326,28 @@ class SimFaultsConfig:
     camera_unplug_after: int | None = None  # the camera disappears after this many stills
     camera_black_frames: tuple[int, ...] = ()  # still numbers (from 0) that come back black
 
+    def __post_init__(self) -> None:
+        if self.gps_unplug_at_s is not None:
+            _non_negative("sim.faults.gps_unplug_at_s", self.gps_unplug_at_s)
+        _non_negative("sim.faults.gps_replug_after_s", self.gps_replug_after_s)
+        _within("sim.faults.gps_garbage_rate", self.gps_garbage_rate, 0.0, 1.0)
+        _within("sim.faults.gps_bad_checksum_rate", self.gps_bad_checksum_rate, 0.0, 1.0)
+        if self.gps_stuck_at_s is not None:
+            _non_negative("sim.faults.gps_stuck_at_s", self.gps_stuck_at_s)
+        _finite("sim.faults.gps_drift_m_per_s", self.gps_drift_m_per_s)
+        _finite("sim.faults.compass_drift_deg_per_s", self.compass_drift_deg_per_s)
+        _require(self.stage_miss_step_every >= 0, "sim.faults.stage_miss_step_every", "an integer >= 0",
+                 self.stage_miss_step_every)
+        _require(self.stage_miss_positions >= 0, "sim.faults.stage_miss_positions", "an integer >= 0",
+                 self.stage_miss_positions)
+        if self.stage_stall_at_deg is not None:
+            _within("sim.faults.stage_stall_at_deg", self.stage_stall_at_deg, -180.0, 180.0)
+        if self.camera_unplug_after is not None:
+            _require(self.camera_unplug_after >= 0, "sim.faults.camera_unplug_after", "an integer >= 0",
+                     self.camera_unplug_after)
+        for i, n in enumerate(self.camera_black_frames):
+            _require(n >= 0, f"sim.faults.camera_black_frames[{i}]", "an integer >= 0", n)
+
 
 @dataclass(frozen=True)
 class SimConfig:
@@ -241,6 +374,27 @@ class SimConfig:
     gps_rate_hz: float = 1.0
     seed: int = 0
     faults: SimFaultsConfig = field(default_factory=SimFaultsConfig)
+
+    def __post_init__(self) -> None:
+        _within("sim.lat_deg", self.lat_deg, -90.0, 90.0)
+        _within("sim.lon_deg", self.lon_deg, -180.0, 360.0)
+        if self.ground_elevation_m is not None:
+            _finite("sim.ground_elevation_m", self.ground_elevation_m)
+        _non_negative("sim.mast_height_m", self.mast_height_m)
+        _finite("sim.geoid_separation_m", self.geoid_separation_m)
+        _finite("sim.heading_deg", self.heading_deg)
+        _within("sim.tilt_north_deg", self.tilt_north_deg, -45.0, 45.0)
+        _within("sim.tilt_east_deg", self.tilt_east_deg, -45.0, 45.0)
+        for i, v in enumerate(self.hard_iron_t):
+            _finite(f"sim.hard_iron_t[{i}]", v)
+        for i, v in enumerate(self.soft_iron):
+            _finite(f"sim.soft_iron[{i}]", v)
+        _positive("sim.time_rate", self.time_rate)
+        _non_negative("sim.gps_sigma_m", self.gps_sigma_m)
+        _positive("sim.gps_hdop", self.gps_hdop)
+        _require(0 <= self.gps_satellites <= 99, "sim.gps_satellites", "an integer in [0, 99]", self.gps_satellites)
+        _require(math.isfinite(self.gps_rate_hz) and 0.0 < self.gps_rate_hz <= 100.0, "sim.gps_rate_hz",
+                 "a number in (0, 100]", self.gps_rate_hz)
 
 
 @dataclass(frozen=True)

@@ -84,3 +84,79 @@ def test_estimator_and_mask_settings_are_checked(tmp_path, text, name):
     p.write_text(text)
     with pytest.raises(ConfigError, match=name.replace(".", r"\.")):
         load_config(p)
+
+
+@pytest.mark.parametrize("text,name", [
+    ("[sim]\ntime_rate = 0\n", "sim.time_rate"),
+    ("[sim]\ntime_rate = -2.0\n", "sim.time_rate"),
+    ("[sim]\ntime_rate = nan\n", "sim.time_rate"),
+    ("[sim]\ngps_rate_hz = 0\n", "sim.gps_rate_hz"),
+    ("[sim]\nlat_deg = 91.0\n", "sim.lat_deg"),
+    ("[sim]\nmast_height_m = -1.0\n", "sim.mast_height_m"),
+    ("[sim]\ngps_satellites = -3\n", "sim.gps_satellites"),
+    ("[sim.faults]\ngps_garbage_rate = 1.5\n", "sim.faults.gps_garbage_rate"),
+    ("[sim.faults]\ngps_unplug_at_s = -1.0\n", "sim.faults.gps_unplug_at_s"),
+    ("[sim.faults]\nstage_stall_at_deg = 270.0\n", "sim.faults.stage_stall_at_deg"),
+    ("[sim.faults]\ncamera_black_frames = [2, -1]\n", "sim.faults.camera_black_frames[1]"),
+    ("[session]\ninterval_s = -60.0\n", "session.interval_s"),
+    ("[session]\ninterval_s = 0\n", "session.interval_s"),
+    ("[session]\nmax_sessions = -1\n", "session.max_sessions"),
+    ("[session]\nwatchdog_margin = 1.5\n", "session.watchdog_margin"),
+    ("[session]\nstep_timeout_s = 0\n", "session.step_timeout_s"),
+    ("[session]\nlevel_timeout_s = -1.0\n", "session.level_timeout_s"),
+    ("[session]\nlevel_poll_s = 0\n", "session.level_poll_s"),
+    ("[session]\ncompass_steps = 2\n", "session.compass_steps"),
+    ("[session]\ntruth_duration_s = -30.0\n", "session.truth_duration_s"),
+    ("[session]\ntruth_min_fixes = 0\n", "session.truth_min_fixes"),
+    ("[session]\ncapture_overlap = 1.0\n", "session.capture_overlap"),
+    ("[session]\nsettle_s = -0.5\n", "session.settle_s"),
+    ("[session]\nblack_frame_max_mean = 300.0\n", "session.black_frame_max_mean"),
+    ("[session]\nbody_mask_deg = [[1.0, inf]]\n", "session.body_mask_deg[0][1]"),
+    ("[estimator]\nmin_valid_fraction = -1.0\n", "estimator.min_valid_fraction"),
+    ("[estimator]\nmin_valid_fraction = 1.2\n", "estimator.min_valid_fraction"),
+    ("[estimator]\nheading_step_deg = 0\n", "estimator.heading_step_deg"),
+    ("[estimator]\nheading_tolerance_deg = -4.0\n", "estimator.heading_tolerance_deg"),
+    ("[estimator]\nsigma_deg = [0.8, 0.3]\n", "estimator.sigma_deg"),
+    ("[estimator]\nsigma_deg = [0.0, 0.3]\n", "estimator.sigma_deg"),
+    ("[terrain]\ncamera_height_m = 0\n", "terrain.camera_height_m"),
+    ("[terrain]\nmax_range_m = -5.0\n", "terrain.max_range_m"),
+    ("[terrain]\nrefraction = nan\n", "terrain.refraction"),
+    ("[terrain]\nazimuths = 0\n", "terrain.azimuths"),
+    ("[logbook]\nfsync_interval_s = 0\n", "logbook.fsync_interval_s"),
+    ("[logbook]\nchunk_size_bytes = 10\n", "logbook.chunk_size_bytes"),
+    ("[logbook]\nreserve_bytes = -1\n", "logbook.reserve_bytes"),
+    ("[devices.gps]\nbaudrate = 0\n", "devices.gps.baudrate"),
+    ("[devices.gps]\nread_timeout_s = 0\n", "devices.gps.read_timeout_s"),
+    ("[devices.gps]\nreconnect_initial_s = 2.0\nreconnect_max_s = 1.0\n", "devices.gps.reconnect_max_s"),
+    ("[devices.compass]\nkind = \"qmc\"\n", "devices.compass.kind"),
+    ("[devices.compass]\ngain = 8\n", "devices.compass.gain"),
+    ("[devices.compass]\ni2c_address = 200\n", "devices.compass.i2c_address"),
+    ("[devices.compass]\ntnt_angle_scale_deg = 0\n", "devices.compass.tnt_angle_scale_deg"),
+    ("[devices.inclinometer]\nsamples = 0\n", "devices.inclinometer.samples"),
+    ("[devices.inclinometer]\nroll_offset_deg = 95.0\n", "devices.inclinometer.roll_offset_deg"),
+    ("[devices.stage]\nmove_timeout_s = -1.0\n", "devices.stage.move_timeout_s"),
+    ("[devices.stage]\nspeed_deg_s = 0\n", "devices.stage.speed_deg_s"),
+    ("[devices.stage]\nposition_tolerance = -1\n", "devices.stage.position_tolerance"),
+    ("[devices.camera]\nwidth = 0\n", "devices.camera.width"),
+    ("[devices.camera]\nflush_frames = -1\n", "devices.camera.flush_frames"),
+    ("[devices.camera]\nexposure = -5.0\n", "devices.camera.exposure"),
+])
+def test_ranges_are_checked_by_the_schema(tmp_path, text, name):
+    p = tmp_path / "v.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(p)
+    msg = str(err.value)
+    assert msg.startswith(f"{p}: {name}: expected ")
+    assert "\n" not in msg
+
+
+def test_range_limits_themselves_are_accepted(tmp_path):
+    p = tmp_path / "v.toml"
+    p.write_text("[estimator]\nmin_valid_fraction = 1.0\nsigma_deg = [0.4, 0.4]\nheading_tolerance_deg = 0\n"
+                 "[session]\nsettle_s = 0\nlevel_timeout_s = 0\nmax_sessions = 0\ncapture_overlap = 0\n"
+                 "[sim]\ntime_rate = 0.001\n[sim.faults]\ngps_garbage_rate = 1.0\nstage_stall_at_deg = -180.0\n")
+    cfg = load_config(p)
+    assert cfg.estimator.min_valid_fraction == 1.0 and cfg.estimator.sigma_deg == (0.4, 0.4)
+    assert cfg.session.settle_s == 0.0 and cfg.sim.time_rate == 0.001
+    assert cfg.sim.faults.stage_stall_at_deg == -180.0
