@@ -7,6 +7,7 @@ import importlib
 import pkgutil
 import re
 import sys
+import typing
 from collections.abc import Sequence
 
 import appliance.cli as cli_pkg
@@ -16,7 +17,7 @@ from appliance.errors import ViperError
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus sign.
 NUMBER_LIST_OPTIONS = frozenset({"--truth", "--move", "--search-bounds", "--sigma", "--stage-angles", "--lat",
-                                 "--lon", "--heading-offset", "--azimuth-offset", "--known-bearing-deg"})
+                                 "--lon", "--heading-offset", "--azimuth-offset", "--known-bearing-deg", "--mask"})
 _NEGATIVE_LIST = re.compile(r"^-[0-9.]")
 
 
@@ -35,8 +36,16 @@ def join_negative_values(argv: Sequence[str]) -> list[str]:
     return out
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line on stderr (``viper CMD: error: ...``), exit status 2;
+    ``viper CMD --help`` shows the usage."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="viper",
         description="Viper field appliance: position from the skyline, matched against a DEM.",
     )

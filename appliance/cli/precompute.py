@@ -7,9 +7,12 @@ import time
 
 from appliance.atomic import check_output_path
 from appliance.errors import InputError
-from appliance.terrain.database import build_database
+from appliance.terrain.database import build_database, plan_grids
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
+
+MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)
+MAX_DATABASE_BYTES = 16 * 2**30  # the skylines held in memory while they are built
 
 
 def parse_bounds(text: str) -> tuple[float, float, float, float]:
@@ -35,11 +38,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def check_size(dem: object, args: argparse.Namespace) -> None:
+    """Refuse a grid too large to build, from its node counts, before anything is allocated."""
+    cand, terr, _ = plan_grids(dem, args.search_bounds, args.spacing, args.max_range)  # type: ignore[arg-type]
+    n_terrain = terr.n_rows * terr.n_cols
+    n_bytes = cand.n_rows * cand.n_cols * max(args.azimuths, 1) * 5
+    if n_terrain > MAX_TERRAIN_NODES or n_bytes > MAX_DATABASE_BYTES:
+        raise InputError(
+            f"--spacing {cand.dx_m:.3g} m gives {cand.n_rows} x {cand.n_cols} candidate nodes over a "
+            f"{terr.n_rows} x {terr.n_cols} terrain grid ({n_bytes / 2**30:.3g} GiB of skylines); at most "
+            f"{MAX_TERRAIN_NODES:,} terrain nodes and {MAX_DATABASE_BYTES / 2**30:.0f} GiB: give a larger --spacing "
+            "or smaller --search-bounds"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.spacing is not None and args.spacing <= 0:
         raise InputError(f"--spacing {args.spacing} m must be positive")
     check_output_path(args.out, [args.dem], args.force)
     dem = load_dem(args.dem, crs=args.crs)
+    check_size(dem, args)
     t0 = time.perf_counter()
     header = build_database(
         dem, args.out, args.search_bounds, args.spacing, args.height, args.azimuths,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 import cv2
@@ -105,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if photo_mode:
         return _run_photo(args, cfg)
+    check_azimuth_mask(args.mask)
     image = None
     if args.projection is None and not sidecar_path(args.image).is_file():
         image = read_image(args.image)
@@ -126,6 +128,22 @@ def run(args: argparse.Namespace) -> int:
     write_skyline_csv(skyline, args.out)
     print(f"{args.out}: {skyline.valid.sum()} of {skyline.azimuth_deg.size} azimuths detected")
     return 0
+
+
+def check_azimuth_mask(masks: list[str]) -> None:
+    """A panorama's mask ranges: every end an azimuth within [-360, 360] degrees."""
+    for text in masks:
+        for part in (p.strip() for p in text.split(",")):
+            match = _RANGE.fullmatch(part)
+            if not part or match is None:
+                continue  # the mask parser names malformed ranges
+            for end in match.groups():
+                value = float(end)
+                if not -360.0 <= value <= 360.0:
+                    raise InputError(f"--mask {part!r}: azimuth {end} outside [-360, 360] degrees")
+
+
+_RANGE = re.compile(r"\s*([-+]?[0-9.eE+]+)\s*[-:]\s*([-+]?[0-9.eE+]+)\s*")
 
 
 def _write_png(path: str, image: np.ndarray) -> None:

@@ -1,0 +1,59 @@
+"""Bad values and damaged input files: one-line errors from the readers and the commands' checks."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance.cli.main import main
+
+WINDOW = "--search-bounds=-84.30,36.55,-84.27,36.57"
+
+
+def _pano(path):
+    pano = np.full((360, 720, 3), 200, np.uint8)
+    rows = (180 - 12 * np.sin(np.radians(np.arange(720)))).astype(int)
+    for c, r in enumerate(rows):
+        pano[r:, c] = (40, 90, 60)
+    cv2.imwrite(str(path), pano)
+
+
+def _one_line_error(capsys, rc):
+    out = capsys.readouterr()
+    lines = out.err.strip().splitlines()
+    assert rc != 0 and len(lines) == 1 and "Traceback" not in out.err
+    return lines[0]
+
+
+@pytest.mark.parametrize("spacing", ["0.001", "0.5"])
+def test_precompute_refuses_a_grid_too_large_before_allocating(tmp_path, capsys, spacing):
+    out = tmp_path / "m.viperdb"
+    rc = main(["precompute", "jacksboro", "--spacing", spacing, "--out", str(out)])
+    line = _one_line_error(capsys, rc)
+    assert rc == 2
+    assert f"--spacing {float(spacing):.3g} m gives" in line and "at most 50,000,000 terrain nodes" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_precompute_a_fine_spacing_over_a_small_window_still_builds(tmp_path, capsys):
+    out = tmp_path / "m.viperdb"
+    assert main(["precompute", "jacksboro", WINDOW, "--spacing", "60", "--azimuths", "36", "--out", str(out)]) == 0
+    assert "skylines" in capsys.readouterr().out and out.is_file()
+
+
+@pytest.mark.parametrize("mask,bad", [("10-400", "400"), ("350-10,-500-20", "-500"), ("400:10", "400")])
+def test_skyline_mask_beyond_a_turn_is_refused(tmp_path, capsys, mask, bad):
+    _pano(tmp_path / "pano.png")
+    rc = main(["skyline", str(tmp_path / "pano.png"), "--mask", mask, "--out", str(tmp_path / "s.csv")])
+    line = _one_line_error(capsys, rc)
+    assert line.endswith(f"azimuth {bad} outside [-360, 360] degrees")
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_skyline_mask_within_a_turn_is_accepted(tmp_path, capsys):
+    _pano(tmp_path / "pano.png")
+    rc = main(["skyline", str(tmp_path / "pano.png"), "--mask", "-10-20,350-360", "--out", str(tmp_path / "s.csv")])
+    assert rc == 0, capsys.readouterr().err
+    rows = (tmp_path / "s.csv").read_text().splitlines()
+    assert len(rows) > 300
