@@ -135,3 +135,58 @@ def test_all_nodata_and_missing_crs_are_refused(tmp_path):
     with pytest.raises(DemError, match="no CRS"):
         load_dem(nocrs)
     assert load_dem(nocrs, crs="EPSG:32632").crs.to_epsg() == 32632
+
+
+def test_latitude_beyond_the_pole_is_refused(tmp_path, capsys):
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = tmp_path / "polar.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=8, height=8, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=from_origin(10.0, 95.0, 0.5, 0.5)) as ds:
+        ds.write(np.ones((1, 8, 8), np.float32))
+    with pytest.raises(DemError, match=r"latitude 94\.75 deg, beyond the pole"):
+        load_dem(path)
+    assert main(["dem", "info", str(path), "--json"]) == 1
+    err = capsys.readouterr()
+    assert err.out == "" and err.err.count("\n") == 1 and "beyond the pole" in err.err
+
+
+def test_truncated_npz_is_a_dem_error(tmp_path):
+    src = data_file("dem_other/jacksboro_fault_dem.npz").read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(src[: len(src) // 2])
+    with pytest.raises(DemError) as err:
+        load_dem(cut)
+    assert str(err.value) == (f"{cut}: not a readable .npz grid (File is not a zip file): the file is damaged or "
+                              "truncated")
+
+
+def test_truncated_pds_image_names_its_size(tmp_path):
+    lbl = data_file("dem_planetary/LDEM_4.LBL")
+    img = data_file("dem_planetary/LDEM_4.IMG")
+    (tmp_path / "LDEM_4.LBL").write_bytes(lbl.read_bytes())
+    (tmp_path / "LDEM_4.IMG").write_bytes(img.read_bytes()[:300_000])
+    with pytest.raises(DemError) as err:
+        load_dem(tmp_path / "LDEM_4.IMG")
+    assert str(err.value) == (f"{tmp_path / 'LDEM_4.IMG'}: truncated: 300000 bytes, but its 1440x720 samples need "
+                              "at least 2073600")
+
+
+def test_srtm_tile_under_another_name_is_recognised_by_its_size(tmp_path):
+    src = data_file("dem_srtm_hgt/N44W072.hgt")
+    ref = load_dem(src)
+    copy = tmp_path / "backup-n44w072.dat"
+    copy.write_bytes(src.read_bytes())
+    dem = load_dem(copy)
+    assert dem.metadata["driver"] == "SRTMHGT" and dem.crs.to_epsg() == 4326
+    np.testing.assert_array_equal(dem.elevation_m, ref.elevation_m)
+    assert tuple(dem.transform)[:6] == pytest.approx(tuple(ref.transform)[:6], abs=1e-12)
+    anonymous = tmp_path / "tile.bin"
+    anonymous.write_bytes(src.read_bytes())
+    with pytest.raises(DemError, match=r"size of a 3 arc-second SRTM tile \(1201x1201 int16\).*e\.g\. N44W072\.hgt"):
+        load_dem(anonymous)
+    odd = tmp_path / "N44W072-short.dat"
+    odd.write_bytes(src.read_bytes()[:-2])
+    with pytest.raises(DemError, match="not a readable DEM"):
+        load_dem(odd)

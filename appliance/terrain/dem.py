@@ -13,9 +13,11 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+import zipfile
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from affine import Affine
@@ -229,18 +231,87 @@ def load_dem(path: str | Path | None = None, crs: str | None = None) -> Dem:
         elif suffix == ".e00":
             dem = _load_e00(p)
         else:
-            dem = _load_gdal(p, crs)
+            try:
+                dem = _load_gdal(p, crs)
+            except DemError:
+                tile = _srtm_size(p)
+                if tile is None:
+                    raise
+                dem = _load_srtm_raw(p, tile)
     except DemError:
         raise
-    except (OSError, ValueError, KeyError, IndexError) as exc:
-        raise DemError(f"{p}: cannot read DEM: {exc}") from None
+    except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DemError(f"{p}: cannot read DEM: {first}") from None
     if crs is not None and suffix in (".npz", ".e00"):
         dem = Dem(dem.elevation_m, dem.transform, _parse_crs(crs, p), dem.body, dem.source, dem.sha256)
     if not np.isfinite(dem.elevation_m).any():
         raise DemError(f"{p}: every cell is nodata")
     if min(dem.shape) < 2:
         raise DemError(f"{p}: a DEM needs at least 2x2 cells, got {dem.shape[0]}x{dem.shape[1]}")
+    _check_extent(dem, p)
     return dem
+
+
+def _check_extent(dem: Dem, p: Path) -> None:
+    """Latitudes within the poles and a finite, positive ground resolution."""
+    rows, cols = dem.shape
+    c = np.array([0.5, cols - 0.5, 0.5, cols - 0.5, cols / 2.0])
+    r = np.array([0.5, 0.5, rows - 0.5, rows - 0.5, rows / 2.0])
+    x, y = affine_apply(dem.transform, c, r)
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise DemError(f"{p}: the georeferencing gives non-finite coordinates")
+    if dem.is_geographic:
+        lat = y
+        if np.max(np.abs(lat)) > 90.0 + 1e-9:
+            worst = float(lat[np.argmax(np.abs(lat))])
+            raise DemError(f"{p}: pixel centres reach latitude {worst:.6g} deg, beyond the pole (|lat| <= 90)")
+    try:
+        res = dem.resolution_m()
+    except Exception as exc:  # pyproj raises ProjError, a plain Exception subclass
+        raise DemError(f"{p}: the georeferencing cannot be turned into ground distances: {exc}") from None
+    if not all(math.isfinite(v) and v > 0 for v in res):
+        raise DemError(f"{p}: the georeferencing gives no ground resolution ({res[0]} x {res[1]} m)")
+
+
+#: SRTM tiles: samples per side by file size (int16 big-endian, rows north to south).
+SRTM_SIDES = {1201 * 1201 * 2: 1201, 3601 * 3601 * 2: 3601}
+_TILE_NAME = re.compile(r"([NS])(\d{2})([EW])(\d{3})", re.IGNORECASE)
+
+
+def _srtm_size(p: Path) -> int | None:
+    """Samples per side when ``p`` has the size of an SRTM tile (and is not a TIFF), else None."""
+    try:
+        side = SRTM_SIDES.get(p.stat().st_size)
+        if side is None:
+            return None
+        with p.open("rb") as fh:
+            magic = fh.read(4)
+    except OSError:
+        return None
+    return None if magic in (b"II*\0", b"MM\0*") else side
+
+
+def _load_srtm_raw(p: Path, side: int) -> Dem:
+    """An SRTM tile under another file name: the tile's corner from an N44W072-like part of the name."""
+    spacing = "3 arc-second" if side == 1201 else "1 arc-second"
+    match = _TILE_NAME.search(p.name)
+    if match is None:
+        raise DemError(
+            f"{p}: has the size of a {spacing} SRTM tile ({side}x{side} int16) but its name gives no tile"
+            " corner: name it after the tile, e.g. N44W072.hgt"
+        )
+    ns, lat_s, ew, lon_s = match.groups()
+    lat = int(lat_s) * (1 if ns.upper() == "N" else -1)
+    lon = int(lon_s) * (1 if ew.upper() == "E" else -1)
+    if lat >= 90 or lat < -90 or lon >= 180 or lon < -180:
+        raise DemError(f"{p}: tile corner {match.group(0)} is not on the Earth")
+    raw = np.fromfile(p, dtype=">i2").reshape(side, side)
+    data = raw.astype(np.float64)
+    data[raw == -32768] = np.nan
+    d = 1.0 / (side - 1)
+    transform = Affine(d, 0.0, lon - d / 2.0, 0.0, -d, lat + 1.0 + d / 2.0)
+    return Dem(data, transform, CRS.from_epsg(4326), EARTH, str(p), _sha256(p), {"driver": "SRTMHGT", "units": "m"})
 
 
 def _parse_crs(text: str, p: Path) -> CRS:
@@ -262,6 +333,7 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
                 break
     try:
         with rasterio.open(open_path) as ds:
+            _check_raw_size(p, ds)
             band = ds.read(1, masked=True)
             scale = float(ds.scales[0] or 1.0)
             offset = float(ds.offsets[0] or 0.0)
@@ -271,7 +343,8 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
             driver = ds.driver
     except RasterioError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise DemError(f"{p}: not a readable DEM ({first})") from None
+        first = first.replace(" See previous exception for details.", "").strip()
+        raise DemError(f"{p}: not a readable DEM ({first}: the file is damaged or truncated)") from None
     if crs_override is not None:
         crs = _parse_crs(crs_override, p)
     elif crs_wkt is None:
@@ -294,7 +367,37 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
     return Dem(data, transform, crs, body, str(p), sha, meta)
 
 
+def _check_raw_size(p: Path, ds: Any) -> None:
+    """A raw image (PDS, SRTM, ENVI...) shorter than its samples: say so before GDAL fails to read it."""
+    driver = ds.driver
+    if driver not in ("PDS", "PDS4", "ISIS3", "SRTMHGT", "EHdr", "ENVI"):
+        return
+    width, height = int(ds.width), int(ds.height)
+    need = width * height * np.dtype(ds.dtypes[0]).itemsize
+    image = p
+    if p.suffix.lower() == ".lbl":
+        for alt in (p.with_suffix(".IMG"), p.with_suffix(".img")):
+            if alt.exists():
+                image = alt
+                break
+    have = image.stat().st_size
+    if have < need:
+        raise DemError(
+            f"{image}: truncated: {have} bytes, but its {width}x{height} samples need at least {need}"
+        )
+
+
 def _load_npz(p: Path) -> Dem:
+    try:
+        return _read_npz(p)
+    except (zipfile.BadZipFile, EOFError, ValueError, OSError) as exc:
+        if isinstance(exc, DemError):
+            raise
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DemError(f"{p}: not a readable .npz grid ({first}): the file is damaged or truncated") from None
+
+
+def _read_npz(p: Path) -> Dem:
     with np.load(p) as z:
         keys = set(z.files)
         if {"elevation", "dx", "dy", "xmin", "xmax", "ymin", "ymax"} <= keys:
