@@ -2,6 +2,8 @@
 
 CSV: header ``azimuth_deg,elevation_deg``; one row per azimuth (degrees clockwise from north, as
 the heading sensor reports it); an empty elevation means missing (masked, occluded, not detected).
+A UTF-8 byte order mark (a spreadsheet's export) is skipped; an azimuth given twice (360 is 0) is
+merged when both rows agree and refused when they do not.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def read_skyline_csv(path: str | Path) -> Skyline:
     """Read a skyline CSV; malformed content raises :class:`InputError` naming the file and line."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError(f"{p}: skyline file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -64,7 +66,11 @@ def read_skyline_csv(path: str | Path) -> Skyline:
 
 
 def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
-    rows = list(csv.reader(io.StringIO(text)))
+    text = text.removeprefix("\ufeff")
+    try:
+        rows = list(csv.reader(io.StringIO(text)))
+    except csv.Error as exc:
+        raise InputError(f"{name}: not a CSV file: {exc}") from None
     rows = [r for r in rows if any(c.strip() for c in r)]
     if not rows:
         raise InputError(f"{name}: empty skyline file")
@@ -105,7 +111,31 @@ def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
             raise InputError(f"{name}: line {line}: elevation {el[i]} outside [-90, 90] degrees")
     if not np.all(np.isfinite(az)):
         raise InputError(f"{name}: azimuths must be finite")
-    return Skyline(np.mod(az, 360.0), el, conf if fields == 3 else None)
+    az = np.mod(az, 360.0)
+    keep = _merge_duplicates(az, el, conf, name)
+    return Skyline(az[keep], el[keep], conf[keep] if fields == 3 else None)
+
+
+def _merge_duplicates(az: np.ndarray, el: np.ndarray, conf: np.ndarray, name: str) -> np.ndarray:
+    """Indices of the rows to keep: the first of each azimuth; a repeat must agree with it."""
+    first: dict[float, int] = {}
+    keep: list[int] = []
+    for i, a in enumerate(az.tolist()):
+        j = first.setdefault(a, i)
+        if j == i:
+            keep.append(i)
+            continue
+        same_el = (math.isnan(el[i]) and math.isnan(el[j])) or el[i] == el[j]
+        if not (same_el and conf[i] == conf[j]):
+            raise InputError(
+                f"{name}: line {i + 2}: azimuth {a:g} deg already on line {j + 2} with another value "
+                f"(elevation {_fmt(el[j])} vs {_fmt(el[i])}, confidence {conf[j]:g} vs {conf[i]:g})"
+            )
+    return np.asarray(keep, dtype=np.intp)
+
+
+def _fmt(v: float) -> str:
+    return "missing" if math.isnan(v) else f"{v:g}"
 
 
 def format_skyline_csv(skyline: Skyline, decimals: int = 4) -> str:

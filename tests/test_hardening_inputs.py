@@ -57,3 +57,33 @@ def test_skyline_mask_within_a_turn_is_accepted(tmp_path, capsys):
     assert rc == 0, capsys.readouterr().err
     rows = (tmp_path / "s.csv").read_text().splitlines()
     assert len(rows) > 300
+
+
+def test_skyline_csv_with_a_byte_order_mark_is_read(tmp_path):
+    from appliance.skyline import read_skyline_csv
+
+    p = tmp_path / "export.csv"
+    p.write_bytes("\ufeffazimuth_deg,elevation_deg\r\n0,1.5\r\n90,2.25\r\n180,\r\n".encode())
+    sky = read_skyline_csv(p)
+    assert sky.azimuth_deg.tolist() == [0.0, 90.0, 180.0]
+    assert sky.elevation_deg[:2].tolist() == [1.5, 2.25] and np.isnan(sky.elevation_deg[2])
+
+
+def test_skyline_csv_identical_duplicates_merge_and_conflicts_are_refused(tmp_path):
+    from appliance.errors import InputError
+    from appliance.skyline import parse_skyline_csv
+
+    sky = parse_skyline_csv("azimuth_deg,elevation_deg\n0,1.5\n10,2\n360,1.5\n10,2.0\n20,\n380,\n")
+    assert sky.azimuth_deg.tolist() == [0.0, 10.0, 20.0]
+    assert sky.elevation_deg[:2].tolist() == [1.5, 2.0]
+    with pytest.raises(InputError) as err:
+        parse_skyline_csv("azimuth_deg,elevation_deg\n0,1.5\n10,2\n10,2.5\n", name="s.csv")
+    assert str(err.value) == ("s.csv: line 4: azimuth 10 deg already on line 3 with another value "
+                              "(elevation 2 vs 2.5, confidence 1 vs 1)")
+    with pytest.raises(InputError, match="azimuth 0 deg already on line 2.*elevation 1.5 vs missing"):
+        parse_skyline_csv("azimuth_deg,elevation_deg\n0,1.5\n360,\n")
+    with pytest.raises(InputError, match=r"confidence 0\.9 vs 0\.5"):
+        parse_skyline_csv("azimuth_deg,elevation_deg,confidence\n5,1,0.9\n5,1,0.5\n")
+    kept = parse_skyline_csv("azimuth_deg,elevation_deg,confidence\n5,1,0.9\n5,1,0.9\n6,2,0.4\n")
+    assert kept.confidence is not None and kept.confidence.tolist() == [0.9, 0.4]
+
