@@ -152,3 +152,76 @@ def test_precompute_cli_on_other_maps(rel, tmp_path, capsys):
     e_ = db.skylines_deg(i) - exact.elevation_deg
     assert np.sqrt(np.nanmean(e_**2)) < 0.5
     assert json.loads(json.dumps(db.header))["n_azimuths"] == 360
+
+
+def _parts(path):
+    raw = bytearray(open(path, "rb").read())
+    hlen = int(np.frombuffer(bytes(raw[8:12]), np.uint32)[0])
+    return raw, hlen, json.loads(bytes(raw[12 : 12 + hlen]).decode())
+
+
+def test_checksum_table_follows_the_arrays(jacksboro_db):
+    import zlib
+
+    _, db = jacksboro_db
+    raw, hlen, header = _parts(db.path)
+    spec = header["checksum"]
+    start = 12 + hlen
+    assert spec["algorithm"] == "crc32" and spec["block_bytes"] == 1 << 20
+    assert spec["blocks"] == -(-spec["offset"] // (1 << 20)) >= 1
+    assert len(raw) == start + spec["offset"] + 4 * (1 + spec["blocks"])
+    table = np.frombuffer(bytes(raw[start + spec["offset"] :]), "<u4")
+    assert int(table[0]) == zlib.crc32(bytes(raw[:start]))
+    assert int(table[1]) == zlib.crc32(bytes(raw[start : start + min(1 << 20, spec["offset"])]))
+
+
+def test_a_flipped_bit_is_caught_naming_its_block(jacksboro_db, tmp_path, capsys):
+    _, db = jacksboro_db
+    raw, hlen, header = _parts(db.path)
+    spec = header["checksum"]
+    start = 12 + hlen
+    last = spec["blocks"] - 1
+    for where, block in ((start + 10, 0), (start + spec["offset"] - 3, last)):
+        bad = bytearray(raw)
+        bad[where] ^= 0x10
+        path = tmp_path / f"flip{block}.viperdb"
+        path.write_bytes(bytes(bad))
+        with pytest.raises(DatabaseError) as err:
+            load_database(path)
+        lo = block << 20
+        hi = min(lo + (1 << 20), spec["offset"]) - 1
+        assert str(err.value) == (f"{path}: block {block} of {spec['blocks']} (array bytes {lo}-{hi}) fails its CRC32 "
+                                  "check: the file is damaged; rebuild it")
+    # a flip inside the header that keeps it valid JSON: 1.5 m becomes 1.7 m
+    bad = bytearray(raw)
+    i = bad.index(b'"height_m": 1.5')
+    bad[i + len('"height_m": 1.')] ^= 0x02
+    assert b'"height_m": 1.7' in bad
+    path = tmp_path / "header.viperdb"
+    path.write_bytes(bytes(bad))
+    with pytest.raises(DatabaseError, match="the header fails its CRC32 check"):
+        load_database(path)
+    rc = main(["estimate", str(path), str(tmp_path / "none.csv")])
+    assert rc != 0 and capsys.readouterr().err.count("\n") == 1
+
+
+def test_a_truncated_checksum_table_is_refused(jacksboro_db, tmp_path):
+    _, db = jacksboro_db
+    raw, _, _ = _parts(db.path)
+    path = tmp_path / "cut.viperdb"
+    path.write_bytes(bytes(raw[:-2]))
+    with pytest.raises(DatabaseError, match="truncated database"):
+        load_database(path)
+
+
+def test_a_version_2_file_without_checksums_still_loads(jacksboro_db, tmp_path):
+    _, db = jacksboro_db
+    raw, hlen, header = _parts(db.path)
+    spec = header.pop("checksum")
+    text = json.dumps(header).encode()
+    old = bytes(raw[:12]) + text.ljust(hlen, b" ") + bytes(raw[12 + hlen : 12 + hlen + spec["offset"]])
+    path = tmp_path / "old.viperdb"
+    path.write_bytes(old)
+    again = load_database(path)
+    assert "checksum" not in again.header
+    np.testing.assert_array_equal(np.asarray(again.codes), np.asarray(db.codes))

@@ -13,6 +13,9 @@ File layout (little-endian)::
               ground_m float32[n_nodes]
               convergence_deg float32[n_nodes]  (true azimuth of grid north)
               terrain_m float32[terrain rows, terrain cols]  (the heights the skylines were built on)
+    checksums uint32[1 + blocks]                (CRC32 of bytes 0..end of the header, then of each
+                                                 CHECKSUM_BLOCK bytes of the arrays; the header's
+                                                 "checksum" entry gives its offset and block size)
 
 Elevation (deg) = offset + step * code.  The step is 0.1 degree (quantisation error at most 0.05
 degree) unless a node's skyline spans more than 25.4 degrees, where it grows to span/254.
@@ -20,6 +23,10 @@ Azimuth j is ``j * 360 / n_azimuths`` degrees clockwise from true north.  Range 
 DISTANCE_MIN_M * exp(DISTANCE_LOG_STEP * code): 5 % steps from 1 m to 300 km.  The range says how
 fast the skyline moves with position (parallax), and the terrain grid lets the estimator render
 exact skylines between nodes; candidate node (0, 0) is terrain node (row0, col0), same spacing.
+
+The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
+block.  Version 2 files written before the checksums existed carry no "checksum" entry and load
+unverified.
 
 Nodes form a regular grid in a metric CRS: the DEM's own when it is a projected CRS with scale
 close to 1, else a transverse Mercator centred on the search area.  Node (row, col) lies at
@@ -31,6 +38,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -56,6 +64,7 @@ MISSING_CODE = 255
 BASE_STEP_DEG = 0.1
 MAX_SPAN_DEG = 25.0
 ALIGN = 64
+CHECKSUM_BLOCK = 1 << 20  # bytes of the array section per CRC32
 MISSING_CDEG = np.iinfo(np.int16).min
 
 
@@ -534,14 +543,17 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
     for name, nbytes in sizes:
         layout[name] = pos
         pos += -(-nbytes // ALIGN) * ALIGN
-    header = dict(header, arrays=layout, n_nodes=n)
+    n_blocks = -(-pos // CHECKSUM_BLOCK)
+    checksum = {"algorithm": "crc32", "block_bytes": CHECKSUM_BLOCK, "offset": pos, "blocks": n_blocks}
+    header = dict(header, arrays=layout, n_nodes=n, checksum=checksum)
     raw = json.dumps(header).encode()
     hlen = -(-(len(raw) + 12) // ALIGN) * ALIGN - 12
     data_start = 12 + hlen
+    head = MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" ")
     # allocated in full before the memory map touches it: a full disk is a one-line error, not SIGBUS
-    with atomic_output(out_path, preallocate=data_start + pos) as tmp:
+    with atomic_output(out_path, preallocate=data_start + pos + 4 * (1 + n_blocks)) as tmp:
         with tmp.open("r+b") as fh:
-            fh.write(MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" "))
+            fh.write(head)
         mm = np.memmap(tmp, mode="r+", dtype=np.uint8, offset=data_start, shape=(pos,))
         codes = mm[layout["codes"] : layout["codes"] + n * n_az].reshape(n, n_az)
         dist = mm[layout["distance"] : layout["distance"] + n * n_az].reshape(n, n_az)
@@ -554,7 +566,45 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
                           ("terrain_m", np.ascontiguousarray(terrain, dtype=np.float32).ravel())):
             mm[layout[name] : layout[name] + 4 * arr.size] = arr.view(np.uint8)
         mm.flush()
+        crcs = [zlib.crc32(head)] + block_checksums(mm)
         del mm, codes, dist
+        with tmp.open("r+b") as fh:
+            fh.seek(data_start + pos)
+            fh.write(np.asarray(crcs, dtype="<u4").tobytes())
+
+
+def block_checksums(body: np.ndarray) -> list[int]:
+    """CRC32 of each CHECKSUM_BLOCK bytes of a database's array section."""
+    return [zlib.crc32(memoryview(body[i : i + CHECKSUM_BLOCK])) for i in range(0, body.size, CHECKSUM_BLOCK)]
+
+
+def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> None:
+    """Compare the header and every block of ``body`` (the array section, checksum table included)
+    with the table written at build; a mismatch is a DatabaseError naming the block."""
+    spec = header.get("checksum")
+    if spec is None:
+        return  # a version 2 file written before the checksums
+    try:
+        size, offset, n_blocks = int(spec["block_bytes"]), int(spec["offset"]), int(spec["blocks"])
+        if spec.get("algorithm") != "crc32" or size != CHECKSUM_BLOCK or n_blocks != -(-offset // size):
+            raise ValueError(f"checksum entry {spec}")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatabaseError(f"{p}: corrupt database header ({exc})") from None
+    if body.size < offset + 4 * (1 + n_blocks):
+        raise DatabaseError(f"{p}: truncated database: {body.size} bytes of arrays and checksums, expected "
+                            f"{offset + 4 * (1 + n_blocks)}")
+    table = body[offset : offset + 4 * (1 + n_blocks)].view("<u4")
+    if zlib.crc32(head) != int(table[0]):
+        raise DatabaseError(f"{p}: the header fails its CRC32 check: the file is damaged; rebuild it")
+    arrays = body[:offset]
+    for k in range(n_blocks):
+        lo = k * size
+        if zlib.crc32(memoryview(arrays[lo : lo + size])) != int(table[1 + k]):
+            hi = min(lo + size, offset)
+            raise DatabaseError(
+                f"{p}: block {k} of {n_blocks} (array bytes {lo}-{hi - 1}) fails its CRC32 check: the file "
+                "is damaged; rebuild it"
+            )
 
 
 def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
@@ -565,12 +615,21 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
             magic = fh.read(8)
             if magic != MAGIC:
                 raise DatabaseError(f"{p}: not a Viper skyline database")
-            hlen = int(np.frombuffer(fh.read(4), np.uint32)[0])
-            header = json.loads(fh.read(hlen).decode())
+            hlen_raw = fh.read(4)
+            hlen = int(np.frombuffer(hlen_raw, np.uint32)[0])
+            if hlen > 1 << 24:
+                raise ValueError(f"header length {hlen}")
+            raw = fh.read(hlen)
+            header = json.loads(raw.decode())
+        if not isinstance(header, dict):
+            raise ValueError("the header is not a JSON object")
     except FileNotFoundError:
         raise DatabaseError(f"{p}: database not found") from None
+    except IsADirectoryError:
+        raise DatabaseError(f"{p}: is a folder, not a database") from None
     except (OSError, ValueError, IndexError) as exc:
-        raise DatabaseError(f"{p}: unreadable database header ({exc})") from None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DatabaseError(f"{p}: unreadable database header ({first})") from None
     version = header.get("format_version")
     if version != FORMAT_VERSION:
         raise DatabaseError(
@@ -583,12 +642,13 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
             f"{p}: built from DEM {header.get('dem_source')} ({str(header.get('dem_sha256'))[:12]}), "
             f"not from {Path(dem.source).name} ({dem.sha256[:12]})"
         )
-    n = int(header["n_nodes"])
-    n_az = int(header["n_azimuths"])
-    lay = header["arrays"]
     start = 12 + hlen
     try:
+        n = int(header["n_nodes"])
+        n_az = int(header["n_azimuths"])
+        lay = header["arrays"]
         mm = np.memmap(p, mode="r", dtype=np.uint8, offset=start)
+        verify_checksums(p, header, magic + hlen_raw + raw, mm)
         codes = mm[lay["codes"] : lay["codes"] + n * n_az].reshape(n, n_az)
         dist = mm[lay["distance"] : lay["distance"] + n * n_az].reshape(n, n_az)
         f32 = {k: mm[lay[k] : lay[k] + 4 * n].view(np.float32)
@@ -596,13 +656,20 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
         th = header["terrain"]
         n_t = int(th["n_rows"]) * int(th["n_cols"])
         terrain = mm[lay["terrain_m"] : lay["terrain_m"] + 4 * n_t].view(np.float32).reshape(th["n_rows"], th["n_cols"])
-    except (ValueError, OSError, KeyError, TypeError) as exc:
-        raise DatabaseError(f"{p}: truncated or corrupt database ({exc})") from None
-    g = header["grid"]
-    grid = NodeGrid(
-        g["crs_wkt"], g["x0"], g["y0"], g["dx"], g["dy"], g["n_rows"], g["n_cols"], g["dx_m"], g["dy_m"]
-    )
+    except DatabaseError:
+        raise
+    except (ValueError, OSError, KeyError, TypeError, IndexError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DatabaseError(f"{p}: truncated or corrupt database ({first})") from None
+    try:
+        g = header["grid"]
+        grid = NodeGrid(
+            g["crs_wkt"], g["x0"], g["y0"], g["dx"], g["dy"], g["n_rows"], g["n_cols"], g["dx_m"], g["dy_m"]
+        )
+        row0, col0 = int(th["row0"]), int(th["col0"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatabaseError(f"{p}: corrupt database header ({type(exc).__name__}: {exc})") from None
     if grid.n_nodes != n:
         raise DatabaseError(f"{p}: grid of {grid.n_nodes} nodes but {n} skylines")
     return SkylineDatabase(str(p), header, grid, codes, f32["offset_deg"], f32["step_deg"], f32["ground_m"], dist,
-                           f32["convergence_deg"], terrain, (int(th["row0"]), int(th["col0"])))
+                           f32["convergence_deg"], terrain, (row0, col0))
