@@ -575,7 +575,7 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
 
 def block_checksums(body: np.ndarray) -> list[int]:
     """CRC32 of each CHECKSUM_BLOCK bytes of a database's array section."""
-    return [zlib.crc32(memoryview(body[i : i + CHECKSUM_BLOCK])) for i in range(0, body.size, CHECKSUM_BLOCK)]
+    return [zlib.crc32(body[i : i + CHECKSUM_BLOCK].data) for i in range(0, body.size, CHECKSUM_BLOCK)]
 
 
 def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> None:
@@ -599,7 +599,7 @@ def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> No
     arrays = body[:offset]
     for k in range(n_blocks):
         lo = k * size
-        if zlib.crc32(memoryview(arrays[lo : lo + size])) != int(table[1 + k]):
+        if zlib.crc32(arrays[lo : lo + size].data) != int(table[1 + k]):
             hi = min(lo + size, offset)
             raise DatabaseError(
                 f"{p}: block {k} of {n_blocks} (array bytes {lo}-{hi - 1}) fails its CRC32 check: the file "
