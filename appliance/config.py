@@ -83,11 +83,17 @@ class EstimatorConfig:
     # prior share of azimuths hidden by what the map lacks (trees, buildings): one-sided likelihood
     occlusion_weight: float = 0.05
     map_vertical_sigma_m: float = 0.0  # the map's own height error (1 sigma)
+    # the sensor's share of sigma_deg from `viper calibrate theodolite` (a record: the estimator uses sigma_deg)
+    sensor_sigma_deg: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         lo, hi = self.sigma_deg
         _require(math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi, "estimator.sigma_deg",
                  "[lo, hi] with 0 < lo <= hi", [lo, hi])
+        if self.sensor_sigma_deg is not None:
+            a, b = self.sensor_sigma_deg
+            _require(math.isfinite(a) and math.isfinite(b) and 0.0 < a <= b, "estimator.sensor_sigma_deg",
+                     "[lo, hi] with 0 < lo <= hi", [a, b])
         _within("estimator.heading_tolerance_deg", self.heading_tolerance_deg, 0.0, 180.0)
         _positive("estimator.heading_step_deg", self.heading_step_deg)
         _within("estimator.min_valid_fraction", self.min_valid_fraction, 0.0, 1.0)

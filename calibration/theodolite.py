@@ -8,7 +8,17 @@ interval for sigma at level c = 1 - alpha is
 
     [ sqrt((n-1) s^2 / chi2_{1-alpha/2}),  sqrt((n-1) s^2 / chi2_{alpha/2}) ]
 
-where chi2_q is the q-quantile.  The estimator takes this interval as ``sigma_deg = [lo, hi]``.
+where chi2_q is the q-quantile.  This is the sensor's share only: the camera against a perfect
+reference.  The estimator compares the measured skyline with one rendered from a map, so its sigma
+also holds the map's own share (the DEM's smoothing of ridges and its height errors, what a model
+cannot render; the skyline's change between grid nodes is modelled by the estimator itself).  The
+estimator's interval is the two combined in quadrature, bound by bound:
+
+    sigma_est = [ sqrt(lo_sensor^2 + lo_map^2),  sqrt(hi_sensor^2 + hi_map^2) ]
+
+with the map's share MAP_SIGMA_DEG = [0.3, 0.8] deg by default (the estimator's default interval,
+so a perfect sensor leaves the estimator at its defaults).  ``viper calibrate theodolite --config``
+writes both: ``sensor_sigma_deg`` (a record) and ``sigma_deg`` (what the estimator uses).
 All angles are elevations in degrees above the local horizontal.
 """
 
@@ -27,6 +37,8 @@ from calibration.csvtable import read_input, read_rows
 
 HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
 MIN_POINTS = 3
+#: The map's and model's share of the estimator's sigma (deg, [lo, hi]), combined with the sensor's.
+MAP_SIGMA_DEG = (0.3, 0.8)
 ARCSEC_PER_DEG = 3600.0
 
 
@@ -46,13 +58,20 @@ class ElevationPoint:
 
 @dataclass(frozen=True)
 class SigmaCalibration:
-    """The result: residual statistics and the confidence interval for sigma (degrees)."""
+    """The result: residual statistics, the confidence interval for the sensor's sigma (degrees) and the
+    estimator's interval (the sensor's and the map's shares in quadrature)."""
 
     points: tuple[ElevationPoint, ...]
     confidence: float
     mean_residual_deg: float
     s_deg: float
-    sigma_deg: tuple[float, float]
+    sigma_deg: tuple[float, float]  # the sensor's share, from the survey
+    map_sigma_deg: tuple[float, float] = MAP_SIGMA_DEG
+
+    @property
+    def estimator_sigma_deg(self) -> tuple[float, float]:
+        """What the estimator uses: sensor and map shares combined in quadrature, bound by bound."""
+        return combine_sigma(self.sigma_deg, self.map_sigma_deg)
 
     @property
     def n(self) -> int:
@@ -109,7 +128,21 @@ def sigma_interval(s: float, n: int, confidence: float = 0.95) -> tuple[float, f
     return math.sqrt(dof * s * s / upper_q), math.sqrt(dof * s * s / lower_q)
 
 
-def calibrate_sigma(points: Sequence[ElevationPoint], confidence: float = 0.95) -> SigmaCalibration:
+def combine_sigma(sensor_deg: tuple[float, float], map_deg: tuple[float, float]) -> tuple[float, float]:
+    """Independent shares of one interval added in quadrature, lower bound with lower bound."""
+    return math.hypot(sensor_deg[0], map_deg[0]), math.hypot(sensor_deg[1], map_deg[1])
+
+
+def check_map_sigma(map_deg: tuple[float, float]) -> tuple[float, float]:
+    lo, hi = map_deg
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi):
+        raise InputError(f"map share {lo},{hi} deg: expected 0 <= lo <= hi")
+    return float(lo), float(hi)
+
+
+def calibrate_sigma(
+    points: Sequence[ElevationPoint], confidence: float = 0.95, map_sigma_deg: tuple[float, float] = MAP_SIGMA_DEG
+) -> SigmaCalibration:
     """Residual statistics and the sigma interval; refuses degenerate surveys with one clear line."""
     n = len(points)
     if n < MIN_POINTS:
@@ -133,6 +166,7 @@ def calibrate_sigma(points: Sequence[ElevationPoint], confidence: float = 0.95) 
         mean_residual_deg=float(np.mean(residuals)),
         s_deg=s,
         sigma_deg=sigma_interval(s, n, confidence),
+        map_sigma_deg=check_map_sigma(map_sigma_deg),
     )
 
 
@@ -155,6 +189,9 @@ def format_report(result: SigmaCalibration) -> str:
         f"s = {result.s_deg:.6f} deg ({result.s_deg * ARCSEC_PER_DEG:.2f} arcsec),"
         f" {result.n - 1} degrees of freedom",
         f"{result.confidence * 100:g}% interval for sigma: [{lo:.6f}, {hi:.6f}] deg"
-        f" ([{lo * ARCSEC_PER_DEG:.2f}, {hi * ARCSEC_PER_DEG:.2f}] arcsec)",
+        f" ([{lo * ARCSEC_PER_DEG:.2f}, {hi * ARCSEC_PER_DEG:.2f}] arcsec): the sensor's share",
+        f"map's share: [{result.map_sigma_deg[0]:g}, {result.map_sigma_deg[1]:g}] deg",
+        "estimator's sigma (sensor and map in quadrature): "
+        f"[{result.estimator_sigma_deg[0]:.6f}, {result.estimator_sigma_deg[1]:.6f}] deg",
     ]
     return "\n".join(lines)

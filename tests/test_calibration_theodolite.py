@@ -122,12 +122,18 @@ def test_cli_writes_interval_and_keeps_the_rest_of_the_config(tmp_path: Path, ca
     assert out["n"] == 17
     expected = calibrate_sigma(parse_points_csv(EXAMPLE.read_bytes()))
     assert out["s_deg"] == pytest.approx(expected.s_deg, rel=1e-12)
-    assert out["sigma_deg"] == pytest.approx(list(expected.sigma_deg), rel=1e-5)
+    assert out["sensor_sigma_deg"] == pytest.approx(list(expected.sigma_deg), rel=1e-5)
+    assert out["map_sigma_deg"] == [0.3, 0.8]
+    # the estimator's sigma: the sensor's [0.0084, 0.0172] and the map's [0.3, 0.8] in quadrature
+    assert out["sigma_deg"] == pytest.approx([0.300118, 0.800186], abs=1e-6)
     lo, hi = out["sigma_deg"]
-    assert config.read_text() == CONFIG_TEXT.replace(
+    slo, shi = out["sensor_sigma_deg"]
+    text = config.read_text()
+    assert text.replace(f"\nsensor_sigma_deg = [{slo!r}, {shi!r}]", "") == CONFIG_TEXT.replace(
         "sigma_deg = [0.2, 0.4]  # degrees", f"sigma_deg = [{lo!r}, {hi!r}]  # degrees"
     )
-    assert load_config(config).estimator.sigma_deg == (lo, hi)
+    cfg = load_config(config).estimator
+    assert cfg.sigma_deg == (lo, hi) and cfg.sensor_sigma_deg == (slo, shi)
     assert [p.name for p in tmp_path.iterdir()] == ["viper.toml"]  # no temporary file left behind
 
 
@@ -174,3 +180,30 @@ def test_cli_refuses_an_invalid_config_and_leaves_it(tmp_path: Path, capsys) -> 
     assert main(["calibrate", "theodolite", str(EXAMPLE), "--config", str(config)]) == 2
     assert "unknown key estimator.extra" in capsys.readouterr().err
     assert config.read_bytes() == before
+
+
+def test_estimator_sigma_is_sensor_and_map_in_quadrature() -> None:
+    from calibration.theodolite import MAP_SIGMA_DEG, combine_sigma
+
+    result = calibrate_sigma(_points([0.3, -0.2, 0.1, -0.4, 0.25]), map_sigma_deg=(0.4, 0.5))
+    lo, hi = result.sigma_deg
+    assert result.estimator_sigma_deg == pytest.approx(((lo**2 + 0.16) ** 0.5, (hi**2 + 0.25) ** 0.5), rel=1e-12)
+    assert combine_sigma((0.3, 0.4), (0.4, 0.3)) == pytest.approx((0.5, 0.5))
+    assert MAP_SIGMA_DEG == (0.3, 0.8)
+    with pytest.raises(InputError, match="map share 0.5,0.2 deg"):
+        calibrate_sigma(_points([0.3, -0.2, 0.1]), map_sigma_deg=(0.5, 0.2))
+
+
+def test_cli_map_share_option_and_report(tmp_path: Path, capsys) -> None:
+    assert main(["calibrate", "theodolite", str(EXAMPLE), "--map-share", "0,0", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sigma_deg"] == out["sensor_sigma_deg"]  # no map share: the sensor alone
+    assert main(["calibrate", "theodolite", str(EXAMPLE)]) == 0
+    text = capsys.readouterr().out
+    assert "the sensor's share" in text and "map's share: [0.3, 0.8] deg" in text
+    assert "estimator's sigma (sensor and map in quadrature): [0.300118, 0.800186] deg" in text
+    with pytest.raises(SystemExit) as exited:
+        main(["calibrate", "theodolite", str(EXAMPLE), "--map-share", "0.8,0.3"])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "0 <= LO <= HI" in err

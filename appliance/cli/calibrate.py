@@ -35,11 +35,13 @@ def _theodolite(args: argparse.Namespace) -> int:
     from calibration.config_edit import significant, update_toml_table
     from calibration.theodolite import calibrate_sigma, format_report, read_points_csv
 
-    result = calibrate_sigma(read_points_csv(args.points), confidence=args.confidence)
-    lo, hi = (significant(v) for v in result.sigma_deg)
+    result = calibrate_sigma(read_points_csv(args.points), confidence=args.confidence, map_sigma_deg=args.map_share)
+    sensor = [significant(v) for v in result.sigma_deg]
+    lo, hi = (significant(v) for v in result.estimator_sigma_deg)
     if args.config is not None:
         update_toml_table(
-            args.config, "estimator", {"sigma_deg": [lo, hi]}, validate=_validate_config_text(args.config)
+            args.config, "estimator", {"sigma_deg": [lo, hi], "sensor_sigma_deg": sensor},
+            validate=_validate_config_text(args.config),
         )
     if args.json:
         print(
@@ -49,6 +51,8 @@ def _theodolite(args: argparse.Namespace) -> int:
                     "confidence": result.confidence,
                     "mean_residual_deg": result.mean_residual_deg,
                     "s_deg": result.s_deg,
+                    "sensor_sigma_deg": sensor,
+                    "map_sigma_deg": list(result.map_sigma_deg),
                     "sigma_deg": [lo, hi],
                 }
             )
@@ -56,8 +60,19 @@ def _theodolite(args: argparse.Namespace) -> int:
     else:
         print(format_report(result))
         if args.config is not None:
-            print(f"wrote estimator.sigma_deg = [{lo}, {hi}] to {args.config}")
+            print(f"wrote estimator.sigma_deg = [{lo}, {hi}] (used by the estimator) and estimator.sensor_sigma_deg"
+                  f" = [{sensor[0]}, {sensor[1]}] to {args.config}")
     return 0
+
+
+def _map_share(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LO,HI in degrees, got {text!r}") from None
+    if not (0.0 <= lo <= hi < 90.0):
+        raise argparse.ArgumentTypeError(f"expected 0 <= LO <= HI < 90 degrees, got {text!r}")
+    return lo, hi
 
 
 def _confidence(text: str) -> float:
@@ -211,6 +226,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("points", type=Path, help="CSV: point,camera_elevation_deg,theodolite_elevation_deg")
     p.add_argument("--config", type=Path, help="configuration TOML to receive [estimator] sigma_deg")
     p.add_argument("--confidence", type=_confidence, default=0.95, help="confidence level (default 0.95)")
+    p.add_argument(
+        "--map-share", type=_map_share, default=(0.3, 0.8), metavar="LO,HI",
+        help="the map's share of the estimator's sigma (deg), combined in quadrature with the sensor's"
+        " (default 0.3,0.8)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object with n, s_deg and sigma_deg")
     p.set_defaults(func=_theodolite)
 
