@@ -82,3 +82,20 @@ def test_session_service_is_hardened_notify_with_watchdog():
     )
     timer = _service("viper-capture.timer")["Timer"]
     assert timer["Unit"] == "viper-capture.service" and timer["OnCalendar"]
+
+
+def test_capture_unit_says_what_capture_does_when_a_session_runs(tmp_path, capsys):
+    from appliance.acquisition.daemon import session_lock
+    from appliance.cli.main import main
+
+    text = UNITS.joinpath("viper-capture.service").read_text()
+    assert "Waits for a running session" not in text
+    assert "fails at once" in _service("viper-capture.service")["Unit"]["Description"]
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    with session_lock(logs):
+        rc = main(["capture", "--log-dir", str(logs)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1
+    assert err[-1] == f"viper capture: error: {logs}: another session is running (lock held)"
+    assert sorted(p.name for p in logs.iterdir()) == [".session.lock"]

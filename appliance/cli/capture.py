@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
+from appliance.cli._platform import warn_if_simulated
 from appliance.config import load_config
 
 
@@ -20,6 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _capture(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     result = run_one_session(config, log_dir, seed=args.seed, on_status=lambda s: None)
     print(f"log: {result.log_path}")

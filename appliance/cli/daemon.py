@@ -7,6 +7,7 @@ from pathlib import Path
 
 from appliance.acquisition.daemon import SessionDaemon
 from appliance.acquisition.notify import Notifier
+from appliance.cli._platform import warn_if_simulated
 from appliance.config import load_config
 
 
@@ -21,6 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _session(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     daemon = SessionDaemon(config, log_dir, Notifier.from_environment())
     daemon.install_signal_handlers()

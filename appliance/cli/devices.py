@@ -10,6 +10,7 @@ import argparse
 import json
 import time
 
+from appliance.cli._platform import warn_if_simulated
 from appliance.config import load_config
 from appliance.drivers.factory import open_platform
 from appliance.errors import DeviceError
@@ -35,6 +36,7 @@ def _emit(device: str, read) -> object:  # type: ignore[no-untyped-def]
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    warn_if_simulated("devices", config, args.config)
     with open_platform(config) as p:
         fix = None
         if p.gps is not None:
