@@ -87,3 +87,40 @@ def test_skyline_csv_identical_duplicates_merge_and_conflicts_are_refused(tmp_pa
     kept = parse_skyline_csv("azimuth_deg,elevation_deg,confidence\n5,1,0.9\n5,1,0.9\n6,2,0.4\n")
     assert kept.confidence is not None and kept.confidence.tolist() == [0.9, 0.4]
 
+
+
+def test_simulated_platform_is_announced_unless_chosen(tmp_path):
+    from appliance.cli._platform import simulated_notice
+    from appliance.config import load_config
+
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[estimator]\nheading_tolerance_deg = 4.0\n")
+    chosen = tmp_path / "sim.toml"
+    chosen.write_text("[platform]\nkind = \"sim\"\n")
+    hw = tmp_path / "hw.toml"
+    hw.write_text("[platform]\nkind = \"hardware\"\n")
+    assert simulated_notice("capture", load_config(bare), bare) == (
+        f"viper capture: running the SIMULATED platform ({bare} has no [platform] table); set [platform] kind = "
+        "\"hardware\" to drive the devices")
+    assert simulated_notice("daemon session", load_config(None), None) == (
+        "viper daemon session: running the SIMULATED platform (no --config given); set [platform] kind = "
+        "\"hardware\" to drive the devices")
+    assert simulated_notice("capture", load_config(chosen), chosen) is None
+    assert simulated_notice("capture", load_config(hw), hw) is None
+
+
+def test_run_all_lists_the_quick_benchmarks(capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "run_all.py"
+    spec = importlib.util.spec_from_file_location("run_all", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "$ bench/terrain_speed.py" in lines and not any("session_chain" in ln for ln in lines)
+    for name in mod.QUICK:
+        assert (path.parent / f"{name}.py").is_file(), name
+    assert mod.main(["no_such_bench"]) == 2

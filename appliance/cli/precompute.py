@@ -7,6 +7,7 @@ import time
 
 from appliance.atomic import check_output_path
 from appliance.errors import InputError
+from appliance.estimator.estimate import COARSE_STRIDE
 from appliance.terrain.database import build_database, plan_grids
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
@@ -53,6 +54,9 @@ def check_size(dem: object, args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.azimuths % COARSE_STRIDE:
+        raise InputError(f"--azimuths {args.azimuths}: must be a multiple of {COARSE_STRIDE} (the estimator's "
+                         f"coarse pass averages runs of {COARSE_STRIDE} azimuths)")
     if args.spacing is not None and args.spacing <= 0:
         raise InputError(f"--spacing {args.spacing} m must be positive")
     check_output_path(args.out, [args.dem], args.force)
