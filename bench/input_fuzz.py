@@ -1,0 +1,238 @@
+"""Input-file fuzzing: mutated skyline CSVs, configurations, DEMs of every format and skyline databases.
+
+Run: .venv/bin/python bench/input_fuzz.py [--count 20000] [--dem-count 12] [--seed 1]
+     (appends to bench/results/input_fuzz.md)
+
+Readers and their seeds:
+
+- skyline CSV (``parse_skyline_csv``): a rendered skyline with and without the confidence column,
+  with a byte order mark and CRLF; ``--count`` inputs.
+- configuration (``load_config`` on a file): examples/tripod.toml, examples/sim-forest.toml and a
+  file setting every section; ``--count`` inputs.
+- DEM readers (``load_dem``): one file of every format in ../shared/data (GeoTIFF, SRTM .hgt, USGS
+  ASCII .dem, PDS .IMG with its label, .npz, .e00), copied to a scratch folder and truncated or
+  bit-flipped; ``--dem-count`` inputs per file (each load reads a whole map).
+- skyline database (``load_database``): a small jacksboro database; ``--count`` inputs.
+
+Mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
+ones or by a hostile token (nan, inf, a huge number, a minus sign), bytes inserted or deleted, a line
+duplicated.  Target: every input either loads or raises the project's own error (ViperError); any
+other exception is foreign and fails the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import datetime
+import functools
+import logging
+import random
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from appliance.config import load_config
+from appliance.errors import ViperError
+from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv
+from appliance.terrain.database import build_database, load_database
+from appliance.terrain.dem import load_dem
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+OUT = ROOT / "bench" / "results" / "input_fuzz.md"
+HOSTILE = [b"nan", b"-inf", b"1e999", b"99999999999999999999", b"-", b"", b"\x00", b"\"", b"[", b"]]", b"=",
+           b"\xef\xbb\xbf", b"\r\n", b",", b"-0", b"0", b"true", b"{}", b"\xff\xfe"]
+DEMS = ["dem_geotiff/gmted2010_clips/matterhorn.tiff", "dem_geotiff/msh00_MountStHelens_2000_webmerc.tif",
+        "dem_srtm_hgt/N44W072.hgt", "dem_usgs_ascii/SainteHelens.dem", "dem_planetary/LDEM_4.IMG",
+        "dem_other/jacksboro_fault_dem.npz", "dem_other/topobathy.npz", "dem_other/msh00_83_MountStHelens_2000.e00"]
+FULL_CONFIG = b"""[terrain]
+camera_height_m = 1.5
+max_range_m = 60000.0
+azimuths = 360
+[estimator]
+sigma_deg = [0.3, 0.8]
+heading_tolerance_deg = 4.0
+min_valid_fraction = 0.2
+[platform]
+kind = "sim"
+[logbook]
+fsync_interval_s = 2.0
+compression = "zstd"
+[session]
+interval_s = 3600.0
+body_mask_deg = [[170.0, 190.0]]
+[devices.gps]
+source = "/dev/ttyUSB0"
+baudrate = 9600
+[devices.compass]
+kind = "nmea"
+soft_iron_matrix = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+[sim]
+time_rate = 10.0
+gps_rate_hz = 1.0
+[sim.faults]
+gps_garbage_rate = 0.1
+camera_black_frames = [2, 5]
+"""
+
+
+def mutate(data: bytes, rng: random.Random) -> bytes:
+    b = bytearray(data)
+    for _ in range(rng.randint(1, 3)):
+        kind = rng.choice(("cut", "flip", "flip", "random", "hostile", "insert", "delete", "dupline"))
+        i = rng.randrange(len(b) + 1) if b else 0
+        if kind == "cut":
+            del b[i:]
+        elif kind == "flip" and b:
+            for _ in range(rng.randint(1, 8)):
+                j = rng.randrange(len(b))
+                b[j] ^= 1 << rng.randrange(8)
+        elif kind == "random":
+            n = rng.randint(1, 16)
+            b[i : i + n] = bytes(rng.randrange(256) for _ in range(n))
+        elif kind == "hostile":
+            n = rng.randint(0, 6)
+            b[i : i + n] = rng.choice(HOSTILE)
+        elif kind == "insert":
+            b[i:i] = bytes(rng.randrange(256) for _ in range(rng.randint(1, 8)))
+        elif kind == "delete":
+            del b[i : i + rng.randint(1, 16)]
+        elif kind == "dupline":
+            lines = bytes(b).split(b"\n")
+            k = rng.randrange(len(lines))
+            lines.insert(k, lines[k])
+            b = bytearray(b"\n".join(lines))
+    return bytes(b)
+
+
+class Tally:
+    def __init__(self) -> None:
+        self.inputs = 0
+        self.loaded = 0
+        self.errors: collections.Counter[str] = collections.Counter()
+        self.foreign: list[str] = []
+
+    def run(self, call: Callable[[], object]) -> None:
+        self.inputs += 1
+        try:
+            call()
+        except ViperError as exc:
+            self.errors[type(exc).__name__] += 1
+        except Exception as exc:  # noqa: BLE001 - the foreign exceptions are what this benchmark counts
+            self.foreign.append(f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+        else:
+            self.loaded += 1
+
+
+def skyline_seeds() -> list[bytes]:
+    az = np.arange(0.0, 360.0, 1.0)
+    el = 2.0 + np.sin(np.radians(3 * az))
+    el[40:60] = np.nan
+    plain = format_skyline_csv(Skyline(az, el)).encode()
+    conf = format_skyline_csv(Skyline(az, el, np.clip(0.5 + 0.4 * np.cos(np.radians(az)), 0, 1))).encode()
+    return [plain, conf, b"\xef\xbb\xbf" + plain.replace(b"\n", b"\r\n")]
+
+
+def fuzz_skyline(count: int, rng: random.Random) -> Tally:
+    t = Tally()
+    seeds = skyline_seeds()
+    for _ in range(count):
+        data = mutate(rng.choice(seeds), rng)
+        t.run(functools.partial(parse_skyline_csv, data.decode("utf-8", "replace"), "fuzz.csv"))
+    return t
+
+
+def fuzz_config(count: int, rng: random.Random, work: Path) -> Tally:
+    t = Tally()
+    seeds = [(ROOT / "examples" / n).read_bytes() for n in ("tripod.toml", "sim-forest.toml")] + [FULL_CONFIG]
+    path = work / "fuzz.toml"
+    for _ in range(count):
+        path.write_bytes(mutate(rng.choice(seeds), rng))
+        t.run(functools.partial(load_config, path))
+    return t
+
+
+def fuzz_dems(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
+    out = {}
+    for rel in DEMS:
+        src = DATA / rel
+        if not src.exists():
+            continue
+        t = Tally()
+        data = src.read_bytes()
+        folder = work / "dem"
+        for _ in range(count):
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            target = folder / src.name
+            if src.suffix.upper() == ".IMG":
+                label = src.with_suffix(".LBL")
+                (folder / label.name).write_bytes(label.read_bytes())
+            target.write_bytes(mutate(data, rng) if rng.random() < 0.5 else data[: rng.randrange(len(data))])
+            t.run(functools.partial(load_dem, target))
+        out[rel] = t
+    return out
+
+
+def fuzz_database(count: int, rng: random.Random, work: Path) -> Tally:
+    db = work / "seed.viperdb"
+    build_database(load_dem("jacksboro"), db, (-84.30, 36.55, -84.28, 36.56), None, 1.5, 36, progress=None)
+    data = db.read_bytes()
+    path = work / "fuzz.viperdb"
+    t = Tally()
+    for _ in range(count):
+        path.write_bytes(mutate(data, rng))
+        t.run(functools.partial(load_database, path))
+    return t
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=20_000, help="inputs per reader (CSV, config, database)")
+    ap.add_argument("--dem-count", type=int, default=12, help="inputs per DEM file")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-record", action="store_true", help="do not append to the results file")
+    args = ap.parse_args()
+    logging.disable(logging.CRITICAL)
+    rng = random.Random(args.seed)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="viper-input-fuzz-") as tmp:
+        work = Path(tmp)
+        tallies = {"skyline CSV": fuzz_skyline(args.count, rng), "config": fuzz_config(args.count, rng, work)}
+        tallies.update({f"DEM {Path(k).name}": v for k, v in fuzz_dems(args.dem_count, rng, work).items()})
+        tallies["database"] = fuzz_database(args.count, rng, work)
+    elapsed = time.perf_counter() - t0
+    foreign = sum(len(t.foreign) for t in tallies.values())
+    result = "pass" if not foreign else f"FAIL: {foreign} foreign exceptions"
+    rows = []
+    for name, t in tallies.items():
+        kinds = ", ".join(f"{k} {v}" for k, v in t.errors.most_common()) or "none"
+        print(f"{name}: {t.inputs} inputs, {t.loaded} loaded, project errors: {kinds}; foreign: {len(t.foreign)}")
+        for line in sorted(set(t.foreign))[:10]:
+            print("  " + line)
+        rows.append(f"| {datetime.date.today().isoformat()} | {args.seed} | {name} | {t.inputs} | {t.loaded} | "
+                     f"{sum(t.errors.values())} | {len(t.foreign)} |")
+    print(f"{sum(t.inputs for t in tallies.values())} inputs in {elapsed:.0f} s -> {result}")
+    if not args.no_record:
+        if not OUT.exists():
+            OUT.write_text("# Input-file fuzzing\n\n`bench/input_fuzz.py`: truncated, bit-flipped and otherwise "
+                           "mutated skyline CSVs, configurations, DEMs of every format in ../shared/data and skyline "
+                           "databases through their readers.\nTarget: every input loads or raises the project's own "
+                           "error (ViperError); no foreign exception.\n\n"
+                           "| date | seed | reader | inputs | loaded | project errors | foreign exceptions |\n"
+                           "|---|---|---|---|---|---|---|\n")
+        with OUT.open("a") as fh:
+            fh.write("\n".join(rows) + "\n")
+            fh.write(f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
+                     f"{args.dem_count} --seed {args.seed}): {result}.\n\n")
+    return 0 if not foreign else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
