@@ -310,9 +310,9 @@ def _mixture_at(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma: float, w
 
 
 def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
-              sig_hi: float, occlusion_weight: float) -> tuple[Fit, bool]:
+              sig_hi: float, occlusion_weight: float) -> tuple[Fit, list[Fit]]:
     """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
-    node), and whether a fit at another place reaches it with its upper bound."""
+    node), and the fits at other places whose upper bound reaches it (rivals)."""
     def near(f: Fit) -> int:
         r = min(max(int(round(f.row)), 0), grid.n_rows - 1)
         c = min(max(int(round(f.col)), 0), grid.n_cols - 1)
@@ -325,11 +325,9 @@ def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: floa
     lo, up = lo + lp, up + lp
     k = int(np.argmax(lo))
     best = fits[k]
-    rival = any(
-        up[i] >= lo[k] and math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS
-        for i, f in enumerate(fits) if i != k
-    )
-    return best, rival
+    rivals = [f for i, f in enumerate(fits)
+              if i != k and up[i] >= lo[k] and math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
+    return best, rivals
 
 
 def resample_to_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, n_az: int) -> np.ndarray:
@@ -558,7 +556,8 @@ def estimate(
             else:
                 fits = ([] if first is None else [first]) + ctx.look_and_fit(modes)
             if fits:
-                best_fit, rival = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi, occlusion_weight)
+                best_fit, rivals = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi, occlusion_weight)
+                rival = bool(rivals)
                 frow, fcol, heading = best_fit.row, best_fit.col, best_fit.heading_deg
                 rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
                 if best_fit.occluded > 0.05 * best_fit.n:
@@ -591,7 +590,10 @@ def estimate(
                         node_upper[rescore] = np.max(post.log_upper, axis=1)
                         best_lower_log = float(np.max(post.log_lower[ir]))
                         region = np.nonzero(node_upper >= best_lower_log)[0]
-                region = np.union1d(region, [near])
+                # the cells of the exact fit and of its rivals belong to the region
+                cells = [near] + [min(max(int(round(f.row)), 0), grid.n_rows - 1) * grid.n_cols
+                                  + min(max(int(round(f.col)), 0), grid.n_cols - 1) for f in rivals]
+                region = np.union1d(region, cells)
         else:
             from appliance.estimator.refine import refine_subcell
 
