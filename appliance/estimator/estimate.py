@@ -566,30 +566,6 @@ def estimate(
                 # the cell the exact fit stands in belongs to the region
                 near = (min(max(int(round(frow)), 0), grid.n_rows - 1) * grid.n_cols
                         + min(max(int(round(fcol)), 0), grid.n_cols - 1))
-                # Where the exact render fits better than the linearised model said, its likelihood
-                # stands for its cell: the best's lower posterior rises, and with it the bar that
-                # the other cells' upper posteriors must reach.  A poor fit changes nothing.
-                ir = int(np.searchsorted(rescore, near))
-                if ir < rescore.size and rescore[ir] == near:
-                    f = best_fit
-                    scale_n = n_eff / max(f.n, 1)
-                    lo_e, up_e = mixture_log_likelihood_bounds(np.array([f.ssd * scale_n]), n_eff,
-                                                               np.array([f.occluded * scale_n]), sig_lo, sig_hi,
-                                                               occlusion_weight)
-                    # lp_r carries the parallax model's log-normaliser, which an exact render does not pay
-                    lo_x, up_x = float(lo_e[0]) + float(pen_r[ir, 0]), float(up_e[0]) + float(pen_r[ir, 0])
-                    if lo_x > float(np.max(lo_r[ir])):
-                        lo_r[ir] = np.maximum(lo_r[ir], lo_x)
-                        up_r[ir] = np.maximum(up_r[ir], up_x)
-                        post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
-                        log_sum_up = float(np.logaddexp.reduce((up_r + lp_r).ravel()))
-                        log_sum_lo = float(np.logaddexp.reduce((lo_r + lp_r).ravel()))
-                        node_lower = c_lo + lp - log_sum_up
-                        node_upper = node_up - log_sum_lo
-                        node_lower[rescore] = np.max(post.log_lower, axis=1)
-                        node_upper[rescore] = np.max(post.log_upper, axis=1)
-                        best_lower_log = float(np.max(post.log_lower[ir]))
-                        region = np.nonzero(node_upper >= best_lower_log)[0]
                 # the cells of the exact fit and of its rivals belong to the region
                 cells = [near] + [min(max(int(round(f.row)), 0), grid.n_rows - 1) * grid.n_cols
                                   + min(max(int(round(f.col)), 0), grid.n_cols - 1) for f in rivals]
