@@ -83,9 +83,9 @@ def test_stuck_compass_raises_after_repeats(caplog: pytest.LogCaptureFixture) ->
 
 
 def test_unknown_compass_kind_is_a_config_error() -> None:
-    cfg = from_mapping(Config, {"devices": {"compass": {"kind": "fluxgate"}}})
-    with pytest.raises(ConfigError, match="devices.compass.kind"):
-        open_platform(cfg)
+    # refused where the configuration is read, before any device is opened
+    with pytest.raises(ConfigError, match="devices.compass.kind: expected 'hmc5883l' or 'nmea', got 'fluxgate'"):
+        from_mapping(Config, {"devices": {"compass": {"kind": "fluxgate"}}})
 
 
 def test_nmea_compass_as_heading_and_inclinometer() -> None:
