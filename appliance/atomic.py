@@ -20,7 +20,7 @@ import glob
 import os
 import secrets
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -97,7 +97,7 @@ def umask_mode() -> int:
     return 0o666 & ~mask
 
 
-def _fsync_folder(folder: Path) -> None:
+def fsync_folder(folder: Path) -> None:
     """Make a rename durable (best effort: some file systems refuse to fsync a folder)."""
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -182,7 +182,7 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
     except BaseException:
         _remove(tmp)
         raise
-    _fsync_folder(folder)
+    fsync_folder(folder)
 
 
 def _remove(tmp: Path) -> None:
@@ -314,24 +314,31 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+def remove_if_unheld(lock_path: Path, remove: Callable[[], None]) -> bool:
+    """Call ``remove`` if no live process holds ``lock_path``'s flock (its owner was killed); True if
+    it was called.  The lock is held while removing, so a live owner is never raced."""
+    try:
+        fd = os.open(lock_path, os.O_RDONLY | os.O_CLOEXEC)
+    except OSError:
+        return False
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return False
+        try:
+            remove()
+        except OSError:
+            return False
+        return True
+    finally:
+        os.close(fd)
+
+
 def remove_stale_temporaries(folder: str | Path, name: str) -> list[Path]:
     """Remove the temporary files of ``folder/name`` that no live writer holds (a killed one's)."""
-    removed: list[Path] = []
     try:
         candidates = sorted(Path(folder).glob(f".{glob.escape(name)}.*{TMP_MARK}*"))
     except OSError:
-        return removed
-    for q in candidates:
-        try:
-            fd = os.open(q, os.O_RDONLY | os.O_CLOEXEC)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            q.unlink()
-            removed.append(q)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
-    return removed
+        return []
+    return [q for q in candidates if remove_if_unheld(q, q.unlink)]

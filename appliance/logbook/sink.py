@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Protocol
 
+from appliance.atomic import fsync_folder
 from appliance.errors import LogError
 
 
@@ -51,7 +52,7 @@ class DurableFile:
             raise LogError(f"{self.path}: cannot create log file: {exc.strerror}") from None
         self._pos = 0
         self.committed = 0
-        _fsync_dir(self.path.parent)
+        fsync_folder(self.path.parent)
 
     @property
     def fd(self) -> int:
@@ -89,15 +90,3 @@ class DurableFile:
             os.close(fd)
 
 
-def _fsync_dir(directory: Path) -> None:
-    """Make a new directory entry durable (best effort: some filesystems refuse O_RDONLY on dirs)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

@@ -34,6 +34,7 @@ from mcap.writer import MCAP0_MAGIC, CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from appliance.atomic import remove_if_unheld
 from appliance.errors import LogError
 from appliance.logbook.messages import to_jsonable
 from appliance.logbook.sink import DurableFile, Sink
@@ -323,26 +324,8 @@ def remove_stale_reserves(folder: str | Path) -> list[Path]:
 
     A reserve is stale when no process holds its lock; a live session's reserve is left alone.
     """
-    removed: list[Path] = []
     try:
         candidates = sorted(Path(folder).glob(".*.reserve"))
     except OSError:
-        return removed
-    for q in candidates:
-        try:
-            fd = os.open(q, os.O_RDONLY | os.O_CLOEXEC)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        try:
-            q.unlink()
-            removed.append(q)
-        except OSError:
-            pass
-        finally:
-            os.close(fd)
-    return removed
+        return []
+    return [q for q in candidates if remove_if_unheld(q, q.unlink)]

@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import atexit
 import fcntl
+import functools
 import os
 import shutil
 import tempfile
 from pathlib import Path
+
+from appliance.atomic import remove_if_unheld
 
 PREFIX = "viper-sim-"
 LOCK_NAME = ".lock"
@@ -47,19 +50,7 @@ def remove_stale_sim_folders(parent: str | Path | None = None) -> list[Path]:
     except OSError:
         return removed
     for folder in folders:
-        lock = folder / LOCK_NAME
-        try:
-            fd = os.open(lock, os.O_RDONLY | os.O_CLOEXEC)
-        except OSError:
-            continue  # no lock: not a folder this module made, or one being made right now
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            continue
-        try:
-            shutil.rmtree(folder, ignore_errors=True)
+        # no lock: not a folder this module made, or one being made right now
+        if remove_if_unheld(folder / LOCK_NAME, functools.partial(shutil.rmtree, folder, ignore_errors=True)):
             removed.append(folder)
-        finally:
-            os.close(fd)
     return removed
