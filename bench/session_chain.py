@@ -36,7 +36,7 @@ from appliance.acquisition.procedures import TaggedFrame, capture_angles  # noqa
 from appliance.acquisition.session import random_position  # noqa: E402
 from appliance.config import EstimatorConfig, SessionConfig  # noqa: E402
 from appliance.demo import demo_database  # noqa: E402
-from appliance.position import locate, skyline_grid  # noqa: E402
+from appliance.position import locate, skyline_grid, truth_in_region  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.vision.camera import CameraPose  # noqa: E402
@@ -78,10 +78,7 @@ def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: Estimator
     pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid, occlusion_weight=est.occlusion_weight,
                  map_sigma_m=est.map_vertical_sigma_m)
     _, _, err = dem.geod.inv(lon, lat, pos.lon, pos.lat)
-    x, y = db.grid.lonlat_to_xy(lon, lat)
-    r, c = db.grid.xy_to_rc(x, y)
-    truth_node = int(round(float(r))) * db.grid.n_cols + int(round(float(c)))
-    inside = bool(np.isin(truth_node, pos.result.region_nodes))
+    inside = truth_in_region(db, pos, (lat, lon))
     return float(err), pos, inside, float(np.isfinite(sky.elevation_deg).mean())
 
 

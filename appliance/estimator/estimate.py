@@ -32,8 +32,7 @@ from appliance.estimator.exact import Fit, Model, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import (
-    OCCLUDER_SPAN_DEG,
-    log_likelihood,
+    mixture_log_likelihood,
     mixture_log_likelihood_bounds,
     occlusion_cap_deg2,
     posterior_bounds,
@@ -106,9 +105,9 @@ class SkylineGrid:
 
     @cached_property
     def ground_gradient2(self) -> np.ndarray:
-        if self.ground_m is None:
-            return np.zeros(self.codes.shape[0], dtype=np.float32)
-        return parallax.ground_gradient2(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m)
+        """|grad z|^2 of the ground at every node, float32 (0 where unknown)."""
+        ge, gn = self.ground_gradient
+        return (ge * ge + gn * gn).astype(np.float32)
 
     @cached_property
     def ground_gradient(self) -> tuple[np.ndarray, np.ndarray]:
@@ -299,14 +298,6 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
 def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
     """Residual sums with each occluded measurement counting the cap: what ranks headings."""
     return ssd if not math.isfinite(cap) else ssd + occluded * cap
-
-
-def _mixture_at(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma: float, weight: float) -> np.ndarray:
-    """The occlusion mixture's log-likelihood at one sigma (``likelihood.mixture_log_likelihood_bounds``)."""
-    if not weight > 0.0:
-        return log_likelihood(ssd, n, sigma)
-    n_g = np.maximum(n - occluded, 1.0)
-    return log_likelihood(ssd, n_g, sigma) + occluded * math.log(weight / OCCLUDER_SPAN_DEG) + n_g * math.log1p(-weight)
 
 
 def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
@@ -520,7 +511,7 @@ def estimate(
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     mid = 0.5 * (sig_lo + sig_hi)
     node_mid = np.full(n_nodes, -np.inf)
-    ll_mid = _mixture_at(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
+    ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
     node_mid -= np.logaddexp.reduce(node_mid[rescore])
     posterior_mid = np.exp(node_mid)

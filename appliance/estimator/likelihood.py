@@ -129,6 +129,23 @@ def occlusion_cap_deg2(weight: float, sigma_deg: float) -> float:
     return 2.0 * sigma_deg * sigma_deg * math.log(1.0 / kappa)
 
 
+def _occlusion_split(n: float, occluded: np.ndarray, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian's sample count and the sigma-free part of the mixture's log-likelihood:
+    log(w / H) per occluded measurement, log(1 - w) per other one."""
+    occ = np.asarray(occluded, dtype=np.float64)
+    n_g = np.maximum(n - occ, 1.0)
+    return n_g, occ * math.log(weight / OCCLUDER_SPAN_DEG) + n_g * math.log1p(-weight)
+
+
+def mixture_log_likelihood(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma: float,
+                           weight: float) -> np.ndarray:
+    """The occlusion mixture's log-likelihood at one sigma (see :func:`mixture_log_likelihood_bounds`)."""
+    if not weight > 0.0:
+        return log_likelihood(ssd, n, sigma)
+    n_g, const = _occlusion_split(n, occluded, weight)
+    return log_likelihood(ssd, n_g, sigma) + const
+
+
 def mixture_log_likelihood_bounds(ssd: np.ndarray, n: float, occluded: np.ndarray, sigma_lo: float,
                                   sigma_hi: float, weight: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper log-likelihood over sigma of the occlusion mixture (:func:`occlusion_cap_deg2`).
@@ -139,8 +156,6 @@ def mixture_log_likelihood_bounds(ssd: np.ndarray, n: float, occluded: np.ndarra
     """
     if not weight > 0.0:
         return log_likelihood_bounds(ssd, n, sigma_lo, sigma_hi)
-    occ = np.asarray(occluded, dtype=np.float64)
-    n_g = np.maximum(n - occ, 1.0)
+    n_g, const = _occlusion_split(n, occluded, weight)
     lo, up = log_likelihood_bounds(ssd, n_g, sigma_lo, sigma_hi)
-    const = occ * math.log(weight / OCCLUDER_SPAN_DEG) + n_g * math.log1p(-weight)
     return lo + const, up + const

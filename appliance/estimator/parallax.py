@@ -45,16 +45,6 @@ def offset_variance_m2(dx_m: float, dy_m: float) -> float:
     return OFFSET_SCALE**2 * (dx_m * dx_m + dy_m * dy_m) / 24.0
 
 
-def ground_gradient2(ground_m: np.ndarray, n_rows: int, n_cols: int, dx_m: float, dy_m: float) -> np.ndarray:
-    """|grad z|^2 of the ground at every node (dimensionless; 0 where unknown), float32."""
-    z = np.asarray(ground_m, dtype=np.float64).reshape(n_rows, n_cols)
-    if n_rows < 2 or n_cols < 2:
-        return np.zeros(n_rows * n_cols, dtype=np.float32)
-    gy, gx = np.gradient(z, dy_m, dx_m)
-    g2 = gx * gx + gy * gy
-    return np.where(np.isfinite(g2), g2, 0.0).astype(np.float32).ravel()
-
-
 def inverse_range2_table(distance_min_m: float, log_step: float) -> np.ndarray:
     """(180/pi)^2 / d^2 for every range code (0 for the missing code): deg^2 per unit of rho^2
     times the bracket of the model."""

@@ -165,24 +165,3 @@ def bilinear(Z: np.ndarray, row: float, col: float) -> float:
     fr, fc = row - r0, col - c0
     return float((Z[r0, c0] * (1 - fc) + Z[r0, c0 + 1] * fc) * (1 - fr)
                  + (Z[r0 + 1, c0] * (1 - fc) + Z[r0 + 1, c0 + 1] * fc) * fr)
-
-
-def render_on_grid(
-    Z: np.ndarray, dx_m: float, dy_m: float, row: float, col: float, height_m: float,
-    grid_azimuth_deg: np.ndarray, reach_m: float, r_eff_m: float, block_max: np.ndarray | None = None,
-    dist_m: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """(elevation_deg, distance_m, ground_m) of the skyline from fractional (row, col) of Z."""
-    ground = bilinear(Z, row, col)
-    az = np.radians(np.asarray(grid_azimuth_deg, dtype=np.float64))
-    tan = np.empty(az.size)
-    far = np.empty(az.size)
-    if not math.isfinite(ground):
-        tan.fill(np.nan)
-        far.fill(np.nan)
-        return tan, far, ground
-    d = ray_distances(min(dx_m, dy_m), reach_m) if dist_m is None else dist_m
-    bm = block_maxima(Z) if block_max is None else block_max
-    march(Z, float(dx_m), float(dy_m), float(row), float(col), ground + float(height_m), az, d, float(r_eff_m),
-          bm, BLOCK_CELLS, tan, far)
-    return np.degrees(np.arctan(tan)), far, ground
