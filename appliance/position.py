@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import EstimateResult, SkylineGrid, estimate, transport_prior
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
@@ -78,11 +79,13 @@ class Position:
             "notes": r.notes,
         }
         if truth is not None:
-            geod = db.grid.crs.get_geod()
-            if geod is not None:
-                _, _, d = geod.inv(self.lon, self.lat, truth[1], truth[0])
-                out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(float(d), 2)}
+            out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(truth_error_m(db, self, truth), 2)}
         return out
+
+
+def truth_error_m(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> float:
+    """Geodesic distance (m) on the database's body from the estimate to ``truth`` (lat, lon)."""
+    return geodesic_distance_m(pos.lat, pos.lon, truth[0], truth[1], body_named(db.header["body"]))
 
 
 def truth_in_region(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> bool:
