@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
-from appliance.cli._platform import warn_if_simulated
+from appliance.cli._platform import session_runner, warn_if_simulated
 from appliance.config import load_config
 
 
@@ -23,7 +23,7 @@ def _capture(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
-    result = run_one_session(config, log_dir, seed=args.seed, on_status=lambda s: None)
+    result = run_one_session(session_runner(config, args.seed), log_dir)
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
     for name, outcome in result.outcomes.items():

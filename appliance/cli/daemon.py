@@ -7,7 +7,7 @@ from pathlib import Path
 
 from appliance.acquisition.daemon import SessionDaemon
 from appliance.acquisition.notify import Notifier
-from appliance.cli._platform import warn_if_simulated
+from appliance.cli._platform import session_runner, warn_if_simulated
 from appliance.config import load_config
 
 
@@ -24,6 +24,6 @@ def _session(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
-    daemon = SessionDaemon(config, log_dir, Notifier.from_environment())
+    daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config))
     daemon.install_signal_handlers()
     return daemon.run()
