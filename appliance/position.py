@@ -111,7 +111,8 @@ def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
                       db.r_eff_m, float(db.header["max_range_m"]))
     dc = db.header["distance_code"]
     return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
-                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]))
+                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]),
+                       first_pass=(db.coarse_codes, db.coarse_partial, db.coarse_tau2))
 
 
 def crs_name(db: SkylineDatabase) -> str:

@@ -114,7 +114,7 @@ BAD_DATABASES = {
     "bit-in-header": lambda b: _flip(b, b.index(b'"height_m": 1.5') + 13),
     "header-length-huge": lambda b: b[:8] + b"\xff\xff\xff\x7f" + b[12:],
     "json-broken": lambda b: b[:12] + b"[" + b[13:],
-    "version-1": lambda b: b.replace(b'"format_version": 2', b'"format_version": 1', 1),
+    "version-1": lambda b: b.replace(b'"format_version": 3', b'"format_version": 1', 1),
     "png-instead": lambda b: b"\x89PNG\r\n\x1a\n" + b[8:64],
 }
 DB_COMMANDS = {

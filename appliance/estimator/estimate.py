@@ -90,6 +90,9 @@ class SkylineGrid:
     terrain: Terrain | None = None
     distance_min_m: float = 1.0
     distance_log_step: float = 0.05
+    #: the first pass made ahead (at the database's build): :attr:`coarse`, and :meth:`coarse_tau2`
+    #: with no map error; None = made on first use
+    first_pass: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def n_azimuths(self) -> int:
@@ -135,6 +138,8 @@ class SkylineGrid:
         azimuths (uint8 codes); made once per map error."""
         assert self.distance_codes is not None
         cache = self._coarse_tau2_cache
+        if map_sigma_m == 0.0 and self.first_pass is not None:
+            return self.first_pass[2]
         if map_sigma_m not in cache:
             cache[map_sigma_m] = parallax.coarse_tau2_codes(
                 self.codes, self.distance_codes, self.offset_deg, self.step_deg, self.ground_gradient2, self.rho2_m2,
@@ -144,7 +149,9 @@ class SkylineGrid:
     @cached_property
     def coarse(self) -> tuple[np.ndarray, np.ndarray]:
         """Codes averaged over runs of COARSE_STRIDE azimuths, and the nodes lacking terrain
-        somewhere: made once, on first use, for every estimate on this grid."""
+        somewhere: made once, at the database's build or on first use, for every estimate on this grid."""
+        if self.first_pass is not None:
+            return self.first_pass[0], self.first_pass[1]
         return decimated(self.codes, self.offset_deg, COARSE_STRIDE)
 
     @property
