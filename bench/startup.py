@@ -42,6 +42,7 @@ def spin(stop: multiprocessing.synchronize.Event) -> None:  # type: ignore[name-
 
 def prepare() -> dict[str, list[str]]:
     """Inputs in bench/cache: the panorama, the databases and one skyline per map."""
+    from appliance.errors import DatabaseError
     from appliance.terrain.database import build_database, load_database
     from appliance.terrain.dem import load_dem
     from appliance.vision.panorama import save_panorama
@@ -61,9 +62,10 @@ def prepare() -> dict[str, list[str]]:
         maps.append(("tile", str(TILE), CACHE / "n44w072-full.viperdb", 44.27, -71.30))
     for name, dem_name, db_path, lat, lon in maps:
         dem = load_dem(dem_name)
-        if not db_path.exists():
+        try:
+            load_database(db_path, dem)
+        except DatabaseError:  # absent, or of another format version
             build_database(dem, db_path, progress=None)
-        load_database(db_path, dem)  # refuses a database of another format version
         sky = CACHE / f"startup-{name}.csv"
         if not sky.exists():
             subprocess.run([VIPER, "render", dem_name, "--lat", str(lat), "--lon", str(lon), "--out", str(sky)],
