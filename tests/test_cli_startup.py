@@ -13,7 +13,8 @@ from appliance.cli.main import COMMANDS, build_parser, command_of
 
 
 def test_the_command_table_lists_every_command_module_with_its_own_help():
-    modules = {m.name for m in pkgutil.iter_modules(cli_pkg.__path__) if m.name != "main" and not m.name.startswith("_")}
+    modules = {m.name for m in pkgutil.iter_modules(cli_pkg.__path__)
+               if m.name != "main" and not m.name.startswith("_")}
     assert {module for module, _ in COMMANDS.values()} == modules
     full = build_parser("*")
     sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
@@ -22,8 +23,8 @@ def test_the_command_table_lists_every_command_module_with_its_own_help():
 
 
 def _modules_after(argv: list[str]) -> set[str]:
-    code = ("import json, sys\nfrom appliance.cli.main import main\ntry:\n    main(%r)\nexcept SystemExit:\n    pass\n"
-            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)" % argv)
+    code = (f"import json, sys\nfrom appliance.cli.main import main\ntry:\n    main({argv!r})\n"
+            "except SystemExit:\n    pass\nprint(json.dumps(sorted(sys.modules)), file=sys.stderr)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return set(json.loads(out.stderr.strip().splitlines()[-1]))
 
