@@ -64,10 +64,11 @@ def main() -> int:
     ap.add_argument("--only", help="the cases whose name starts with this")
     ap.add_argument("--busy", action="store_true", help="run a spinning process beside the builds")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--bounds", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        run_one(args.child[0], args.child[1], args.repeats)
+        run_one(args.child, args.bounds, args.repeats)
         return 0
     rows = []
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy else None
@@ -90,8 +91,8 @@ def run_cases(args: argparse.Namespace) -> list[str]:
         if path != "jacksboro" and not Path(path).exists():
             print(f"{name}: {path} absent, skipped")
             continue
-        out = subprocess.run([sys.executable, __file__, "--repeats", str(args.repeats), "--child", path, bounds],
-                             capture_output=True, text=True, check=True)
+        cmd = [sys.executable, __file__, "--repeats", str(args.repeats), "--child", path, f"--bounds={bounds}"]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True)
         seconds, nodes, n_az, peak_mb, size, dem_bytes = out.stdout.split()
         seconds_f, nodes_i, n_az_i = float(seconds), int(nodes), int(n_az)
         rate = nodes_i * n_az_i / seconds_f

@@ -164,3 +164,13 @@ def test_fusion_resolves_what_one_panorama_cannot():
     # alone the twins are equally likely; with the prior the twin is far less so
     assert abs(alone.log_lower_map[first] - alone.log_lower_map[first + 20]) < 1.0
     assert fused.log_lower_map[first] - fused.log_lower_map[first + 20] > 15.0
+
+
+def test_the_column_argmin_is_numpys_first_minimum():
+    import importlib
+
+    est = importlib.import_module("appliance.estimator.estimate")
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 4, size=(1000, 3)).astype(np.float32)  # many ties
+    a[rng.choice(1000, 50), rng.integers(0, 3, 50)] = np.inf
+    assert np.array_equal(est._argmin_columns(a), np.argmin(a, axis=1))

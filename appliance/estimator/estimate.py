@@ -341,6 +341,19 @@ def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarra
             node_shifts)
 
 
+def _argmin_columns(a: np.ndarray) -> np.ndarray:
+    """np.argmin(a, axis=1) for a tall array of a few columns (the first of equal minima), column by
+    column: numpy's reduction along a short row is several times slower."""
+    best = a[:, 0].copy()
+    arg = np.zeros(a.shape[0], dtype=np.int64)
+    for k in range(1, a.shape[1]):
+        col = a[:, k]
+        better = col < best
+        np.copyto(best, col, where=better)
+        arg[better] = k
+    return arg
+
+
 def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
     """Residual sums with each occluded measurement counting the cap: what ranks headings."""
     return ssd if not math.isfinite(cap) else ssd + occluded * cap
@@ -489,9 +502,10 @@ def estimate(
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
     # the residual grows, so each node's best first-pass shift decides for the node (an occluded
     # measurement counting the cap there).
-    k_c = np.argmin(_capped(coarse, coarse_occ, cap), axis=1)
-    cmin = np.take_along_axis(coarse, k_c[:, None], axis=1)[:, 0].astype(np.float64)
-    cocc = np.take_along_axis(coarse_occ, k_c[:, None], axis=1)[:, 0].astype(np.float64)
+    k_c = _argmin_columns(_capped(coarse, coarse_occ, cap))
+    rows = np.arange(n_nodes)
+    cmin = coarse[rows, k_c].astype(np.float64)
+    cocc = coarse_occ[rows, k_c].astype(np.float64)
     c_lo, c_up = mixture_log_likelihood_bounds(cmin, n_eff, cocc, sig_lo, sig_hi, occlusion_weight)
     c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
