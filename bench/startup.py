@@ -110,7 +110,7 @@ def main() -> int:
             print(f"{name:28s} median {med * 1e3:6.0f} ms  best {best * 1e3:6.0f} ms  "
                   f"target {TARGETS[name] * 1e3:.0f} ms ({ok}), load {load:.1f}")
             rows.append(f"| {date.today()} | {name} | {med * 1e3:.0f} ms | {best * 1e3:.0f} ms | "
-                        f"{TARGETS[name] * 1e3:.0f} ms | {'beside a busy process' if args.busy else 'alone'}, "
+                        f"{TARGETS[name] * 1e3:.0f} ms | {'beside a busy process' if args.busy else 'no spinner added'}, "
                         f"load {load:.1f}, {os.cpu_count()} cores {platform.machine()} |")
     finally:
         stop.set()
