@@ -22,12 +22,16 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
 from appliance.acquisition.notify import Notifier
 from appliance.acquisition.onboard import load_session_database
 from appliance.acquisition.session import SessionResult, run_field_session, run_platform_session
 from appliance.config import Config
 from appliance.errors import LogError
+
+if TYPE_CHECKING:
+    from appliance.logbook.live import Publisher
 
 
 @contextmanager
@@ -54,22 +58,27 @@ def run_one_session(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     seed: int | None = None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
     """One session under the session lock: on the hardware of ``[devices]``, or (``kind = "sim"``)
-    on the simulated twins at a random position of the ``[sim] dem`` map."""
+    on the simulated twins at a random position of the ``[sim] dem`` map; ``publisher`` is the live
+    view (every logged message is also handed to it)."""
     with session_lock(log_dir):
         if config.platform.kind == "sim":
-            return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status)
+            return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
+                                     publisher=publisher)
         on_status("loading the skyline database")
         db = load_session_database(config.session)
-        return run_platform_session(config, log_dir, db, should_stop, on_status)
+        return run_platform_session(config, log_dir, db, should_stop, on_status, publisher)
 
 
 class SessionDaemon:
     def __init__(
-        self, config: Config, log_dir: Path, notifier: Notifier, sleep: Callable[[float], None] | None = None
+        self, config: Config, log_dir: Path, notifier: Notifier, sleep: Callable[[float], None] | None = None,
+        publisher: Publisher | None = None,
     ) -> None:
         self.config, self.log_dir, self.notifier = config, log_dir, notifier
+        self.publisher = publisher
         self._stop = threading.Event()
         self._sleep = sleep
         self.results: list[SessionResult] = []
@@ -124,7 +133,8 @@ class SessionDaemon:
             n += 1
             self._status(f"session {n} starting")
             try:
-                result = run_one_session(self.config, self.log_dir, self._stop.is_set, self._status)
+                result = run_one_session(self.config, self.log_dir, self._stop.is_set, self._status,
+                                         publisher=self.publisher)
             except LogError as exc:
                 self._status(f"session {n} skipped: {exc}")
             else:

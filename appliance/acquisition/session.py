@@ -31,6 +31,7 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 from appliance.skyline import Skyline
 
 if TYPE_CHECKING:
+    from appliance.logbook.live import Publisher
     from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
 
@@ -121,6 +122,7 @@ class Session:
             if self.p.camera is not None:
                 intr = self.p.camera.intrinsics
                 self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
+                self.log.write_proto(t.TF, m.optical_transform(self.now()), self.now())
             self.say("info", f"session {r.session_id} started")
             self.log.flush()
             self.step("level", self.do_level)
@@ -350,6 +352,7 @@ def write_estimate(
                     time_ns)
     log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
     log.write_proto(t.REGION, m.geojson(onboard.region_features(db, pos)), time_ns)
+    log.write_proto(t.TF, onboard.posterior_transform(db, pos, time_ns), time_ns)
     log.write_proto(t.POSTERIOR, onboard.posterior_grid(db, pos, time_ns), time_ns)
     log.write_json(t.SKYLINE_RENDERED, "viper.Skyline", skyline_payload(onboard.rendered_skyline(db, pos)), time_ns)
     log.flush()
@@ -369,8 +372,10 @@ def run_session(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     approx_position: tuple[float, float] | None = None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
-    """Run one session on ``platform``; the log goes to a new file in ``log_dir``."""
+    """Run one session on ``platform``; the log goes to a new file in ``log_dir`` (and every message
+    also to ``publisher``, the live view, when given)."""
     session_id = uuid.uuid4().hex[:8]
     path = session_log_path(log_dir, platform.clock.now_ns(), session_id)
     lc = config.logbook
@@ -380,6 +385,7 @@ def run_session(
         chunk_size_bytes=lc.chunk_size_bytes,
         compression=lc.compression,
         reserve_bytes=lc.reserve_bytes,
+        publisher=publisher,
     )
     result = SessionResult(path, session_id)
     return Session(platform, logbook, config, db, result, should_stop, on_status, approx_position).run()
@@ -391,13 +397,15 @@ def run_platform_session(
     db: SkylineDatabase | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
     """One session on :func:`appliance.drivers.factory.open_platform` (hardware, or the simulated twins)."""
     from appliance.drivers.factory import open_platform
 
     on_status("opening the devices")
     with open_platform(config) as devices:
-        return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status)
+        return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status,
+                           publisher=publisher)
 
 
 def simulated_config(config: Config, dem: Any, db: SkylineDatabase | None, rng: np.random.Generator,
@@ -427,6 +435,7 @@ def run_field_session(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     db: SkylineDatabase | None = None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
     """A whole simulated session at a random position of the ``[sim] dem`` map; the log goes to ``out_dir``.
 
@@ -444,7 +453,7 @@ def run_field_session(
         on_status("loading the skyline database")
         db = onboard.load_session_database(config.session, dem, out)
     sim_config = simulated_config(config, dem, db, rng, faults)
-    result = run_platform_session(sim_config, out, db, should_stop, on_status)
+    result = run_platform_session(sim_config, out, db, should_stop, on_status, publisher)
     result.outcomes.setdefault("true_position", f"{sim_config.sim.lat_deg:.6f},{sim_config.sim.lon_deg:.6f}")
     return result
 

@@ -1,11 +1,19 @@
-"""The notice printed when a run drives the simulated platform only because no ``[platform]`` was given."""
+"""Shared by the commands that run sessions: the notice printed when a run drives the simulated platform only
+because no ``[platform]`` was given, and the ``--live`` option (the Foxglove live view)."""
 
 from __future__ import annotations
 
+import argparse
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from appliance.config import Config
+
+if TYPE_CHECKING:
+    from appliance.logbook.live import LiveServer
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -36,3 +44,27 @@ def warn_if_simulated(command: str, config: Config, config_path: str | Path | No
     line = simulated_notice(command, config, config_path)
     if line is not None:
         print(line, file=sys.stderr, flush=True)
+
+
+def add_live_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--live", metavar="[HOST:]PORT",
+        help="serve the session live to Foxglove (WebSocket) on PORT, bound to 127.0.0.1 unless HOST is given "
+             "(off by default)")
+
+
+@contextmanager
+def live_server(address: str | None) -> Iterator[LiveServer | None]:
+    """The live view of ``--live`` (None when the option was not given), stopped on exit."""
+    if address is None:
+        yield None
+        return
+    from appliance.logbook.live import LiveServer, parse_address
+
+    host, port = parse_address(address)
+    server = LiveServer(host, port)
+    print(f"live view: ws://{host}:{server.port}", file=sys.stderr, flush=True)
+    try:
+        yield server
+    finally:
+        server.close()

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
-from appliance.cli._platform import warn_if_simulated
+from appliance.cli._platform import add_live_option, live_server, warn_if_simulated
 from appliance.config import load_config
 
 
@@ -16,6 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
     p.add_argument("--log-dir", metavar="DIR", help="override logbook.log_dir")
     p.add_argument("--seed", type=int, help="seed of the simulated platform (platform.kind = 'sim')")
+    add_live_option(p)
     p.set_defaults(func=_capture)
 
 
@@ -23,7 +24,8 @@ def _capture(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
-    result = run_one_session(config, log_dir, seed=args.seed, on_status=lambda s: None)
+    with live_server(args.live) as live:
+        result = run_one_session(config, log_dir, seed=args.seed, on_status=lambda s: None, publisher=live)
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
     for name, outcome in result.outcomes.items():
