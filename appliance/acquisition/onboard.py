@@ -149,7 +149,8 @@ def posterior_grid(db: SkylineDatabase, pos: Position, time_ns: int, floor_decad
     """The lower posterior (log10, floored ``floor_decades`` below its peak) as a Foxglove Grid.
 
     Row 0 is the grid's southernmost row; cells are ``dx_m`` x ``dy_m`` metres in the frame
-    ``skyline-grid`` whose origin is the south-west node.
+    ``skyline-grid`` whose origin is the south-west corner of the south-west node's cell (placed in
+    ``world`` by :func:`posterior_transform`).
     """
     g = db.grid
     lower = np.asarray(pos.result.log_lower_map, float).reshape(g.n_rows, g.n_cols) / math.log(10.0)
@@ -157,6 +158,20 @@ def posterior_grid(db: SkylineDatabase, pos: Position, time_ns: int, floor_decad
     floored = np.where(np.isfinite(lower), np.maximum(lower, top - floor_decades), top - floor_decades)
     return m.grid(time_ns, floored[::-1], (g.dx_m, g.dy_m), (0.0, 0.0), frame_id="skyline-grid",
                   field_name="log10_lower_posterior")
+
+
+def posterior_transform(db: SkylineDatabase, pos: Position, time_ns: int) -> Any:
+    """world -> skyline-grid, with the world's origin at the estimate: the grid's south-west corner
+    rotated from grid into true east/north by the grid convergence at the estimate's node."""
+    g = db.grid
+    x0, y0 = g.rc_to_xy(g.n_rows - 0.5, -0.5)
+    gamma = float(db.convergence_deg[pos.result.node])
+    dx_m = (float(x0) - pos.x) * g.dx_m / g.dx
+    dy_m = (float(y0) - pos.y) * g.dy_m / g.dy
+    c, s = math.cos(math.radians(gamma)), math.sin(math.radians(gamma))
+    # grid north at true azimuth gamma: grid +x = (cos g, -sin g), grid +y = (sin g, cos g) in (east, north)
+    east, north = c * dx_m + s * dy_m, -s * dx_m + c * dy_m
+    return m.grid_transform(time_ns, east, north, gamma)
 
 
 @dataclass(frozen=True)
