@@ -1,0 +1,240 @@
+"""The live view during a whole simulated session, seen by a real WebSocket client speaking the Foxglove
+protocol; the session's log read back by the independent ``mcap`` reader: every JSON message against its
+channel's schema, and the Foxglove frames (camera_optical, the posterior grid placed in world)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+from mcap.reader import make_reader
+
+from appliance.acquisition.session import run_field_session
+from appliance.cli.main import main
+from appliance.logbook import messages as m
+from appliance.logbook import topics as t
+from appliance.logbook.live import LiveServer, parse_address
+from tests.test_acquisition_session import WINDOW, small_config
+
+jsonschema = pytest.importorskip("jsonschema")
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+
+
+class FoxgloveClient(threading.Thread):
+    """Connects, subscribes to every advertised channel and keeps (topic, schema, payload) of each message."""
+
+    def __init__(self, port: int) -> None:
+        super().__init__(daemon=True)
+        self.url = f"ws://127.0.0.1:{port}"
+        self.connected = threading.Event()
+        self.stop = threading.Event()
+        self.server_info: dict = {}
+        self.channels: dict[int, dict] = {}
+        self.messages: list[tuple[str, str, bytes]] = []
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            asyncio.run(self._run())
+        except BaseException as exc:  # surfaced by the test
+            self.error = exc
+            self.connected.set()
+
+    async def _run(self) -> None:
+        import websockets
+
+        async with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+            assert ws.subprotocol in SUBPROTOCOLS
+            subscriptions: dict[int, int] = {}
+            while not self.stop.is_set():
+                try:
+                    raw = await asyncio.wait_for(ws.recv(), 0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(raw, str):
+                    msg = json.loads(raw)
+                    if msg["op"] == "serverInfo":
+                        self.server_info = msg
+                        self.connected.set()
+                    elif msg["op"] == "advertise":
+                        subs = []
+                        for ch in msg["channels"]:
+                            self.channels[ch["id"]] = ch
+                            sub_id = len(subscriptions) + 1
+                            subscriptions[sub_id] = ch["id"]
+                            subs.append({"id": sub_id, "channelId": ch["id"]})
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                elif raw[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
+                    sub_id, _ = struct.unpack_from("<IQ", raw, 1)
+                    ch = self.channels[subscriptions[sub_id]]
+                    self.messages.append((ch["topic"], ch["schemaName"], bytes(raw[13:])))
+
+    def payloads(self, topic: str) -> list[bytes]:
+        return [data for tp, _, data in list(self.messages) if tp == topic]
+
+
+@pytest.fixture(scope="module")
+def live_session(tmp_path_factory):
+    from appliance.terrain.database import build_database, load_database
+    from appliance.terrain.dem import load_dem
+
+    dem = load_dem("jacksboro")
+    path = tmp_path_factory.mktemp("db") / "window.viperdb"
+    build_database(dem, path, search_bounds=WINDOW, progress=None)
+    db = load_database(path, dem)
+    out = tmp_path_factory.mktemp("live")
+    with LiveServer("127.0.0.1", 0) as server:
+        client = FoxgloveClient(server.port)
+        client.start()
+        assert client.connected.wait(30.0)
+        assert client.error is None, client.error
+        result = run_field_session(small_config(), out, seed=5, dem=dem, db=db, publisher=server)
+
+        def estimate_seen() -> bool:
+            return any(json.loads(p).get("procedure") == "estimate" for p in client.payloads(t.PROCEDURE))
+
+        deadline = time.monotonic() + 30.0
+        while not estimate_seen() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        client.stop.set()
+        client.join(10.0)
+    assert client.error is None, client.error
+    return result, client, db
+
+
+def test_live_client_receives_the_panorama_the_estimate_and_the_status(live_session):
+    result, client, _ = live_session
+    assert result.estimate is not None
+    assert client.server_info["name"] == "viper"
+    advertised = {ch["topic"]: ch["schemaName"] for ch in client.channels.values()}
+    assert advertised[t.PANORAMA] == "foxglove.CompressedImage"
+    assert advertised[t.ESTIMATE_FIX] == "foxglove.LocationFix"
+    assert advertised[t.PROCEDURE] == "viper.Procedure"
+    assert advertised[t.REGION] == "foxglove.GeoJSON"
+
+    pano = CompressedImage.FromString(client.payloads(t.PANORAMA)[-1])
+    assert pano.format == "jpeg" and pano.data[:2] == b"\xff\xd8"
+    height, width = result.panorama.image.shape[:2]
+    import cv2
+
+    decoded = cv2.imdecode(np.frombuffer(pano.data, np.uint8), cv2.IMREAD_COLOR)
+    assert decoded.shape[:2] == (height, width)
+
+    fix = LocationFix.FromString(client.payloads(t.ESTIMATE_FIX)[-1])
+    assert fix.latitude == pytest.approx(result.estimate.lat, abs=1e-9)
+    assert fix.longitude == pytest.approx(result.estimate.lon, abs=1e-9)
+
+    statuses = {}
+    for p in client.payloads(t.PROCEDURE):
+        rec = json.loads(p)
+        statuses[rec["procedure"]] = rec["status"]
+    assert statuses == {k: v for k, v in result.outcomes.items() if k != "true_position"}
+
+    lines = [m.Log.FromString(p).message for p in client.payloads(t.LOG)]
+    assert any(f"session {result.session_id} finished" in line for line in lines)
+
+
+def _log_messages(path):
+    with open(path, "rb") as f:
+        yield from make_reader(f).iter_messages()
+
+
+def test_every_json_message_of_the_log_matches_its_channel_schema(live_session):
+    result, _, _ = live_session
+    checked: dict[str, int] = {}
+    for schema, channel, message in _log_messages(result.log_path):
+        if channel.message_encoding != "json":
+            continue
+        spec = json.loads(schema.data)
+        assert spec["additionalProperties"] is False
+        validator = jsonschema.Draft202012Validator(spec)
+        errors = [e.message for e in validator.iter_errors(json.loads(message.data))]
+        assert not errors, f"{channel.topic}: {errors}"
+        checked[channel.topic] = checked.get(channel.topic, 0) + 1
+    for topic in (t.ESTIMATE_RECORD, t.PROCEDURE, t.HEADING_RAW, t.CAPTURE, t.SESSION, t.SKYLINE_DETECTED):
+        assert checked.get(topic, 0) > 0, topic
+
+
+def test_a_strict_schema_refuses_an_undeclared_field():
+    validator = jsonschema.Draft202012Validator(t.JSON_SCHEMAS["viper.HeadingRaw"])
+    assert not list(validator.iter_errors({"mag_x": 1.0, "stage_deg": 3.0}))
+    assert [e.validator for e in validator.iter_errors({"mag_x": 1.0, "tilt": 3.0})] == ["additionalProperties"]
+
+
+def _rotate(q, v):
+    x, y, z, w = q.x, q.y, q.z, q.w
+    u = np.array([x, y, z])
+    v = np.asarray(v, float)
+    return 2 * np.dot(u, v) * u + (w * w - np.dot(u, u)) * v + 2 * w * np.cross(u, v)
+
+
+def test_optical_frame_looks_along_the_cameras_forward_axis():
+    tf = m.optical_transform(0)
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("camera", "camera_optical")
+    np.testing.assert_allclose(_rotate(tf.rotation, [0, 0, 1]), [0, 1, 0], atol=1e-12)  # forward
+    np.testing.assert_allclose(_rotate(tf.rotation, [1, 0, 0]), [1, 0, 0], atol=1e-12)  # right
+    np.testing.assert_allclose(_rotate(tf.rotation, [0, 1, 0]), [0, 0, -1], atol=1e-12)  # down
+    # with the stage at 90 deg (clockwise), the optical axis looks east in the platform frame
+    stage = m.stage_transform(0, 90.0)
+    np.testing.assert_allclose(_rotate(stage.rotation, _rotate(tf.rotation, [0, 0, 1])), [1, 0, 0], atol=1e-12)
+    assert m.compressed_image(0, b"").frame_id == "camera_optical"
+
+
+def test_log_frames_place_images_in_camera_optical_and_the_posterior_in_world(live_session):
+    result, _, db = live_session
+    transforms: dict[str, FrameTransform] = {}
+    frame_ids: dict[str, set[str]] = {}
+    grid = None
+    for _schema, channel, message in _log_messages(result.log_path):
+        if channel.topic == t.TF:
+            tf = FrameTransform.FromString(message.data)
+            transforms[tf.child_frame_id] = tf
+        elif channel.topic == t.IMAGE:
+            frame_ids.setdefault(channel.topic, set()).add(CompressedImage.FromString(message.data).frame_id)
+        elif channel.topic == t.CALIBRATION:
+            frame_ids.setdefault(channel.topic, set()).add(CameraCalibration.FromString(message.data).frame_id)
+        elif channel.topic == t.POSTERIOR:
+            from foxglove_schemas_protobuf.Grid_pb2 import Grid
+
+            grid = Grid.FromString(message.data)
+    assert frame_ids[t.IMAGE] == frame_ids[t.CALIBRATION] == {"camera_optical"}
+    optical = transforms["camera_optical"]
+    assert optical.parent_frame_id == "camera"
+    np.testing.assert_allclose(_rotate(optical.rotation, [0, 0, 1]), [0, 1, 0], atol=1e-12)
+
+    assert grid is not None and grid.frame_id == "skyline-grid"
+    place = transforms["skyline-grid"]
+    assert place.parent_frame_id == "world"
+    # the estimate's node, in the grid's frame, lies at the world's origin (the estimate)
+    g, res = db.grid, result.estimate.result
+    in_grid = np.array([(res.col + 0.5) * g.dx_m, (g.n_rows - 1 - res.row + 0.5) * g.dy_m, 0.0])
+    tr = place.translation
+    world = _rotate(place.rotation, in_grid) + [tr.x, tr.y, tr.z]
+    np.testing.assert_allclose(world[:2], [0.0, 0.0], atol=1e-6)
+    # grid north points at the grid convergence (true azimuth) of the estimate's node
+    north = _rotate(place.rotation, [0, 1, 0])
+    gamma = float(db.convergence_deg[res.node])
+    assert math.degrees(math.atan2(north[0], north[1])) == pytest.approx(gamma, abs=1e-9)
+
+
+def test_live_address_defaults_to_localhost():
+    assert parse_address("8765") == ("127.0.0.1", 8765)
+    assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)
+    assert parse_address("[::1]:9000") == ("::1", 9000)
+
+
+def test_bad_live_address_is_one_line_and_non_zero(capsys, tmp_path):
+    code = main(["capture", "--log-dir", str(tmp_path), "--live", "localhost:http"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0
+    assert err[-1].startswith("viper capture: error: --live 'localhost:http'")
