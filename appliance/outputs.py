@@ -1,5 +1,5 @@
-"""Estimate outputs that open elsewhere: a PNG for the operator, GeoTIFF posteriors and a GeoJSON
-region for QGIS."""
+"""Estimate outputs that open elsewhere: a PNG for the operator, GeoTIFF posteriors (NaN nodata) and two
+GeoJSON layers for QGIS, the region's polygons and the points (estimate, truth)."""
 
 from __future__ import annotations
 
@@ -20,11 +20,10 @@ def region_mask(db: SkylineDatabase, pos: Position) -> np.ndarray:
     return mask.reshape(db.grid.n_rows, db.grid.n_cols)
 
 
-def write_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
-    """The region as polygons (lon/lat, WGS84 or the body's geographic CRS) plus the estimate."""
+def region_polygons(db: SkylineDatabase, pos: Position) -> list[list[list[list[float]]]]:
+    """The region's cells merged into polygons: rings of [lon, lat] (WGS84 or the body's geographic CRS)."""
     from rasterio import features
 
-    p = Path(path)
     polys = []
     for geom, value in features.shapes(region_mask(db, pos), transform=db.grid.transform):
         if value != 1:
@@ -35,31 +34,49 @@ def write_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
             lon, lat = db.grid.xy_to_lonlat(xy[:, 0], xy[:, 1])
             rings.append([[round(float(a), 7), round(float(b), 7)] for a, b in zip(lon, lat)])
         polys.append(rings)
+    return polys
+
+
+def write_region_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
+    """One layer of polygons only: the estimate's region as a MultiPolygon (lon/lat)."""
     fc = {
         "type": "FeatureCollection",
         "features": [
-            {"type": "Feature", "properties": {"kind": "region", "area_m2": pos.result.region_area_m2},
-             "geometry": {"type": "MultiPolygon", "coordinates": polys}},
             {"type": "Feature",
-             "properties": {"kind": "estimate", "lower": pos.result.lower, "upper": pos.result.upper,
-                            "heading_correction_deg": pos.result.heading_correction_deg},
-             "geometry": {"type": "Point", "coordinates": [pos.lon, pos.lat]}},
+             "properties": {"kind": "region", "area_m2": pos.result.region_area_m2, "n_cells":
+                            int(pos.result.region_nodes.size), "lower": pos.result.lower, "upper": pos.result.upper},
+             "geometry": {"type": "MultiPolygon", "coordinates": region_polygons(db, pos)}},
         ],
     }
-    write_text_atomic(p, json.dumps(fc))
+    write_text_atomic(Path(path), json.dumps(fc))
+
+
+def write_points_geojson(pos: Position, path: str | Path, truth: tuple[float, float] | None = None) -> None:
+    """One layer of points only: the estimate, and the truth (lat, lon) where known."""
+    features = [
+        {"type": "Feature",
+         "properties": {"kind": "estimate", "lower": pos.result.lower, "upper": pos.result.upper,
+                        "heading_correction_deg": pos.result.heading_correction_deg},
+         "geometry": {"type": "Point", "coordinates": [pos.lon, pos.lat]}},
+    ]
+    if truth is not None:
+        features.append({"type": "Feature", "properties": {"kind": "truth"},
+                         "geometry": {"type": "Point", "coordinates": [float(truth[1]), float(truth[0])]}})
+    write_text_atomic(Path(path), json.dumps({"type": "FeatureCollection", "features": features}))
 
 
 def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
-    """Two bands, log10 of the lower and upper posterior of each node (its best heading)."""
+    """Two float32 bands, log10 of the lower and upper posterior of each node (its best heading); NaN is
+    nodata (a posterior of zero), so no finite value, however small, is mistaken for nodata."""
     import rasterio
 
     p = Path(path)
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
-    bands = np.where(np.isfinite(bands), bands, -9999.0).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
+    bands = np.where(np.isfinite(bands), bands, np.nan).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
     with atomic_output(p) as tmp, rasterio.open(
         tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
-        crs=g.crs.to_wkt(), transform=g.transform, nodata=-9999.0,
+        crs=g.crs.to_wkt(), transform=g.transform, nodata=float("nan"),
     ) as ds:
         ds.write(bands)
         ds.set_band_description(1, "log10 lower posterior")

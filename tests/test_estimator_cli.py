@@ -64,12 +64,19 @@ def test_json_estimate_within_two_cells_between_nodes(db_path, tmp_path, capsys)
     rep = tmp_path / "rep"
     with rasterio.open(next(rep.glob("*-posterior.tif"))) as ds:
         assert ds.count == 2 and ds.crs.to_epsg() == 4326
-        lower = ds.read(1)
-        assert np.nanmax(lower[lower > -9999]) == pytest.approx(np.log10(max(rec["lower"], 1e-300)), abs=0.5) \
+        assert ds.dtypes == ("float32", "float32") and np.isnan(ds.nodata)
+        lower = ds.read(1, masked=True)
+        # nodata is outside the data: every finite value is data, and the masked cells are exactly the NaNs
+        assert np.array_equal(np.ma.getmaskarray(lower), np.isnan(ds.read(1)))
+        assert float(lower.max()) == pytest.approx(np.log10(max(rec["lower"], 1e-300)), abs=0.5) \
             or rec["lower"] == 0.0
-    gj = json.loads(next(rep.glob("*-region.geojson")).read_text())
-    assert gj["features"][0]["geometry"]["type"] == "MultiPolygon"
-    assert gj["features"][1]["geometry"]["coordinates"] == pytest.approx([rec["lon"], rec["lat"]], abs=1e-6)
+    region = json.loads(next(rep.glob("*-region.geojson")).read_text())
+    assert [f["geometry"]["type"] for f in region["features"]] == ["MultiPolygon"]
+    assert region["features"][0]["properties"]["n_cells"] == rec["region"]["n_cells"]
+    points = json.loads(next(rep.glob("*-points.geojson")).read_text())
+    assert [f["properties"]["kind"] for f in points["features"]] == ["estimate", "truth"]
+    assert points["features"][0]["geometry"]["coordinates"] == pytest.approx([rec["lon"], rec["lat"]], abs=1e-6)
+    assert points["features"][1]["geometry"]["coordinates"] == pytest.approx([lon, lat])
     assert next(rep.glob("*.png")).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

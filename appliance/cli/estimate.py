@@ -15,7 +15,7 @@ from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
-REPORT_FILES = (".png", "-posterior.tif", "-region.geojson")
+REPORT_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
 
 
 def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
@@ -104,12 +104,13 @@ def run(args: argparse.Namespace) -> int:
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.outputs import write_geojson, write_geotiff, write_png
+            from appliance.outputs import write_geotiff, write_png, write_points_geojson, write_region_geojson
 
             stem = f"{i + 1:02d}-{Path(name).stem}"
             write_png(db, pos, sky, report / f"{stem}.png", truth)
             write_geotiff(db, pos, report / f"{stem}-posterior.tif")
-            write_geojson(db, pos, report / f"{stem}-region.geojson")
+            write_region_geojson(db, pos, report / f"{stem}-region.geojson")
+            write_points_geojson(pos, report / f"{stem}-points.geojson", truth)
         if args.json:
             print(json.dumps(record), flush=True)
         else:
