@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from pathlib import Path
 
 import pytest
@@ -72,6 +73,43 @@ def test_the_example_configurations_load():
     assert tripod.estimator.occlusion_weight == 0.05 and tripod.estimator.map_vertical_sigma_m == 5.0
     for p in examples:
         load_config(p)
+
+
+def _keys(cls, prefix=""):
+    """Every configuration key below ``cls``, dotted (``sim.faults.gps_garbage_rate``)."""
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = typing.get_type_hints(cls)[f.name]
+        if dataclasses.is_dataclass(tp):
+            out += _keys(tp, f"{prefix}{f.name}.")
+        else:
+            out.append(f"{prefix}{f.name}")
+    return out
+
+
+def _written_keys(path):
+    """Keys set or shown commented out (``# key = value``) in a TOML example, with their table."""
+    import re
+
+    keys, table = set(), ""
+    for line in path.read_text().splitlines():
+        head = re.match(r"^\[([\w.]+)\]", line)
+        if head:
+            table = head.group(1) + "."
+            continue
+        key = re.match(r"^#? ?(\w+) = ", line)
+        if key:
+            keys.add(table + key.group(1))
+    return keys
+
+
+@pytest.mark.parametrize("name,kind,skip", [("hardware.toml", "hardware", "sim."), ("sim.toml", "sim", None)])
+def test_the_complete_examples_show_every_key(name, kind, skip):
+    path = Path(__file__).resolve().parents[1] / "examples" / name
+    assert load_config(path).platform.kind == kind
+    expected = {k for k in _keys(Config) if skip is None or not k.startswith(skip)}
+    assert sorted(expected - _written_keys(path)) == []
+    assert sorted(_written_keys(path) - set(_keys(Config))) == []
 
 
 @pytest.mark.parametrize("text,name", [

@@ -135,3 +135,28 @@ def test_a_skyline_from_elsewhere_is_not_confident(db_path, tmp_path, capsys):
     rec = json.loads(capsys.readouterr().out)
     assert rec["ambiguous"] or any("poor match" in n for n in rec["notes"])
     assert rec["region"]["n_cells"] > 25 or any("poor match" in n for n in rec["notes"])
+
+
+def test_the_readme_python_api_snippet_locates_a_skyline(db_path, tmp_path, monkeypatch):
+    import re
+    import shutil
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Python API", 1)[1]
+    snippet = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    assert len(snippet.strip().splitlines()) <= 7
+    lat, lon = 36.5731, -84.2687
+    shutil.copy(db_path, tmp_path / "map.viperdb")
+    sky = _skyline_at(tmp_path, "s.csv", lat, lon, seed=3)
+    from appliance.skyline import read_skyline_csv
+
+    np.save(tmp_path / "elevation.npy", read_skyline_csv(sky).elevation_deg)
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(snippet, "README.md", "exec"), scope)
+    pos = scope["pos"]
+    db = scope["db"]
+    cell = float(np.hypot(db.grid.dx_m, db.grid.dy_m)) / np.sqrt(2)
+    geod = load_dem("jacksboro").geod
+    assert geod.inv(pos.lon, pos.lat, lon, lat)[2] <= 2 * cell
