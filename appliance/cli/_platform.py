@@ -4,6 +4,7 @@ because no ``[platform]`` was given, and the ``--live`` option (the Foxglove liv
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,6 +15,8 @@ from appliance.config import Config
 
 if TYPE_CHECKING:
     from appliance.logbook.live import LiveServer
+
+LOG = logging.getLogger(__name__)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -43,7 +46,7 @@ def simulated_notice(command: str, config: Config, config_path: str | Path | Non
 def warn_if_simulated(command: str, config: Config, config_path: str | Path | None) -> None:
     line = simulated_notice(command, config, config_path)
     if line is not None:
-        print(line, file=sys.stderr, flush=True)
+        LOG.warning(line)
 
 
 def add_live_option(parser: argparse.ArgumentParser) -> None:
@@ -63,7 +66,6 @@ def live_server(address: str | None) -> Iterator[LiveServer | None]:
 
     host, port = parse_address(address)
     server = LiveServer(host, port)
-    print(f"live view: ws://{host}:{server.port}", file=sys.stderr, flush=True)
     try:
         yield server
     finally:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
-import sys
 from pathlib import Path
 
 from appliance.atomic import check_output_folder
@@ -14,6 +14,8 @@ from appliance.errors import InputError
 from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
+
+LOG = logging.getLogger(__name__)
 
 REPORT_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
 
@@ -120,5 +122,5 @@ def run(args: argparse.Namespace) -> int:
                   f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
             for note in pos.result.notes:
-                print(f"  {note}", file=sys.stderr)
+                LOG.info("  %s", note)
     return 0

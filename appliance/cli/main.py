@@ -14,6 +14,7 @@ import appliance.cli as cli_pkg
 from appliance import __version__
 from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
 from appliance.errors import ViperError
+from appliance.logsetup import LEVELS, configure_logging
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus sign.
 NUMBER_LIST_OPTIONS = frozenset({"--truth", "--move", "--search-bounds", "--sigma", "--stage-angles", "--lat",
@@ -50,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Viper field appliance: position from the skyline, matched against a DEM.",
     )
     parser.add_argument("--version", action="version", version=f"viper {__version__}")
+    parser.add_argument("--log-level", choices=LEVELS, default="info",
+                        help="messages on stderr at this level and above (default info); under systemd each "
+                             "line carries its journal priority")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(cli_pkg.__path__), key=lambda m: m.name):
         if info.name == "main" or info.name.startswith("_"):
@@ -68,6 +72,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if func is None:
         parser.print_help(sys.stderr)
         return 2
+    configure_logging(args.log_level)
     forget_created_folders()
     try:
         return int(func(args) or 0)

@@ -65,7 +65,7 @@ class LiveServer:
             raise LogError(f"live view: cannot listen on {host}:{port}: {exc}") from None
         self.host = host
         self.port = int(self._server.port)
-        LOG.info("live view on ws://%s:%d (Foxglove: open connection, Foxglove WebSocket)", host, self.port)
+        LOG.info("live view: ws://%s:%d (Foxglove: Open connection, Foxglove WebSocket)", host, self.port)
 
     def publish(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
                 message_encoding: str, data: bytes, log_time_ns: int) -> None:
