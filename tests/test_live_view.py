@@ -140,6 +140,16 @@ def test_live_client_receives_the_panorama_the_estimate_and_the_status(live_sess
         statuses[rec["procedure"]] = rec["status"]
     assert statuses == {k: v for k, v in result.outcomes.items() if k != "true_position"}
 
+    # the skyline overlay: the detected skyline at the panorama's pixels
+    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+
+    overlay = ImageAnnotations.FromString(client.payloads(t.PANORAMA_SKYLINE)[-1])
+    pts = np.array([(p.x, p.y) for strip in overlay.points for p in strip.points])
+    sky = result.skyline
+    el = np.interp(result.panorama.column_azimuth_deg(pts[:, 0]), sky.azimuth_deg, sky.elevation_deg, period=360)
+    np.testing.assert_allclose(pts[:, 1], result.panorama.elevation_to_row(el), atol=0.5)
+    assert len(pts) > 0.5 * np.isfinite(sky.elevation_deg).sum()
+
     lines = [m.Log.FromString(p).message for p in client.payloads(t.LOG)]
     assert any(f"session {result.session_id} finished" in line for line in lines)
 
@@ -225,6 +235,14 @@ def test_log_frames_place_images_in_camera_optical_and_the_posterior_in_world(li
     north = _rotate(place.rotation, [0, 1, 0])
     gamma = float(db.convergence_deg[res.node])
     assert math.degrees(math.atan2(north[0], north[1])) == pytest.approx(gamma, abs=1e-9)
+
+
+def test_skyline_overlay_breaks_at_gaps_and_at_the_seam():
+    cols = np.array([10.0, 11.0, np.nan, 13.0, 14.0, 15.0, 1.0, 2.0])
+    rows = np.array([5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0])
+    ann = m.skyline_annotations(0, cols, rows)
+    strips = [[(p.x, p.y) for p in s.points] for s in ann.points]
+    assert strips == [[(10.0, 5.0), (11.0, 6.0)], [(13.0, 8.0), (14.0, 9.0), (15.0, 10.0)], [(1.0, 11.0), (2.0, 12.0)]]
 
 
 def test_live_address_defaults_to_localhost():

@@ -312,6 +312,9 @@ class Session:
             sky = onboard.mask_stage_angles(sky, platform_heading, self.cfg.session.body_mask_deg)
         self.result.skyline = sky
         self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), self.now())
+        overlay = m.skyline_annotations(self.now(), pano.azimuth_to_column(sky.azimuth_deg),
+                                        pano.elevation_to_row(sky.elevation_deg))
+        self.log.write_proto(t.PANORAMA_SKYLINE, overlay, self.now())
         self.on_status("estimate: searching the skyline database")
         pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
         self.result.estimate = pos

@@ -23,9 +23,11 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.GeoJSON_pb2 import GeoJSON
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -139,6 +141,28 @@ def grid_transform(time_ns: int, east_m: float, north_m: float, convergence_deg:
     tf = frame_transform(time_ns, "world", frame_id, -convergence_deg)
     tf.translation.x, tf.translation.y = float(east_m), float(north_m)
     return tf
+
+
+def skyline_annotations(time_ns: int, columns: np.ndarray, rows: np.ndarray,
+                        rgba: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 1.0)) -> ImageAnnotations:
+    """The skyline drawn over an image: one line strip per run of valid points (pixel ``columns`` and
+    ``rows``, NaN = none); a run also ends where the columns jump back (a panorama's seam)."""
+    cols = np.asarray(columns, float)
+    rws = np.asarray(rows, float)
+    valid = np.isfinite(cols) & np.isfinite(rws)
+    breaks = np.flatnonzero(~valid | np.concatenate([[False], np.diff(cols) < 0]))
+    out = ImageAnnotations()
+    start = 0
+    for stop in [*breaks.tolist(), cols.size]:
+        run = np.arange(start, stop)
+        run = run[valid[run]]
+        if run.size >= 2:
+            line = out.points.add(timestamp=timestamp(time_ns), type=PointsAnnotation.LINE_STRIP, thickness=2.0)
+            line.outline_color.r, line.outline_color.g, line.outline_color.b, line.outline_color.a = rgba
+            for i in run:
+                line.points.add(x=float(cols[i]), y=float(rws[i]))
+        start = stop
+    return out
 
 
 def log_message(time_ns: int, level: str, text: str, name: str = "viper") -> Log:

@@ -2,21 +2,22 @@
 
 Foxglove messages (protobuf, schema names ``foxglove.*``):
 
-==========================  ==========================  ===========================================
-topic                       schema                      content
-==========================  ==========================  ===========================================
-``/camera/image``           foxglove.CompressedImage    each captured frame (JPEG or PNG)
-``/camera/calibration``     foxglove.CameraCalibration  the intrinsics used for the session
-``/camera/panorama``        foxglove.CompressedImage    the panorama stitched from the tagged frames
-``/gps/fix``                foxglove.LocationFix        every GPS fix as received
-``/gps/truth``              foxglove.LocationFix        the averaged ground truth of the session
-``/estimate/fix``           foxglove.LocationFix        the onboard (or replayed) estimate
-``/tf``                     foxglove.FrameTransform     attitude (world->platform), stage (->camera),
-                                                        camera->camera_optical, world->skyline-grid
-``/log``                    foxglove.Log                daemon and procedure messages
-``/region``                 foxglove.GeoJSON            the estimate's region (cells) and the estimate
-``/estimate/posterior``     foxglove.Grid               log10 lower posterior, frame ``skyline-grid``
-==========================  ==========================  ===========================================
+============================  ==========================  ===========================================
+topic                         schema                      content
+============================  ==========================  ===========================================
+``/camera/image``             foxglove.CompressedImage    each captured frame (JPEG or PNG)
+``/camera/calibration``       foxglove.CameraCalibration  the intrinsics used for the session
+``/camera/panorama``          foxglove.CompressedImage    the panorama stitched from the tagged frames
+``/camera/panorama/skyline``  foxglove.ImageAnnotations   the detected skyline drawn over the panorama
+``/gps/fix``                  foxglove.LocationFix        every GPS fix as received
+``/gps/truth``                foxglove.LocationFix        the averaged ground truth of the session
+``/estimate/fix``             foxglove.LocationFix        the onboard (or replayed) estimate
+``/tf``                       foxglove.FrameTransform     attitude (world->platform), stage (->camera),
+                                                          camera->camera_optical, world->skyline-grid
+``/log``                      foxglove.Log                daemon and procedure messages
+``/region``                   foxglove.GeoJSON            the estimate's region (cells) and the estimate
+``/estimate/posterior``       foxglove.Grid               log10 lower posterior, frame ``skyline-grid``
+============================  ==========================  ===========================================
 
 JSON-schema messages (schema names ``viper.*``): raw heading, tilt and stage readings, the tag of
 every capture, the result of each procedure and the estimate's full record.  Their schemas are
@@ -32,6 +33,7 @@ from typing import Any
 
 IMAGE = "/camera/image"
 PANORAMA = "/camera/panorama"
+PANORAMA_SKYLINE = "/camera/panorama/skyline"
 CALIBRATION = "/camera/calibration"
 GPS_FIX = "/gps/fix"
 GPS_TRUTH = "/gps/truth"
