@@ -31,7 +31,11 @@ SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 
 
 class FoxgloveClient(threading.Thread):
-    """Connects, subscribes to every advertised channel and keeps (topic, schema, payload) of each message."""
+    """Connects, subscribes to every advertised channel and keeps (topic, schema, payload) of each message.
+
+    The server latches (a subscription gets the topic's latest message at once), so a channel silent
+    half a second after its subscription was not subscribed (the server can receive the subscription
+    before it knows the channel it just advertised): the client subscribes again."""
 
     def __init__(self, port: int) -> None:
         super().__init__(daemon=True)
@@ -56,7 +60,21 @@ class FoxgloveClient(threading.Thread):
         async with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None) as ws:
             assert ws.subprotocol in SUBPROTOCOLS
             subscriptions: dict[int, int] = {}
+            pending: dict[int, float] = {}  # channel id -> when it was (re)subscribed
+
+            async def subscribe(channel_ids: list[int]) -> None:
+                subs = []
+                for cid in channel_ids:
+                    sub_id = len(subscriptions) + 1
+                    subscriptions[sub_id] = cid
+                    subs.append({"id": sub_id, "channelId": cid})
+                    pending[cid] = time.monotonic()
+                await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
             while not self.stop.is_set():
+                silent = [cid for cid, since in pending.items() if time.monotonic() - since > 0.5]
+                if silent:
+                    await subscribe(silent)
                 try:
                     raw = await asyncio.wait_for(ws.recv(), 0.2)
                 except TimeoutError:
@@ -67,16 +85,13 @@ class FoxgloveClient(threading.Thread):
                         self.server_info = msg
                         self.connected.set()
                     elif msg["op"] == "advertise":
-                        subs = []
                         for ch in msg["channels"]:
                             self.channels[ch["id"]] = ch
-                            sub_id = len(subscriptions) + 1
-                            subscriptions[sub_id] = ch["id"]
-                            subs.append({"id": sub_id, "channelId": ch["id"]})
-                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                        await subscribe([ch["id"] for ch in msg["channels"]])
                 elif raw[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
                     sub_id, _ = struct.unpack_from("<IQ", raw, 1)
                     ch = self.channels[subscriptions[sub_id]]
+                    pending.pop(ch["id"], None)
                     self.messages.append((ch["topic"], ch["schemaName"], bytes(raw[13:])))
 
     def payloads(self, topic: str) -> list[bytes]:
