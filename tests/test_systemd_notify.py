@@ -99,7 +99,7 @@ def run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s: float, step_tim
     from appliance.acquisition.daemon import SessionDaemon
     from appliance.config import Config, SessionConfig
 
-    def long_session(config, log_dir, should_stop, on_status):
+    def long_session(config, log_dir, should_stop, on_status, publisher=None):
         on_status("estimate...")
         start = time.monotonic()
         time.sleep(step_s)  # a long step that reports nothing (building a database, say)
