@@ -10,6 +10,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/python -m compileall -q appliance calibration   # bytecode once: PYTHONDONTWRITEBYTECODE may be set
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -53,22 +53,34 @@ def _baud(key: str, value: int) -> None:
     _require(50 <= value <= 4_000_000, key, "a baud rate in [50, 4000000]", value)
 
 
-@dataclass(frozen=True)
-class TerrainConfig:
-    """How skylines are rendered from a DEM."""
+def _choices(kind: type[enum.Enum]) -> str:
+    names = [repr(m.value) for m in kind]
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} or {names[-1]}"
 
-    camera_height_m: float = 1.5
-    max_range_m: float = 60_000.0
-    refraction: float | None = None  # None: the body's default (0.13 on Earth, 0 elsewhere)
-    azimuths: int = 360
-    body: str | None = None  # None: inferred from the DEM's CRS
 
-    def __post_init__(self) -> None:
-        _positive("terrain.camera_height_m", self.camera_height_m)
-        _positive("terrain.max_range_m", self.max_range_m)
-        if self.refraction is not None:
-            _within("terrain.refraction", self.refraction, -1.0, 1.0)
-        _require(1 <= self.azimuths <= 36_000, "terrain.azimuths", "an integer in [1, 36000]", self.azimuths)
+class PlatformKind(str, enum.Enum):
+    """Which devices the daemons drive."""
+
+    SIM = "sim"
+    HARDWARE = "hardware"
+
+
+class CompassKind(str, enum.Enum):
+    HMC5883L = "hmc5883l"  # I2C magnetometer
+    NMEA = "nmea"  # HDG/HDM/HDT/PTNTHTM sentences on a serial port
+
+
+class InclinometerKind(str, enum.Enum):
+    ADXL345 = "adxl345"  # I2C accelerometer
+    NMEA = "nmea"  # XDR pitch and roll sentences
+
+
+class Compression(str, enum.Enum):
+    """Chunk compression of the session logs."""
+
+    ZSTD = "zstd"
+    LZ4 = "lz4"
+    NONE = "none"
 
 
 @dataclass(frozen=True)
@@ -78,7 +90,6 @@ class EstimatorConfig:
     # sensor noise plus the skyline's change between grid nodes (0.5-1 deg on a 90 m map, camera 1.5 m)
     sigma_deg: tuple[float, float] = (0.3, 0.8)
     heading_tolerance_deg: float = 4.0
-    heading_step_deg: float = 1.0
     min_valid_fraction: float = 0.2
     # prior share of azimuths hidden by what the map lacks (trees, buildings): one-sided likelihood
     occlusion_weight: float = 0.05
@@ -95,23 +106,21 @@ class EstimatorConfig:
             _require(math.isfinite(a) and math.isfinite(b) and 0.0 < a <= b, "estimator.sensor_sigma_deg",
                      "[lo, hi] with 0 < lo <= hi", [a, b])
         _within("estimator.heading_tolerance_deg", self.heading_tolerance_deg, 0.0, 180.0)
-        _positive("estimator.heading_step_deg", self.heading_step_deg)
         _within("estimator.min_valid_fraction", self.min_valid_fraction, 0.0, 1.0)
-        if not 0.0 <= self.occlusion_weight < 1.0:
-            raise ConfigError(f"estimator.occlusion_weight: expected 0 <= w < 1, got {self.occlusion_weight}")
-        if not (math.isfinite(self.map_vertical_sigma_m) and self.map_vertical_sigma_m >= 0.0):
-            raise ConfigError(f"estimator.map_vertical_sigma_m: expected >= 0, got {self.map_vertical_sigma_m}")
+        _require(math.isfinite(self.occlusion_weight) and 0.0 <= self.occlusion_weight < 1.0,
+                 "estimator.occlusion_weight", "a number in [0, 1)", self.occlusion_weight)
+        _require(math.isfinite(self.map_vertical_sigma_m) and 0.0 <= self.map_vertical_sigma_m < 1000.0,
+                 "estimator.map_vertical_sigma_m", "metres in [0, 1000)", self.map_vertical_sigma_m)
 
 
 @dataclass(frozen=True)
 class PlatformConfig:
     """Which platform the daemons drive: real hardware or the simulated twins."""
 
-    kind: str = "sim"
+    kind: PlatformKind = PlatformKind.SIM
 
     def __post_init__(self) -> None:
-        if self.kind not in ("sim", "hardware"):
-            raise ConfigError(f"platform.kind: expected 'sim' or 'hardware', got {self.kind!r}")
+        _require(isinstance(self.kind, PlatformKind), "platform.kind", _choices(PlatformKind), self.kind)
 
 
 @dataclass(frozen=True)
@@ -121,7 +130,7 @@ class LogbookConfig:
     log_dir: Path = Path("/var/lib/viper/logs")
     fsync_interval_s: float = 2.0
     chunk_size_bytes: int = 262_144
-    compression: str = "zstd"  # "zstd", "lz4" or "none"
+    compression: Compression = Compression.ZSTD
     reserve_bytes: int = 65_536  # freed on a full disk so the log can still be sealed
 
     def __post_init__(self) -> None:
@@ -129,9 +138,8 @@ class LogbookConfig:
         _require(self.chunk_size_bytes >= 1024, "logbook.chunk_size_bytes", "an integer >= 1024",
                  self.chunk_size_bytes)
         _require(self.reserve_bytes >= 0, "logbook.reserve_bytes", "an integer >= 0", self.reserve_bytes)
-        if self.compression not in ("zstd", "lz4", "none"):
-            allowed = "'zstd', 'lz4' or 'none'"
-            raise ConfigError(f"logbook.compression: expected {allowed}, got {self.compression!r}")
+        _require(isinstance(self.compression, Compression), "logbook.compression", _choices(Compression),
+                 self.compression)
 
 
 @dataclass(frozen=True)
@@ -205,7 +213,7 @@ class GpsDeviceConfig:
 class CompassConfig:
     """The compass: an I2C HMC5883L (``kind = "hmc5883l"``) or NMEA HDG/HDM/HDT/PTNTHTM (``"nmea"``)."""
 
-    kind: str = "hmc5883l"
+    kind: CompassKind = CompassKind.HMC5883L
     i2c_bus: int = 1
     i2c_address: int = 0x1E
     gain: int = 1  # HMC5883L gain code 0..7
@@ -218,7 +226,7 @@ class CompassConfig:
     )
 
     def __post_init__(self) -> None:
-        _require(self.kind in ("hmc5883l", "nmea"), "devices.compass.kind", "'hmc5883l' or 'nmea'", self.kind)
+        _require(isinstance(self.kind, CompassKind), "devices.compass.kind", _choices(CompassKind), self.kind)
         _require(self.i2c_bus >= 0, "devices.compass.i2c_bus", "an integer >= 0", self.i2c_bus)
         _require(0x03 <= self.i2c_address <= 0x77, "devices.compass.i2c_address", "a 7-bit address in [3, 119]",
                  self.i2c_address)
@@ -236,7 +244,7 @@ class CompassConfig:
 class InclinometerConfig:
     """The inclinometer: an I2C ADXL345 (``kind = "adxl345"``) or NMEA XDR pitch/roll (``"nmea"``)."""
 
-    kind: str = "adxl345"
+    kind: InclinometerKind = InclinometerKind.ADXL345
     i2c_bus: int = 1
     i2c_address: int = 0x53
     samples: int = 16  # readings averaged per tilt
@@ -246,7 +254,8 @@ class InclinometerConfig:
     baudrate: int = 4800
 
     def __post_init__(self) -> None:
-        _require(self.kind in ("adxl345", "nmea"), "devices.inclinometer.kind", "'adxl345' or 'nmea'", self.kind)
+        _require(isinstance(self.kind, InclinometerKind), "devices.inclinometer.kind", _choices(InclinometerKind),
+                 self.kind)
         _require(self.i2c_bus >= 0, "devices.inclinometer.i2c_bus", "an integer >= 0", self.i2c_bus)
         _require(0x03 <= self.i2c_address <= 0x77, "devices.inclinometer.i2c_address",
                  "a 7-bit address in [3, 119]", self.i2c_address)
@@ -405,7 +414,6 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class Config:
-    terrain: TerrainConfig = field(default_factory=TerrainConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     platform: PlatformConfig = field(default_factory=PlatformConfig)
     logbook: LogbookConfig = field(default_factory=LogbookConfig)
@@ -455,8 +463,7 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
         try:
             return tp(value)
         except ValueError:
-            allowed = ", ".join(repr(m.value) for m in tp)
-            raise ConfigError(f"{key}: {value!r} is not one of {allowed}") from None
+            raise ConfigError(f"{key}: expected {_choices(tp)}, got {value!r}") from None
     if tp is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{key}: expected true or false, got {value!r}")
@@ -478,6 +485,17 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
             raise ConfigError(f"{key}: expected a path string, got {value!r}")
         return Path(value)
     raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")
+
+
+def override(obj: T, flag: str, **changes: Any) -> T:
+    """``obj`` with ``changes`` given on the command line, checked as the file's values are (by the
+    section's ``__post_init__``); a value out of range is an :class:`InputError` naming ``flag``."""
+    from appliance.errors import InputError
+
+    try:
+        return dataclasses.replace(obj, **changes)  # type: ignore[type-var]
+    except ConfigError as exc:
+        raise InputError(f"{flag}: {exc}") from None
 
 
 def from_mapping(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:

@@ -7,6 +7,8 @@ single line on stderr and a non-zero exit status.
 
 from __future__ import annotations
 
+import enum
+
 
 class ViperError(Exception):
     """Root of the appliance's errors."""
@@ -57,3 +59,14 @@ class LogError(ViperError, OSError):
 
 class CalibrationError(ViperError, ValueError):
     """A calibration cannot be computed from its input."""
+
+
+class ErrorPolicy(enum.Enum):
+    """What a streaming reader does with a record it cannot use: raise (tests), log a warning and
+    count it (daemons), or only count it (batch tools).  Whatever the policy, a bad record never
+    becomes a value.  A reader that cannot find the next record after a bad one (a log file cut
+    short) stops there under ``LOG`` and ``SKIP`` and says why."""
+
+    RAISE = "raise"
+    LOG = "log"
+    SKIP = "skip"

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import EstimateResult, SkylineGrid, estimate, transport_prior
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
@@ -78,11 +79,13 @@ class Position:
             "notes": r.notes,
         }
         if truth is not None:
-            geod = db.grid.crs.get_geod()
-            if geod is not None:
-                _, _, d = geod.inv(self.lon, self.lat, truth[1], truth[0])
-                out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(float(d), 2)}
+            out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(truth_error_m(db, self, truth), 2)}
         return out
+
+
+def truth_error_m(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> float:
+    """Geodesic distance (m) on the database's body from the estimate to ``truth`` (lat, lon)."""
+    return geodesic_distance_m(pos.lat, pos.lon, truth[0], truth[1], body_named(db.header["body"]))
 
 
 def truth_in_region(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> bool:
@@ -108,7 +111,8 @@ def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
                       db.r_eff_m, float(db.header["max_range_m"]))
     dc = db.header["distance_code"]
     return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
-                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]))
+                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]),
+                       first_pass=(db.coarse_codes, db.coarse_partial, db.coarse_tau2))
 
 
 def crs_name(db: SkylineDatabase) -> str:

@@ -27,9 +27,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.config import EstimatorConfig  # noqa: E402
-from appliance.demo import demo_database  # noqa: E402
 from appliance.estimator import estimate  # noqa: E402
 from appliance.position import place, skyline_grid, truth_in_region  # noqa: E402
+from appliance.sim.demo import demo_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402

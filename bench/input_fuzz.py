@@ -51,11 +51,7 @@ HOSTILE = [b"nan", b"-inf", b"1e999", b"99999999999999999999", b"-", b"", b"\x00
 DEMS = ["dem_geotiff/gmted2010_clips/matterhorn.tiff", "dem_geotiff/msh00_MountStHelens_2000_webmerc.tif",
         "dem_srtm_hgt/N44W072.hgt", "dem_usgs_ascii/SainteHelens.dem", "dem_planetary/LDEM_4.IMG",
         "dem_other/jacksboro_fault_dem.npz", "dem_other/topobathy.npz", "dem_other/msh00_83_MountStHelens_2000.e00"]
-FULL_CONFIG = b"""[terrain]
-camera_height_m = 1.5
-max_range_m = 60000.0
-azimuths = 360
-[estimator]
+FULL_CONFIG = b"""[estimator]
 sigma_deg = [0.3, 0.8]
 heading_tolerance_deg = 4.0
 min_valid_fraction = 0.2

@@ -33,10 +33,10 @@ sys.path.insert(0, str(HERE.parent))
 from appliance.acquisition.onboard import stitch_frames  # noqa: E402
 from appliance.acquisition.platform import Frame  # noqa: E402
 from appliance.acquisition.procedures import TaggedFrame, capture_angles  # noqa: E402
-from appliance.acquisition.session import random_position  # noqa: E402
 from appliance.config import EstimatorConfig, SessionConfig  # noqa: E402
-from appliance.demo import demo_database  # noqa: E402
 from appliance.position import locate, skyline_grid, truth_in_region  # noqa: E402
+from appliance.sim.demo import demo_database  # noqa: E402
+from appliance.sim.field_session import random_position  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.vision.camera import CameraPose  # noqa: E402

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.acquisition.session import run_field_session
 from appliance.cli.demo import demo_config
-from appliance.demo import demo_database
-from appliance.logbook.summary import great_circle_m
+from appliance.position import truth_error_m
+from appliance.sim.demo import demo_database
+from appliance.sim.field_session import run_field_session
 from appliance.terrain.dem import load_dem
 
 SEEDS = (1, 2, 3, 4, 5)
@@ -33,10 +33,10 @@ def main() -> None:
     rows = []
     for seed in SEEDS:
         t = time.monotonic()
-        r = run_field_session(demo_config(out, 20.0), out, seed=seed, dem=dem, db=db)
+        r, sim_truth = run_field_session(demo_config(out, 20.0), out, seed=seed, dem=dem, db=db)
         wall = time.monotonic() - t
-        lat, lon = map(float, r.outcomes["true_position"].split(","))
-        true_err = None if r.estimate is None else great_circle_m(r.estimate.lat, r.estimate.lon, lat, lon)
+        lat, lon = sim_truth.lat_deg, sim_truth.lon_deg
+        true_err = None if r.estimate is None else truth_error_m(db, r.estimate, (lat, lon))
         rows.append((seed, wall, r.error_m, true_err, r.status.value))
         print(f"seed {seed}: {wall:.1f} s, error vs GPS truth {r.error_m} m, vs true position {true_err} m")
     walls = [w for _, w, *_ in rows]

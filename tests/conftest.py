@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from appliance.config import CameraDeviceConfig, Config, DevicesConfig, SessionConfig, SimConfig
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
@@ -23,3 +25,34 @@ def data_file(relpath: str) -> Path:
     if not p.exists():
         pytest.skip(f"real data file {p} is absent")
     return p
+
+
+# a 7 km x 8 km window of the jacksboro map: its database builds in seconds
+WINDOW = (-84.30, 36.55, -84.22, 36.62)
+
+
+@pytest.fixture(scope="session")
+def dem():
+    """The jacksboro DEM (matplotlib's sample data)."""
+    from appliance.terrain.dem import load_dem
+
+    return load_dem("jacksboro")
+
+
+@pytest.fixture(scope="session")
+def window_db(dem, tmp_path_factory):
+    """The skyline database of :data:`WINDOW`, built once for the whole test run."""
+    from appliance.terrain.database import build_database, load_database
+
+    path = tmp_path_factory.mktemp("db") / "window.viperdb"
+    build_database(dem, path, search_bounds=WINDOW, progress=None)
+    return load_database(path, dem)
+
+
+def small_config(time_rate: float = 50.0) -> Config:
+    """A quick simulated session: short GPS averaging, short settling, a 320x240 camera."""
+    return Config(
+        session=SessionConfig(truth_duration_s=10.0, settle_s=0.2),
+        devices=DevicesConfig(camera=CameraDeviceConfig(width=320, height=240)),
+        sim=SimConfig(time_rate=time_rate),
+    )

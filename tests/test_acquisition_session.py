@@ -14,51 +14,27 @@ import numpy as np
 import pytest
 
 from appliance.acquisition.procedures import Status
-from appliance.acquisition.session import run_field_session
-from appliance.config import CameraDeviceConfig, Config, DevicesConfig, SessionConfig, SimConfig, SimFaultsConfig
+from appliance.bodies import geodesic_distance_m
+from appliance.config import SimFaultsConfig
 from appliance.logbook import LogReader
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
-from appliance.logbook.summary import great_circle_m, summarize_log
+from appliance.logbook.summary import summarize_log
+from appliance.sim.field_session import run_field_session
+from tests.conftest import small_config
 
 REPO = Path(__file__).resolve().parents[1]
-# a 7 km x 8 km window of the map: its database builds in seconds
-WINDOW = (-84.30, 36.55, -84.22, 36.62)
-
-
-@pytest.fixture(scope="module")
-def dem():
-    from appliance.terrain.dem import load_dem
-
-    return load_dem("jacksboro")
-
-
-@pytest.fixture(scope="module")
-def window_db(dem, tmp_path_factory):
-    from appliance.terrain.database import build_database, load_database
-
-    path = tmp_path_factory.mktemp("db") / "window.viperdb"
-    build_database(dem, path, search_bounds=WINDOW, progress=None)
-    return load_database(path, dem)
-
-
-def small_config(time_rate: float = 50.0) -> Config:
-    return Config(
-        session=SessionConfig(truth_duration_s=10.0, settle_s=0.2),
-        devices=DevicesConfig(camera=CameraDeviceConfig(width=320, height=240)),
-        sim=SimConfig(time_rate=time_rate),
-    )
 
 
 def test_whole_session_logs_everything_and_estimates(tmp_path, dem, window_db):
     from appliance.terrain.horizon import render_skyline
 
-    r = run_field_session(small_config(), tmp_path, seed=5, dem=dem, db=window_db)
+    r, sim_truth = run_field_session(small_config(), tmp_path, seed=5, dem=dem, db=window_db)
     assert r.estimate is not None
     # an estimate that may be wrong never says "ok": the session's status follows the estimate's
     flag = "ambiguous" if r.estimate.result.ambiguous else "ok"
     assert r.status.value == flag
-    assert {k: v for k, v in r.outcomes.items() if k != "true_position"} == {
+    assert r.outcomes == {
         "level": "ok",
         "compass": "ok",
         "truth": "ok",
@@ -73,12 +49,12 @@ def test_whole_session_logs_everything_and_estimates(tmp_path, dem, window_db):
     assert counts[t.IMAGE] == 9 and counts[t.CAPTURE] == 9 and counts[t.GPS_TRUTH] == 1
     assert counts[t.GPS_FIX] >= 5 and counts[t.ESTIMATE_FIX] == 1 and counts[t.POSTERIOR] == 1
     assert counts[t.REGION] == 1 and counts[t.ESTIMATE_RECORD] == 1 and counts[t.PANORAMA] == 1
-    lat, lon = map(float, r.outcomes["true_position"].split(","))
+    lat, lon = sim_truth.lat_deg, sim_truth.lon_deg
     # the GPS truth averages the twin's fixes (sigma 2 m) around the true position
-    assert great_circle_m(s.truth["lat"], s.truth["lon"], lat, lon) < 3.0
+    assert geodesic_distance_m(s.truth["lat"], s.truth["lon"], lat, lon) < 3.0
     # the estimate's error is the distance between the logged estimate and the logged truth
     assert s.error_m == pytest.approx(
-        great_circle_m(s.estimate["lat"], s.estimate["lon"], s.truth["lat"], s.truth["lon"]), abs=0.01
+        geodesic_distance_m(s.estimate["lat"], s.estimate["lon"], s.truth["lat"], s.truth["lon"]), abs=0.01
     )
     # the database's nodes are 75 m x 92 m apart: the estimate falls within two nodes of the truth
     assert s.error_m < 150.0
@@ -100,7 +76,7 @@ def test_whole_session_logs_everything_and_estimates(tmp_path, dem, window_db):
 def test_unplugged_camera_silent_gps_and_no_inclinometer_degrade_and_keep_frames(tmp_path, dem, window_db):
     faults = SimFaultsConfig(camera_unplug_after=4, gps_unplug_at_s=0.0, gps_replug_after_s=1e6,
                              inclinometer_absent=True)
-    r = run_field_session(small_config(), tmp_path, seed=6, dem=dem, db=window_db, faults=faults)
+    r, _ = run_field_session(small_config(), tmp_path, seed=6, dem=dem, db=window_db, faults=faults)
     assert r.status is Status.DEGRADED
     assert r.outcomes["capture"] == "degraded" and r.outcomes["truth"] == "degraded"
     assert r.outcomes["level"] == "degraded" and r.error_m is None
@@ -117,7 +93,7 @@ def test_stop_request_closes_the_log_with_the_frames_so_far(tmp_path, dem, windo
         if text.startswith("capture "):
             frames.append(text)
 
-    r = run_field_session(
+    r, _ = run_field_session(
         small_config(), tmp_path, seed=7, dem=dem, db=window_db, should_stop=lambda: len(frames) >= 3,
         on_status=status,
     )

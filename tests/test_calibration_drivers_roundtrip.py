@@ -18,8 +18,8 @@ import pytest
 
 from appliance.cli.main import main
 from appliance.config import load_config
+from appliance.device_calibration import calibration_of, tilt_offset_of
 from appliance.drivers.accelerometer import TiltOffset, average_tilt
-from appliance.drivers.factory import calibration_of, tilt_offset_of
 from appliance.drivers.magnetometer import GAUSS_TO_TESLA, HMC5883L_LSB_PER_GAUSS, HardSoftIron, decode_hmc5883l_data
 from appliance.errors import CalibrationError, ConfigError
 from calibration.compass import calibrate_compass_file, magnitude_spread, write_compass_calibration
@@ -45,7 +45,7 @@ def test_compass_calibration_file_round_trip_through_the_drivers(tmp_path: Path)
     result = calibrate_compass_file(path, "sphere")
     cal = tmp_path / "calibration.toml"
     write_compass_calibration(cal, result)
-    iron = calibration_of(load_config(_config(tmp_path, cal)))
+    iron = calibration_of(load_config(_config(tmp_path, cal)).devices)
 
     raw_gauss = np.loadtxt(path, delimiter=",", skiprows=1, usecols=(1, 2, 3))
     assert raw_gauss.shape == (result.n, 3)
@@ -69,20 +69,20 @@ def test_compass_file_errors_are_clear(tmp_path: Path) -> None:
     cal = tmp_path / "calibration.toml"
     cal.write_text("[compass]\noffset = [0.1, 0.2, 0.3]\nmatrix = [1, 0, 0, 0, 1, 0, 0, 0, 1]\n")
     with pytest.raises(CalibrationError, match="unknown key matrix"):
-        calibration_of(load_config(_config(tmp_path, cal)))
+        calibration_of(load_config(_config(tmp_path, cal)).devices)
     cal.write_text("[compass]\nhard_iron_offset = [1e-5, 2e-5]\n")
     with pytest.raises(CalibrationError, match="hard_iron_offset: expected an array of 3 numbers"):
-        calibration_of(load_config(_config(tmp_path, cal)))
+        calibration_of(load_config(_config(tmp_path, cal)).devices)
     cal.write_text("[compass]\nhard_iron_offset = [1e-5, 2e-5, 0.0]\n")
     twice = _config(tmp_path, cal, "[devices.compass]\nhard_iron_offset = [1e-6, 0.0, 0.0]\n")
     with pytest.raises(ConfigError, match="given twice"):
-        calibration_of(load_config(twice))
+        calibration_of(load_config(twice).devices)
     # a file without a [compass] table leaves the configuration's own values
     cal.write_text("[inclinometer]\npitch_offset_deg = 0.5\n")
     inline = _config(tmp_path, cal, "[devices.compass]\nhard_iron_offset = [1e-6, 0.0, 0.0]\n")
-    assert calibration_of(load_config(inline)) == HardSoftIron((1e-6, 0.0, 0.0))
+    assert calibration_of(load_config(inline).devices) == HardSoftIron((1e-6, 0.0, 0.0))
     with pytest.raises(ConfigError, match="file not found"):
-        calibration_of(load_config(_config(tmp_path, tmp_path / "absent.toml")))
+        calibration_of(load_config(_config(tmp_path, tmp_path / "absent.toml")).devices)
 
 
 def _accel_g(pitch_deg: float, roll_deg: float) -> tuple[float, float, float]:
@@ -107,7 +107,7 @@ def test_inclinometer_offsets_written_are_what_the_driver_subtracts(tmp_path: Pa
     assert main(["calibrate", "inclinometer", str(csv), "--output", str(cal)]) == 0
     capsys.readouterr()
 
-    offset = tilt_offset_of(load_config(_config(tmp_path, cal)))
+    offset = tilt_offset_of(load_config(_config(tmp_path, cal)).devices)
     assert (offset.pitch_deg, offset.roll_deg) == pytest.approx(sensor_offset, abs=1e-6)
     at_0 = average_tilt(samples[0.0], offset)
     at_180 = average_tilt(samples[180.0], offset)
@@ -116,5 +116,5 @@ def test_inclinometer_offsets_written_are_what_the_driver_subtracts(tmp_path: Pa
 
     twice = _config(tmp_path, cal, "[devices.inclinometer]\npitch_offset_deg = 0.5\n")
     with pytest.raises(ConfigError, match="given twice"):
-        tilt_offset_of(load_config(twice))
-    assert tilt_offset_of(load_config(None)) == TiltOffset()
+        tilt_offset_of(load_config(twice).devices)
+    assert tilt_offset_of(load_config(None).devices) == TiltOffset()

@@ -23,8 +23,8 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "calibration" / "examples" / "th
 
 CONFIG_TEXT = """\
 # Field configuration of the rover
-[terrain]
-camera_height_m = 1.6   # mast height
+[session]
+level_tolerance_deg = 0.3   # the tripod's bubble
 
 [estimator]
 # interval from the last survey

@@ -102,7 +102,7 @@ def test_several_skylines_share_one_load_and_fuse(db_path, tmp_path, capsys):
     ("azimuth_deg,elevation_deg\n0,abc\n", "not a number"),
     ("azimuth_deg,elevation_deg\n0,95\n", "outside [-90, 90]"),
     ("azimuth_deg,elevation_deg\n" + "".join(f"{a},{'1' if a < 15 else ''}\n" for a in range(360)),
-     "less than the 20 deg"),
+     "below [estimator] min_valid_fraction 20%"),
 ])
 def test_bad_skylines_are_one_line_errors(db_path, tmp_path, content, message):
     bad = tmp_path / "bad.csv"
@@ -114,15 +114,15 @@ def test_bad_skylines_are_one_line_errors(db_path, tmp_path, content, message):
 
 def test_an_old_format_database_names_the_versions_and_the_rebuild(db_path, tmp_path):
     raw = bytearray(db_path.read_bytes())
-    i = raw.index(b'"format_version": 2')
-    raw[i : i + len(b'"format_version": 2')] = b'"format_version": 1'
+    i = raw.index(b'"format_version": 3')
+    raw[i : i + len(b'"format_version": 3')] = b'"format_version": 1'
     old = tmp_path / "old.viperdb"
     old.write_bytes(bytes(raw))
     sky = _skyline_at(tmp_path, "a.csv", 36.57, -84.27)
     proc = _run("estimate", str(old), str(sky))
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode != 0 and len(lines) == 1 and "Traceback" not in proc.stderr
-    assert "format version 1, this viper reads version 2" in lines[0]
+    assert "format version 1, this viper reads version 3" in lines[0]
     assert "viper precompute" in lines[0] and "--out old.viperdb" in lines[0]
 
 

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from appliance.errors import InputError
 from appliance.estimator import SkylineGrid, estimate, resample_to_grid, transport_prior
-from appliance.estimator.search import ssd_all_shifts, ssd_for_shifts
 from appliance.terrain.database import quantize
 
 N_AZ = 360
@@ -41,14 +42,31 @@ def reading(true_el: np.ndarray, correction_deg: float, rng, noise=0.0, missing=
     return az, el
 
 
-def test_fft_residuals_equal_the_direct_ones():
+def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(monkeypatch):
+    import importlib
+
+    est = importlib.import_module("appliance.estimator.estimate")
+    from appliance.estimator.search import ssd_coarse
+
     g = make_grid(6, 7)
     rng = np.random.default_rng(1)
     m = g.skylines_deg(20) + rng.normal(0, 0.3, N_AZ)
     m[rng.choice(N_AZ, 40, replace=False)] = np.nan
-    direct = ssd_for_shifts(g.codes, g.offset_deg, g.step_deg, m, np.arange(N_AZ))
-    fft = np.vstack([b for _, b in ssd_all_shifts(g.codes, g.offset_deg, g.step_deg, m, chunk=10)])
-    assert np.allclose(fft, direct, rtol=1e-4, atol=1e-2)
+    valid = np.isfinite(m)
+    w = valid.astype(float)
+    monkeypatch.setattr(est, "HEADING_BLOCK_NODES", 5)  # 42 nodes in blocks of 5
+    score, _, _, shifts = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3, math.inf, 0.0)
+    m_dec = est.box_decimate(m, est.COARSE_STRIDE)
+    w_dec = np.nan_to_num(est.box_decimate(np.where(valid, w, np.nan), est.COARSE_STRIDE))
+    occ = np.empty((g.codes.shape[0], m_dec.size), dtype=np.float32)
+    direct, _ = ssd_coarse(g.coarse, g.offset_deg, g.step_deg, m_dec, np.arange(m_dec.size), None, w_dec,
+                           math.inf, occ)
+    scale = N_AZ / np.nansum(w_dec) * valid.sum() / N_AZ
+    assert np.allclose(score[:, 0], direct.min(axis=1) * scale, rtol=1e-5)
+    # the band to rescore is centred on the best coarse heading
+    best = np.argmin(direct, axis=1) * est.COARSE_STRIDE
+    centre = shifts[:, shifts.shape[1] // 2]
+    assert np.array_equal(centre, best % N_AZ)
 
 
 def test_node_and_heading_recovered_with_a_compass():
@@ -146,3 +164,13 @@ def test_fusion_resolves_what_one_panorama_cannot():
     # alone the twins are equally likely; with the prior the twin is far less so
     assert abs(alone.log_lower_map[first] - alone.log_lower_map[first + 20]) < 1.0
     assert fused.log_lower_map[first] - fused.log_lower_map[first + 20] > 15.0
+
+
+def test_the_column_argmin_is_numpys_first_minimum():
+    import importlib
+
+    est = importlib.import_module("appliance.estimator.estimate")
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 4, size=(1000, 3)).astype(np.float32)  # many ties
+    a[rng.choice(1000, 50), rng.integers(0, 3, 50)] = np.inf
+    assert np.array_equal(est._argmin_columns(a), np.argmin(a, axis=1))

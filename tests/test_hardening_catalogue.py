@@ -74,11 +74,11 @@ BAD_CONFIGS = {
     "not-toml": "[estimator\nsigma_deg = 1\n",
     "unknown-table": "[estimatr]\nsigma_deg = [0.2, 0.4]\n",
     "unknown-key": "[estimator]\nsigmadeg = [0.2, 0.4]\n",
-    "wrong-type": "[terrain]\ncamera_height_m = \"tall\"\n",
+    "wrong-type": "[session]\nsettle_s = \"long\"\n",
     "sigma-reversed": "[estimator]\nsigma_deg = [0.8, 0.3]\n",
     "sigma-zero": "[estimator]\nsigma_deg = [0.0, 0.3]\n",
     "min-valid-negative": "[estimator]\nmin_valid_fraction = -1\n",
-    "heading-step-zero": "[estimator]\nheading_step_deg = 0\n",
+    "removed-terrain-table": "[terrain]\ncamera_height_m = 1.5\n",
     "occlusion-one": "[estimator]\nocclusion_weight = 1.0\n",
     "time-rate-zero": "[sim]\ntime_rate = 0\n",
     "gps-rate-zero": "[sim]\ngps_rate_hz = 0\n",
@@ -114,7 +114,7 @@ BAD_DATABASES = {
     "bit-in-header": lambda b: _flip(b, b.index(b'"height_m": 1.5') + 13),
     "header-length-huge": lambda b: b[:8] + b"\xff\xff\xff\x7f" + b[12:],
     "json-broken": lambda b: b[:12] + b"[" + b[13:],
-    "version-1": lambda b: b.replace(b'"format_version": 2', b'"format_version": 1', 1),
+    "version-1": lambda b: b.replace(b'"format_version": 3', b'"format_version": 1', 1),
     "png-instead": lambda b: b"\x89PNG\r\n\x1a\n" + b[8:64],
 }
 DB_COMMANDS = {

@@ -19,12 +19,12 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from mcap.reader import make_reader
 
-from appliance.acquisition.session import run_field_session
 from appliance.cli.main import main
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.live import LiveServer, parse_address
-from tests.test_acquisition_session import WINDOW, small_config
+from appliance.sim.field_session import run_field_session
+from tests.conftest import small_config
 
 jsonschema = pytest.importorskip("jsonschema")
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
@@ -99,21 +99,15 @@ class FoxgloveClient(threading.Thread):
 
 
 @pytest.fixture(scope="module")
-def live_session(tmp_path_factory):
-    from appliance.terrain.database import build_database, load_database
-    from appliance.terrain.dem import load_dem
-
-    dem = load_dem("jacksboro")
-    path = tmp_path_factory.mktemp("db") / "window.viperdb"
-    build_database(dem, path, search_bounds=WINDOW, progress=None)
-    db = load_database(path, dem)
+def live_session(tmp_path_factory, dem, window_db):
+    db = window_db
     out = tmp_path_factory.mktemp("live")
     with LiveServer("127.0.0.1", 0) as server:
         client = FoxgloveClient(server.port)
         client.start()
         assert client.connected.wait(30.0)
         assert client.error is None, client.error
-        result = run_field_session(small_config(), out, seed=5, dem=dem, db=db, publisher=server)
+        result, _ = run_field_session(small_config(), out, seed=5, dem=dem, db=db, publisher=server)
 
         def estimate_seen() -> bool:
             return any(json.loads(p).get("procedure") == "estimate" for p in client.payloads(t.PROCEDURE))
@@ -188,6 +182,72 @@ def test_every_json_message_of_the_log_matches_its_channel_schema(live_session):
         checked[channel.topic] = checked.get(channel.topic, 0) + 1
     for topic in (t.ESTIMATE_RECORD, t.PROCEDURE, t.HEADING_RAW, t.CAPTURE, t.SESSION, t.SKYLINE_DETECTED):
         assert checked.get(topic, 0) > 0, topic
+
+
+def _check_feature(feature):
+    kind = feature["properties"]["kind"]
+    errors = [e.message for e in jsonschema.Draft202012Validator(t.GEOJSON_FEATURE_PROPERTIES[kind])
+              .iter_errors(feature["properties"])]
+    assert not errors, f"{kind}: {errors}"
+    assert feature["geometry"]["type"] == t.GEOJSON_FEATURE_GEOMETRY[kind]
+
+
+def test_the_region_topic_has_strict_properties_and_matches_the_report_layers(live_session, tmp_path):
+    from foxglove_schemas_protobuf.GeoJSON_pb2 import GeoJSON
+
+    from appliance.estimate_outputs import write_points_geojson, write_region_geojson
+
+    result, client, db = live_session
+    logged = [json.loads(GeoJSON.FromString(message.data).geojson)
+              for _s, channel, message in _log_messages(result.log_path) if channel.topic == t.REGION]
+    live = [json.loads(GeoJSON.FromString(p).geojson) for p in client.payloads(t.REGION)]
+    assert len(logged) == 1 and live[-1] == logged[0]
+    features = logged[0]["features"]
+    assert [f["properties"]["kind"] for f in features] == ["region", "estimate"]
+    for f in features:
+        _check_feature(f)
+    assert features[0]["properties"]["n_cells"] == result.estimate.result.region_nodes.size
+
+    write_region_geojson(db, result.estimate, tmp_path / "region.geojson")
+    write_points_geojson(result.estimate, tmp_path / "points.geojson", (36.6, -84.25))
+    region = json.loads((tmp_path / "region.geojson").read_text())["features"]
+    points = json.loads((tmp_path / "points.geojson").read_text())["features"]
+    for f in region + points:
+        _check_feature(f)
+    assert region == features[:1] and points[:1] == features[1:]
+    assert points[1]["geometry"]["coordinates"] == [-84.25, 36.6]
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({**features[1]["properties"], "extra": 1}, t.GEOJSON_FEATURE_PROPERTIES["estimate"])
+
+
+def test_the_session_runner_hands_the_publisher_to_the_session(monkeypatch, tmp_path):
+    import types
+
+    import appliance.acquisition.onboard as onboard_mod
+    import appliance.acquisition.session as session_mod
+    import appliance.sim.field_session as field_mod
+    from appliance.cli._platform import open_devices, session_runner
+    from appliance.config import Config, PlatformConfig, PlatformKind
+
+    publisher, seen = object(), {}
+    done = types.SimpleNamespace(status="ok")
+
+    def field_session(config, log_dir, seed=None, should_stop=None, on_status=None, publisher=None):
+        seen["sim"] = (seed, publisher)
+        return done, None
+
+    def platform_session(opener, config, log_dir, db, should_stop, on_status, publisher=None):
+        seen["hardware"] = (opener, publisher)
+        return done
+
+    monkeypatch.setattr(field_mod, "run_field_session", field_session)
+    monkeypatch.setattr(session_mod, "run_platform_session", platform_session)
+    monkeypatch.setattr(onboard_mod, "load_session_database", lambda session: None)
+    assert session_runner(Config(), 7, publisher=publisher)(tmp_path, lambda: False, print) is done
+    assert seen["sim"] == (7, publisher)
+    hardware = Config(platform=PlatformConfig(PlatformKind.HARDWARE))
+    assert session_runner(hardware, publisher=publisher)(tmp_path, lambda: False, lambda s: None) is done
+    assert seen["hardware"] == (open_devices, publisher)
 
 
 def test_a_strict_schema_refuses_an_undeclared_field():

@@ -10,11 +10,12 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
+from appliance.bodies import MARS, MOON, geodesic_distance_m
 from appliance.errors import LogError
 from appliance.logbook import Logbook, LogReader
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
-from appliance.logbook.summary import great_circle_m, summarize_log
+from appliance.logbook.summary import summarize_log
 from appliance.vision.intrinsics import CameraIntrinsics
 
 T0 = 1_700_000_000_123_456_789
@@ -107,9 +108,22 @@ def test_summary_counts_span_and_error(tmp_path):
     assert s.complete
     assert s.topics[t.GPS_FIX].count == 5 and s.topics[t.TF].count == 10
     assert s.span_ns == (T0, T0 + 4_000_000)
-    # 0.001 deg of latitude is 111.2 km / 1000
-    assert s.error_m == pytest.approx(111.195, abs=0.01)
-    assert great_circle_m(0, 0, 0, 1) == pytest.approx(111_195.08, abs=0.1)
+    # 0.001 deg of latitude along the WGS84 meridian: M = a (1 - e^2) / (1 - e^2 sin^2 phi)^1.5 per radian
+    a, f = 6_378_137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    phi = math.radians(33.5005)
+    meridian_m = a * (1 - e2) / (1 - e2 * math.sin(phi) ** 2) ** 1.5
+    assert s.error_m == pytest.approx(meridian_m * math.radians(0.001), abs=1e-3)
+
+
+def test_geodesic_distance_against_closed_forms():
+    # one degree along the equator is a * pi / 180 on the ellipsoid, R * pi / 180 on a sphere
+    assert geodesic_distance_m(0, 0, 0, 1) == pytest.approx(6_378_137.0 * math.pi / 180, abs=1e-6)
+    assert geodesic_distance_m(0, 0, 0, 1, MOON) == pytest.approx(MOON.radius_m * math.pi / 180, abs=1e-6)
+    assert geodesic_distance_m(10, 20, 10, 20, MARS) == 0.0
+    # symmetric, and a quarter meridian of the Moon's sphere is R * pi / 2
+    assert geodesic_distance_m(0, 0, 90, 0, MOON) == pytest.approx(MOON.radius_m * math.pi / 2, rel=1e-12)
+    assert geodesic_distance_m(1, 2, 3, 4) == pytest.approx(geodesic_distance_m(3, 4, 1, 2), rel=1e-12)
 
 
 def test_topic_cannot_change_schema_and_existing_log_is_never_overwritten(tmp_path):

@@ -9,7 +9,7 @@ import os
 
 import pytest
 
-from appliance.cli.main import build_parser
+from appliance.cli.main import build_parser, command_of
 from appliance.logbook.summary import utc_text
 from appliance.logsetup import configure_logging, journal_priority
 
@@ -48,11 +48,23 @@ def test_plain_lines_elsewhere_and_the_level_filters(restore_logging):
     assert stream.getvalue() == "shown\n"
 
 
+def _parse(argv):
+    return build_parser(command_of(argv)).parse_args(argv)
+
+
 def test_log_level_is_a_global_option():
-    args = build_parser().parse_args(["--log-level", "debug", "log", "info", "x.mcap"])
-    assert args.log_level == "debug"
+    args = _parse(["--log-level", "debug", "log", "info", "x.mcap"])
+    assert args.log_level == "debug" and args.command == "log"
+    assert _parse(["--log-level=warning", "log", "info", "x.mcap"]).log_level == "warning"
+    assert _parse(["log", "info", "x.mcap"]).log_level == "info"
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["--log-level", "loud", "log", "info", "x.mcap"])
+        _parse(["--log-level", "loud", "log", "info", "x.mcap"])
+
+
+def test_the_command_is_found_after_the_log_level():
+    assert command_of(["--log-level", "debug", "capture", "--seed", "3"]) == "capture"
+    assert command_of(["--log-level=error", "estimate", "db", "a.csv"]) == "estimate"
+    assert command_of(["--log-level", "info"]) is None
 
 
 def test_log_times_are_utc_text():

@@ -7,22 +7,23 @@ import csv
 import pytest
 
 from appliance.acquisition.replay import read_session, replay_logs, replay_session
-from appliance.acquisition.session import run_field_session
+from appliance.bodies import geodesic_distance_m
 from appliance.cli.main import main
 from appliance.config import EstimatorConfig
 from appliance.logbook import topics as t
-from appliance.logbook.summary import great_circle_m, summarize_log
-from tests.test_acquisition_session import dem, small_config, window_db  # noqa: F401 - fixtures
+from appliance.logbook.summary import summarize_log
+from appliance.sim.field_session import run_field_session
+from tests.conftest import small_config
 
 
 @pytest.fixture(scope="module")
-def session_log(tmp_path_factory, dem, window_db):  # noqa: F811
-    r = run_field_session(small_config(), tmp_path_factory.mktemp("logs"), seed=5, dem=dem, db=window_db)
+def session_log(tmp_path_factory, dem, window_db):
+    r, _ = run_field_session(small_config(), tmp_path_factory.mktemp("logs"), seed=5, dem=dem, db=window_db)
     assert r.error_m is not None
     return r
 
 
-def test_replay_reproduces_the_onboard_estimate(session_log, window_db, tmp_path):  # noqa: F811
+def test_replay_reproduces_the_onboard_estimate(session_log, window_db, tmp_path):
     data = read_session(session_log.log_path)
     assert data.complete and len(data.frames) == 9 and data.intrinsics is not None
     assert (data.intrinsics.width, data.intrinsics.height) == (320, 240)
@@ -31,14 +32,14 @@ def test_replay_reproduces_the_onboard_estimate(session_log, window_db, tmp_path
     assert res.position is not None and res.error_m is not None
     # the frames went through JPEG: the replayed estimate lands within one node of the onboard one
     onboard = session_log.estimate
-    assert great_circle_m(res.position.lat, res.position.lon, onboard.lat, onboard.lon) < 120.0
+    assert geodesic_distance_m(res.position.lat, res.position.lon, onboard.lat, onboard.lon) < 120.0
     assert res.error_m < 150.0
     s = summarize_log(res.results_log)
     assert s.complete and s.topics[t.ESTIMATE_FIX].count == 1 and s.topics[t.POSTERIOR].count == 1
     assert s.error_m == pytest.approx(res.error_m, abs=0.01)
 
 
-def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, window_db, tmp_path):  # noqa: F811
+def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, window_db, tmp_path):
     raw = session_log.log_path.read_bytes()
     truncated = tmp_path / "truncated.mcap"
     truncated.write_bytes(raw[: len(raw) // 2])
@@ -61,7 +62,7 @@ def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, wi
         assert pic.stat().st_size > 10_000 and pic.name in text
 
 
-def test_cli_replay_prints_the_error_and_fails_cleanly_on_junk(session_log, window_db, tmp_path, capsys):  # noqa: F811
+def test_cli_replay_prints_the_error_and_fails_cleanly_on_junk(session_log, window_db, tmp_path, capsys):
     code = main(["replay", str(session_log.log_path), "--db", window_db.path, "--sigma", "0.2,0.5",
                  "--out", str(tmp_path)])
     out = capsys.readouterr().out

@@ -1,4 +1,4 @@
-"""``open_platform`` with ``kind = "sim"``: the real drivers on the twins, end to end, with faults."""
+"""``open_devices`` with ``kind = "sim"``: the real drivers on the twins, end to end, with faults."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from appliance.cli._platform import open_devices
 from appliance.config import Config, from_mapping
-from appliance.drivers.factory import open_platform
 from appliance.errors import ConfigError
 
 
@@ -32,7 +32,7 @@ def first_fix(p, timeout_s: float = 3.0):
 
 
 def test_sim_platform_end_to_end() -> None:
-    with open_platform(sim_config()) as p:
+    with open_devices(sim_config()) as p:
         w = p.world
         fix = first_fix(p)
         dn = math.radians(fix.lat_deg - w.lat_deg) * 6_371_008.8
@@ -64,7 +64,7 @@ def test_sim_platform_end_to_end() -> None:
 
 def test_missed_step_and_absent_inclinometer_are_warnings(caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.WARNING):
-        with open_platform(sim_config(stage_miss_step_every=1, inclinometer_absent=True)) as p:
+        with open_devices(sim_config(stage_miss_step_every=1, inclinometer_absent=True)) as p:
             assert p.tilt is None
             reached = p.stage.move_to(40.0)
             assert abs(reached - 40.0) > 0.3  # the stage tells where it really stopped
@@ -75,7 +75,7 @@ def test_missed_step_and_absent_inclinometer_are_warnings(caplog: pytest.LogCapt
 def test_stuck_compass_raises_after_repeats(caplog: pytest.LogCaptureFixture) -> None:
     from appliance.errors import DeviceError
 
-    with open_platform(sim_config(compass_stuck=True)) as p:
+    with open_devices(sim_config(compass_stuck=True)) as p:
         with caplog.at_level(logging.WARNING), pytest.raises(DeviceError, match="stuck"):
             for _ in range(5):
                 p.compass.read_field()

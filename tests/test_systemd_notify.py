@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
-import time
-import types
 
-import numpy as np
 import pytest
 
 from appliance.acquisition.notify import Notifier
@@ -27,7 +24,7 @@ def listener(tmp_path):
 def test_ready_watchdog_status_stopping_arrive_as_datagrams(listener):
     path, sock = listener
     n = Notifier.from_environment({"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "30000000"})
-    assert n.enabled and n.watchdog_interval_s == pytest.approx(15.0)
+    assert n.enabled and n.watchdog_s == pytest.approx(30.0)
     n.ready(status="idle, next session in 60 s")
     n.watchdog()
     n.status("capture 3/12")
@@ -56,13 +53,13 @@ def test_abstract_socket_address():
 
 def test_without_systemd_everything_is_a_no_op_and_foreign_watchdog_is_ignored():
     n = Notifier.from_environment({})
-    assert not n.enabled and n.watchdog_interval_s is None
+    assert not n.enabled and n.watchdog_s is None
     n.ready()
     n.watchdog()
     other = Notifier.from_environment(
         {"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}, pid=2
     )
-    assert other.watchdog_interval_s is None
+    assert other.watchdog_s is None
 
 
 def test_errors_are_device_errors(tmp_path):
@@ -75,14 +72,14 @@ def test_errors_are_device_errors(tmp_path):
 
 
 class RecordingNotifier:
-    """The Notifier's interface, recording when each field was sent."""
+    """The Notifier's interface, recording what was sent."""
 
-    def __init__(self, interval_s: float) -> None:
-        self.watchdog_interval_s = interval_s
-        self.sent: list[tuple[float, dict]] = []
+    def __init__(self, watchdog_s: float | None) -> None:
+        self.watchdog_s = watchdog_s
+        self.sent: list[dict] = []
 
     def notify(self, **fields) -> None:
-        self.sent.append((time.monotonic(), fields))
+        self.sent.append(fields)
 
     def ready(self, status=None) -> None:
         self.notify(READY=1)
@@ -94,35 +91,51 @@ class RecordingNotifier:
         self.notify(STOPPING=1)
 
 
-def run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s: float, step_timeout_s: float):
-    import appliance.acquisition.daemon as daemon_mod
+class FakeClock:
+    def __init__(self) -> None:
+        self.now_s = 1000.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def silent_daemon(tmp_path, step_timeout_s: float, watchdog_margin: float = 0.5):
     from appliance.acquisition.daemon import SessionDaemon
     from appliance.config import Config, SessionConfig
 
-    def long_session(config, log_dir, should_stop, on_status, publisher=None):
-        on_status("estimate...")
-        start = time.monotonic()
-        time.sleep(step_s)  # a long step that reports nothing (building a database, say)
-        return types.SimpleNamespace(error_m=None, frames=0, status=types.SimpleNamespace(value="ok"),
-                                     log_path=tmp_path / "x.mcap", start=start)
+    cfg = Config(session=SessionConfig(max_sessions=1, step_timeout_s=step_timeout_s,
+                                       watchdog_margin=watchdog_margin))
+    clock, notifier = FakeClock(), RecordingNotifier(20.0)
 
-    monkeypatch.setattr(daemon_mod, "run_one_session", long_session)
-    notifier = RecordingNotifier(0.05)
-    cfg = Config(session=SessionConfig(max_sessions=1, step_timeout_s=step_timeout_s))
-    d = SessionDaemon(cfg, tmp_path, notifier)  # type: ignore[arg-type]
-    assert d.run() == 0
-    status_t = next(t for t, f in notifier.sent if f.get("STATUS") == "estimate...")
-    return [t - status_t for t, f in notifier.sent if f == {"WATCHDOG": 1}]
+    def never_called(*_):
+        raise AssertionError("no session runs in this test")
+
+    d = SessionDaemon(cfg, tmp_path, notifier, never_called, clock=clock)  # type: ignore[arg-type]
+    return d, clock, notifier
 
 
-def test_heartbeat_feeds_the_watchdog_through_a_long_step(monkeypatch, tmp_path):
-    pings = run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s=1.0, step_timeout_s=60.0)
-    during = [p for p in pings if 0 < p < 1.0]
-    # every 0.05 s for 1 s: about 20 pings, none more than a few intervals apart
-    assert len(during) >= 10 and max(np.diff([0.0, *during, 1.0])) < 0.5
+def test_heartbeat_feeds_the_watchdog_while_a_step_is_within_its_timeout(tmp_path):
+    d, clock, notifier = silent_daemon(tmp_path, step_timeout_s=60.0)
+    d._status("estimate...")  # the session's last word before a long silent step
+    for silent_s in (0.0, 10.0, 59.999, 60.0):
+        clock.now_s = 1000.0 + silent_s
+        assert d.feed_watchdog(), silent_s
+    assert notifier.sent.count({"WATCHDOG": 1}) == 4
 
 
-def test_heartbeat_stops_when_a_step_hangs_beyond_its_timeout(monkeypatch, tmp_path):
-    pings = run_daemon_with_a_silent_step(monkeypatch, tmp_path, step_s=1.0, step_timeout_s=0.2)
-    during = [p for p in pings if 0 < p < 1.0]
-    assert during and max(during) < 0.35  # fed for 0.2 s of silence, then left to expire
+def test_heartbeat_stops_when_a_step_hangs_beyond_its_timeout(tmp_path):
+    d, clock, notifier = silent_daemon(tmp_path, step_timeout_s=0.2)
+    d._status("estimate...")
+    clock.now_s = 1000.0 + 0.2 + 1e-6
+    assert not d.feed_watchdog()
+    assert {"WATCHDOG": 1} not in notifier.sent
+    # progress reported again: the watchdog is fed again
+    d._status("capture 3")
+    assert d.feed_watchdog()
+
+
+def test_heartbeat_period_is_the_margin_of_systemds_timeout(tmp_path):
+    d, _, _ = silent_daemon(tmp_path, step_timeout_s=60.0, watchdog_margin=0.25)
+    assert d.watchdog_interval_s == pytest.approx(0.25 * 20.0)
+    d.notifier.watchdog_s = None
+    assert d.watchdog_interval_s is None

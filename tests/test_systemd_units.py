@@ -99,3 +99,20 @@ def test_capture_unit_says_what_capture_does_when_a_session_runs(tmp_path, capsy
     assert rc == 1
     assert err[-1] == f"viper capture: error: {logs}: another session is running (lock held)"
     assert sorted(p.name for p in logs.iterdir()) == [".session.lock"]
+
+
+def test_units_give_numba_a_writable_cache_and_numba_uses_it(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    for name in ("viper-session.service", "viper-capture.service"):
+        text = (UNITS / name).read_text()
+        assert "CacheDirectory=viper\n" in text and "ProtectSystem=strict" in text
+        env = [ln.split("=", 2) for ln in text.splitlines() if ln.startswith("Environment=NUMBA_CACHE_DIR=")]
+        assert len(env) == 1 and env[0][2].startswith("/var/cache/viper/")  # inside the unit's CacheDirectory
+    cache = tmp_path / "numba"
+    code = ("import numpy as np\nfrom appliance.terrain.sweep import horizon_tan_grid\n"
+            "horizon_tan_grid(np.zeros((8, 8)), 30.0, 30.0, 10.0, 1.5, 6.4e6)\n")
+    subprocess.run([sys.executable, "-c", code], check=True, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
+    assert list(cache.rglob("*.nbi")), "numba wrote no cache index into NUMBA_CACHE_DIR"

@@ -32,7 +32,7 @@ def test_header_records_identity_and_grid(jacksboro_db):
     dem, db = jacksboro_db
     h = db.header
     assert h["dem_sha256"] == dem.sha256
-    assert h["format_version"] == 2 and h["n_azimuths"] == 360 and h["height_m"] == 1.5
+    assert h["format_version"] == 3 and h["n_azimuths"] == 360 and h["height_m"] == 1.5
     assert h["body"] == "earth" and h["refraction"] == pytest.approx(0.13)
     # nodes are the DEM's own grid nodes inside the window
     lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(np.arange(db.grid.n_nodes)))
@@ -91,11 +91,11 @@ def test_database_of_another_dem_or_version_is_refused(jacksboro_db, tmp_path):
         load_database(db.path, other)
     raw = bytearray(open(db.path, "rb").read())
     header = raw[12 : 12 + int(np.frombuffer(bytes(raw[8:12]), np.uint32)[0])]
-    patched = header.replace(b'"format_version": 2', b'"format_version": 1')
+    patched = header.replace(b'"format_version": 3', b'"format_version": 1')
     assert patched != header
     bad = tmp_path / "v1.viperdb"
     bad.write_bytes(bytes(raw[:12]) + patched + bytes(raw[12 + len(header):]))
-    with pytest.raises(DatabaseError, match=r"format version 1, this viper reads version 2; rebuild it with "
+    with pytest.raises(DatabaseError, match=r"format version 1, this viper reads version 3; rebuild it with "
                                             r"`viper precompute jacksboro\S* --out v1.viperdb`"):
         load_database(bad)
     junk = tmp_path / "junk.viperdb"
@@ -225,3 +225,57 @@ def test_a_version_2_file_without_checksums_still_loads(jacksboro_db, tmp_path):
     again = load_database(path)
     assert "checksum" not in again.header
     np.testing.assert_array_equal(np.asarray(again.codes), np.asarray(db.codes))
+
+
+# Two nested windows: the inner one sweeps only the lines through its own nodes.  Both are centred
+# alike, as a geographic DEM's metric spacing is taken at the centre of the search area.
+INNER = (-84.280, 36.565, -84.260, 36.585)
+SHORT_REACH_M = 60_000.0
+
+
+def _node_offset(outer, inner) -> tuple[int, int]:
+    """(row, col) of the inner grid's node (0, 0) in the outer grid."""
+    r = (outer.grid.y0 - inner.grid.y0) / outer.grid.dy
+    c = (inner.grid.x0 - outer.grid.x0) / outer.grid.dx
+    assert abs(r - round(r)) < 1e-6 and abs(c - round(c)) < 1e-6
+    return int(round(r)), int(round(c))
+
+
+def test_a_window_build_gives_each_node_the_skyline_of_a_larger_build(tmp_path):
+    dem = load_dem("jacksboro")
+    build_database(dem, tmp_path / "outer.viperdb", WINDOW, max_range_m=SHORT_REACH_M, progress=None)
+    build_database(dem, tmp_path / "inner.viperdb", INNER, max_range_m=SHORT_REACH_M, progress=None)
+    outer = load_database(tmp_path / "outer.viperdb", dem)
+    inner = load_database(tmp_path / "inner.viperdb", dem)
+    assert inner.grid.n_nodes < outer.grid.n_nodes // 4
+    r0, c0 = _node_offset(outer, inner)
+    g = inner.grid
+    rows = (np.arange(g.n_rows)[:, None] + r0) * outer.grid.n_cols + (np.arange(g.n_cols)[None, :] + c0)
+    idx = rows.ravel()
+    assert np.array_equal(np.asarray(inner.codes), np.asarray(outer.codes)[idx])
+    assert np.array_equal(np.asarray(inner.distance_codes), np.asarray(outer.distance_codes)[idx])
+    assert np.array_equal(inner.offset_deg, outer.offset_deg[idx], equal_nan=True)
+    assert np.array_equal(inner.step_deg, outer.step_deg[idx])
+
+
+def test_the_build_gives_the_same_bytes_on_one_thread_or_several(tmp_path):
+    dem = load_dem("jacksboro")
+    for workers in (1, 3):
+        build_database(dem, tmp_path / f"w{workers}.viperdb", INNER, max_range_m=SHORT_REACH_M, n_azimuths=72,
+                       progress=None, workers=workers)
+    assert (tmp_path / "w1.viperdb").read_bytes() == (tmp_path / "w3.viperdb").read_bytes()
+
+
+def test_the_stored_first_pass_is_what_the_estimator_would_make(jacksboro_db):
+    import dataclasses
+
+    from appliance.position import skyline_grid
+
+    _, db = jacksboro_db
+    stored = skyline_grid(db)
+    fresh = dataclasses.replace(stored, first_pass=None)
+    coarse, partial = fresh.coarse
+    assert np.array_equal(coarse, np.asarray(db.coarse_codes))
+    assert np.array_equal(partial, np.asarray(db.coarse_partial))
+    assert np.array_equal(fresh.coarse_tau2(0.0), np.asarray(db.coarse_tau2))
+    assert stored.coarse_tau2(0.0) is db.coarse_tau2

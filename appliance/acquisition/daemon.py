@@ -22,16 +22,15 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING
 
 from appliance.acquisition.notify import Notifier
-from appliance.acquisition.onboard import load_session_database
-from appliance.acquisition.session import SessionResult, run_field_session, run_platform_session
+from appliance.acquisition.session import SessionResult
 from appliance.config import Config
 from appliance.errors import LogError
 
-if TYPE_CHECKING:
-    from appliance.logbook.live import Publisher
+#: one session: (log folder, stop requested?, progress callback) -> its result; the command line
+#: chooses it (hardware or simulated, :func:`appliance.cli._platform.session_runner`)
+SessionRunner = Callable[[Path, Callable[[], bool], Callable[[str], None]], SessionResult]
 
 
 @contextmanager
@@ -53,36 +52,27 @@ def session_lock(log_dir: Path) -> Iterator[None]:
 
 
 def run_one_session(
-    config: Config,
+    run_session: SessionRunner,
     log_dir: Path,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
-    seed: int | None = None,
-    publisher: Publisher | None = None,
 ) -> SessionResult:
-    """One session under the session lock: on the hardware of ``[devices]``, or (``kind = "sim"``)
-    on the simulated twins at a random position of the ``[sim] dem`` map; ``publisher`` is the live
-    view (every logged message is also handed to it)."""
+    """One session under the session lock."""
     with session_lock(log_dir):
-        if config.platform.kind == "sim":
-            return run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
-                                     publisher=publisher)
-        on_status("loading the skyline database")
-        db = load_session_database(config.session)
-        return run_platform_session(config, log_dir, db, should_stop, on_status, publisher)
+        return run_session(log_dir, should_stop, on_status)
 
 
 class SessionDaemon:
     def __init__(
-        self, config: Config, log_dir: Path, notifier: Notifier, sleep: Callable[[float], None] | None = None,
-        publisher: Publisher | None = None,
+        self, config: Config, log_dir: Path, notifier: Notifier, run_session: SessionRunner,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.config, self.log_dir, self.notifier = config, log_dir, notifier
-        self.publisher = publisher
+        self.run_session = run_session
         self._stop = threading.Event()
-        self._sleep = sleep
+        self._clock = clock
         self.results: list[SessionResult] = []
-        self._progress_s = time.monotonic()
+        self._progress_s = clock()
 
     def request_stop(self, signum: int | None = None, frame: FrameType | None = None) -> None:
         self._stop.set()
@@ -91,32 +81,45 @@ class SessionDaemon:
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
 
+    @property
+    def watchdog_interval_s(self) -> float | None:
+        """WATCHDOG=1 every ``session.watchdog_margin`` x WatchdogSec; None without a watchdog."""
+        timeout_s = self.notifier.watchdog_s
+        return None if timeout_s is None else self.config.session.watchdog_margin * timeout_s
+
     def _status(self, text: str) -> None:
-        self._progress_s = time.monotonic()
+        self._progress_s = self._clock()
         self.notifier.notify(STATUS=text, WATCHDOG=1)
 
+    def feed_watchdog(self) -> bool:
+        """WATCHDOG=1 if the session reported progress within ``session.step_timeout_s``; whether
+        it was sent (a session silent for longer is left to systemd's watchdog)."""
+        if self._clock() - self._progress_s <= self.config.session.step_timeout_s:
+            self.notifier.watchdog()
+            return True
+        return False
+
     def _heartbeat(self, done: threading.Event) -> None:
-        """WATCHDOG=1 at the watchdog's pace while the main thread makes progress."""
-        interval = self.notifier.watchdog_interval_s
+        """:meth:`feed_watchdog` at the watchdog's pace until ``done``."""
+        interval = self.watchdog_interval_s
         if interval is None:
             return
         while not done.wait(interval):
-            if time.monotonic() - self._progress_s <= self.config.session.step_timeout_s:
-                self.notifier.watchdog()
+            self.feed_watchdog()
 
     def _wait(self, seconds: float) -> None:
         """Wait, pinging the watchdog; returns early on a stop request."""
-        step = self.notifier.watchdog_interval_s or 5.0
+        step = self.watchdog_interval_s or 5.0
         remaining = seconds
         while remaining > 0 and not self._stop.is_set():
             self._stop.wait(min(step, remaining))
             remaining -= step
-            self._progress_s = time.monotonic()
+            self._progress_s = self._clock()
 
     def run(self) -> int:
         cfg = self.config.session
         self.notifier.ready(status=f"ready; a session every {cfg.interval_s:.0f} s, logs in {self.log_dir}")
-        self._progress_s = time.monotonic()
+        self._progress_s = self._clock()
         done = threading.Event()
         beat = threading.Thread(target=self._heartbeat, args=(done,), name="watchdog", daemon=True)
         beat.start()
@@ -133,8 +136,7 @@ class SessionDaemon:
             n += 1
             self._status(f"session {n} starting")
             try:
-                result = run_one_session(self.config, self.log_dir, self._stop.is_set, self._status,
-                                         publisher=self.publisher)
+                result = run_one_session(self.run_session, self.log_dir, self._stop.is_set, self._status)
             except LogError as exc:
                 self._status(f"session {n} skipped: {exc}")
             else:

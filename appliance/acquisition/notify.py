@@ -46,9 +46,9 @@ class Notifier:
         return self.address is not None
 
     @property
-    def watchdog_interval_s(self) -> float | None:
-        """How often to send WATCHDOG=1 (half the configured timeout), or None without watchdog."""
-        return None if self.watchdog_usec is None else self.watchdog_usec / 2e6
+    def watchdog_s(self) -> float | None:
+        """systemd's watchdog timeout (WatchdogSec, seconds), or None without watchdog."""
+        return None if self.watchdog_usec is None else self.watchdog_usec / 1e6
 
     def notify(self, **fields: str | int) -> None:
         """Send ``KEY=VALUE`` lines, e.g. ``notify(READY=1, STATUS="idle")``."""

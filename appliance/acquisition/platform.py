@@ -6,41 +6,64 @@ positive nose up (as :mod:`appliance.vision.camera`), the magnetic field's ``x``
 axis (forward), ``y`` to the right, ``z`` down.  Stage angles are degrees clockwise seen from
 above.  Times are UTC nanoseconds.  Every device call may raise :class:`DeviceError` (unplugged,
 stalled); the session degrades instead of dying.  :func:`platform_of` takes the devices of
-:func:`appliance.drivers.factory.open_platform` (the real drivers, on hardware or on the simulated
+:func:`appliance.drivers.factory.build_devices` (the real drivers, on hardware or on the simulated
 twins), whose records have these fields.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from appliance.drivers.gps import GpsFix
 from appliance.vision.intrinsics import CameraIntrinsics
 
-
-@dataclass(frozen=True)
-class TiltReading:
-    time_ns: int
-    roll_deg: float
-    pitch_deg: float
+if TYPE_CHECKING:
+    from appliance.drivers.factory import Devices
 
 
-@dataclass(frozen=True)
-class FieldReading:
+class TiltReading(Protocol):
+    @property
+    def time_ns(self) -> int: ...
+
+    @property
+    def roll_deg(self) -> float: ...
+
+    @property
+    def pitch_deg(self) -> float: ...
+
+
+class FieldReading(Protocol):
     """Magnetic field in the head's frame (x forward, y right, z down), any consistent unit."""
 
-    time_ns: int
-    x: float
-    y: float
-    z: float
+    @property
+    def time_ns(self) -> int: ...
+
+    @property
+    def x(self) -> float: ...
+
+    @property
+    def y(self) -> float: ...
+
+    @property
+    def z(self) -> float: ...
+
+
+class Still(Protocol):
+    """One camera frame as the procedures see it: HxWx3 uint8 BGR and its time."""
+
+    @property
+    def time_ns(self) -> int: ...
+
+    @property
+    def image(self) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
 class Frame:
-    """One camera frame: HxWx3 uint8 BGR."""
+    """One camera frame: HxWx3 uint8 BGR (a :class:`Still`), e.g. read back from a log."""
 
     time_ns: int
     image: np.ndarray
@@ -72,7 +95,7 @@ class Camera(Protocol):
     @property
     def intrinsics(self) -> CameraIntrinsics: ...
 
-    def capture(self) -> Frame: ...
+    def capture(self) -> Still: ...
 
 
 class GpsSource(Protocol):
@@ -98,10 +121,9 @@ class Platform:
     camera: Camera | None
     gps: GpsSource | None
     leveller: Leveller | None
-    camera_height_m: float = 1.5
 
 
-def platform_of(devices: Any) -> Platform:
+def platform_of(devices: Devices) -> Platform:
     """The procedures' view of :class:`appliance.drivers.factory.Devices` (same attribute names)."""
     return Platform(
         clock=devices.clock,
@@ -111,5 +133,4 @@ def platform_of(devices: Any) -> Platform:
         camera=devices.camera,
         gps=devices.gps,
         leveller=devices.leveller,
-        camera_height_m=devices.camera_height_m,
     )

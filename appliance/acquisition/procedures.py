@@ -19,10 +19,10 @@ from appliance.acquisition.platform import (
     Camera,
     Clock,
     Compass,
-    Frame,
     GpsSource,
     Leveller,
     Stage,
+    Still,
     TiltSensor,
 )
 from appliance.config import SessionConfig
@@ -260,7 +260,7 @@ def capture_angles(hfov_deg: float, overlap: float) -> np.ndarray:
 @dataclass(frozen=True)
 class TaggedFrame:
     index: int
-    frame: Frame
+    frame: Still
     stage_deg: float
     heading_deg: float | None  # true heading of the optical axis (platform heading + stage)
     roll_deg: float | None

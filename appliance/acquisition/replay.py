@@ -28,16 +28,17 @@ from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
 from appliance.atomic import atomic_output, check_output_folder, write_text_atomic
 from appliance.config import EstimatorConfig
-from appliance.errors import EstimationError, InputError, LogError
+from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
-from appliance.logbook.reader import ErrorPolicy, LogReader
+from appliance.logbook.reader import LogReader
 from appliance.logbook.writer import Logbook
 from appliance.skyline import Skyline
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama
 
 if TYPE_CHECKING:
+    from appliance.acquisition.session import SessionResult
     from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
 
@@ -79,7 +80,7 @@ def intrinsics_from_calibration(cal: Any) -> CameraIntrinsics:
 def read_session(path: str | Path) -> SessionData:
     """Frames with their tags, the intrinsics and the truth of a session log (up to its last readable
     record).  Raises :class:`LogError` for a file that is not a readable MCAP log at all."""
-    reader = LogReader(path, ErrorPolicy.STOP)
+    reader = LogReader(path, ErrorPolicy.SKIP)
     images: dict[int, np.ndarray] = {}
     tags: dict[int, dict[str, Any]] = {}
     intr = None
@@ -119,9 +120,21 @@ def read_session(path: str | Path) -> SessionData:
     return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem)
 
 
+def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path) -> Path:
+    """The replay report of a session that has just run (its estimate, not a rerun); the page's path."""
+    truth = None
+    if session.truth is not None and session.truth.lat_deg is not None and session.truth.lon_deg is not None:
+        truth = (session.truth.lat_deg, session.truth.lon_deg)
+    data = SessionData(path=session.log_path, frames=[], intrinsics=None, truth=truth,
+                       onboard_error_m=session.error_m, complete=True, problem=None)
+    res = ReplayResult(session.log_path.stem, data, panorama=session.panorama, skyline=session.skyline,
+                       position=session.estimate, error_m=session.error_m, results_log=session.log_path)
+    return write_report([res], db, out_dir)
+
+
 def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
     """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap``."""
-    from appliance.acquisition.session import skyline_payload, write_estimate
+    from appliance.estimate_outputs import skyline_payload, write_estimate_records
     from appliance.vision.skyline_detect import detect_skyline
 
     name = data.path.stem
@@ -154,7 +167,7 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
                 log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"),
                                 now)
             log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
-            rec = write_estimate(log, now, db, pos, sky, data.truth)
+            rec = write_estimate_records(log, now, db, pos, sky, data.truth)
             for note in res.notes:
                 log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
     res.error_m = rec.error_m
@@ -171,8 +184,10 @@ def panorama_picture(res: ReplayResult, db: SkylineDatabase, path: Path) -> None
     import matplotlib.pyplot as plt
 
     assert res.panorama is not None and res.skyline is not None and res.position is not None
+    from appliance.estimate_outputs import rendered_skyline
+
     pano, sky, pos = res.panorama, res.skyline, res.position
-    rendered = onboard.rendered_skyline(db, pos)
+    rendered = rendered_skyline(db, pos)
     h, w = pano.image.shape[:2]
     fig, ax = plt.subplots(figsize=(16, 16 * h / w + 1.0))
     ax.imshow(cv2.cvtColor(pano.image, cv2.COLOR_BGR2RGB), aspect="auto")
@@ -227,7 +242,7 @@ def summary_rows(results: list[ReplayResult], db: SkylineDatabase) -> list[dict[
 
 def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> Path:
     """PNG pictures per log, ``summary.csv`` and ``report.html``; returns the HTML page's path."""
-    from appliance.outputs import write_png
+    from appliance.estimate_outputs import write_png
 
     check_output_folder(out_dir)
     for r in results:
@@ -287,7 +302,8 @@ def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, ou
         try:
             data = read_session(p)
         except LogError as exc:
-            data = SessionData(Path(p), [], None, None, None, False, str(exc))
+            data = SessionData(path=Path(p), frames=[], intrinsics=None, truth=None, onboard_error_m=None,
+                               complete=False, problem=str(exc))
             r = ReplayResult(Path(p).stem, data, failure=str(exc))
         else:
             r = replay_session(data, db, cfg, out_dir)

@@ -3,14 +3,12 @@
 A failing device degrades the session (the procedure is marked degraded or failed, the reason is
 logged on ``/log`` and ``/session/procedure``) instead of ending it; a full disk ends it cleanly
 with the log sealed; a stop request (SIGTERM in the daemon) is honoured between captures and the
-log is closed properly.  :func:`run_field_session` is the whole simulated session of the demo.
+log is closed properly.  The simulated session of the demo is :mod:`appliance.sim.field_session`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
-import math
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,12 +16,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
-import numpy as np
 
 from appliance.acquisition import onboard, procedures
 from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
-from appliance.config import Config, PlatformConfig, SimFaultsConfig
+from appliance.config import Config
+from appliance.drivers.factory import Devices
 from appliance.errors import DeviceError, EstimationError, InputError, ViperError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
@@ -296,6 +294,7 @@ class Session:
         if self.db is None:
             self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
+        from appliance.estimate_outputs import skyline_payload, write_estimate_records
         from appliance.vision.skyline_detect import detect_skyline
 
         pano = onboard.stitch_frames(frames, self.p.camera.intrinsics)
@@ -321,7 +320,7 @@ class Session:
         where = None
         if truth is not None and truth.lat_deg is not None and truth.lon_deg is not None:
             where = (truth.lat_deg, truth.lon_deg)
-        rec = write_estimate(self.log, self.now(), self.db, pos, sky, where)
+        rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
         flag = "ambiguous" if pos.result.ambiguous else "ok"
         if rec.error_m is not None:
@@ -333,33 +332,6 @@ class Session:
                          region_cells=int(pos.result.region_nodes.size))
         else:
             self.outcome("estimate", Status.OK)
-
-
-def skyline_payload(sky: Skyline) -> dict[str, Any]:
-    return {"azimuth_deg": sky.azimuth_deg, "elevation_deg": sky.elevation_deg}
-
-
-def write_estimate(
-    log: Logbook,
-    time_ns: int,
-    db: SkylineDatabase,
-    pos: Position,
-    skyline: Skyline,
-    truth: tuple[float, float] | None,
-) -> onboard.EstimateRecord:
-    """The estimate into ``log``: LocationFix, full JSON record, region (GeoJSON), lower posterior (Grid)
-    and the skyline rendered at the estimate; returns the record with its error against ``truth``."""
-    rec = onboard.estimate_record(db, pos, skyline, truth)
-    cell_m = math.sqrt(pos.cell_size_m[0] * pos.cell_size_m[1])
-    log.write_proto(t.ESTIMATE_FIX, m.location_fix(time_ns, pos.lat, pos.lon, sigma_m=cell_m, frame_id="estimate"),
-                    time_ns)
-    log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
-    log.write_proto(t.REGION, m.geojson(onboard.region_features(db, pos)), time_ns)
-    log.write_proto(t.TF, onboard.posterior_transform(db, pos, time_ns), time_ns)
-    log.write_proto(t.POSTERIOR, onboard.posterior_grid(db, pos, time_ns), time_ns)
-    log.write_json(t.SKYLINE_RENDERED, "viper.Skyline", skyline_payload(onboard.rendered_skyline(db, pos)), time_ns)
-    log.flush()
-    return rec
 
 
 def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:
@@ -395,6 +367,7 @@ def run_session(
 
 
 def run_platform_session(
+    open_devices: Callable[[Config], Devices],
     config: Config,
     log_dir: Path,
     db: SkylineDatabase | None = None,
@@ -402,79 +375,9 @@ def run_platform_session(
     on_status: Callable[[str], None] = lambda s: None,
     publisher: Publisher | None = None,
 ) -> SessionResult:
-    """One session on :func:`appliance.drivers.factory.open_platform` (hardware, or the simulated twins)."""
-    from appliance.drivers.factory import open_platform
-
+    """One session on the devices ``open_devices(config)`` gives (the caller chooses the hardware or
+    the simulated twins); they are closed when the session ends."""
     on_status("opening the devices")
-    with open_platform(config) as devices:
+    with open_devices(config) as devices:
         return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status,
                            publisher=publisher)
-
-
-def simulated_config(config: Config, dem: Any, db: SkylineDatabase | None, rng: np.random.Generator,
-                     faults: SimFaultsConfig | None = None) -> Config:
-    """``config`` with ``[sim]`` at a random position of the map, heading, tripod tilt and seed."""
-    lat, lon = random_position(dem, db, rng)
-    sim = dataclasses.replace(
-        config.sim,
-        lat_deg=lat,
-        lon_deg=lon,
-        ground_elevation_m=None,
-        heading_deg=float(rng.uniform(0.0, 360.0)),
-        tilt_north_deg=float(rng.uniform(-2.0, 2.0)),
-        tilt_east_deg=float(rng.uniform(-2.0, 2.0)),
-        seed=int(rng.integers(1 << 30)),
-        faults=config.sim.faults if faults is None else faults,
-    )
-    return dataclasses.replace(config, platform=PlatformConfig("sim"), sim=sim)
-
-
-def run_field_session(
-    config: Config,
-    out_dir: str | Path,
-    seed: int | None = None,
-    dem: Any = None,
-    faults: SimFaultsConfig | None = None,
-    should_stop: Callable[[], bool] = lambda: False,
-    on_status: Callable[[str], None] = lambda s: None,
-    db: SkylineDatabase | None = None,
-    publisher: Publisher | None = None,
-) -> SessionResult:
-    """A whole simulated session at a random position of the ``[sim] dem`` map; the log goes to ``out_dir``.
-
-    The platform is :func:`appliance.sim.platform.open_sim_platform`: the real drivers over the twins'
-    wire protocols (ptys, fake I2C, a simulated V4L2 capture), faults from ``faults`` (else
-    ``[sim.faults]``).  The skyline database is ``db``, else ``[session] database``, else the demo
-    map's, built once beside the log.  ``outcomes["true_position"]`` is the simulated truth.
-    """
-    from appliance.terrain.dem import load_dem
-
-    rng = np.random.default_rng(seed)
-    dem = dem if dem is not None else load_dem(config.sim.dem)
-    out = Path(out_dir)
-    if db is None:
-        on_status("loading the skyline database")
-        db = onboard.load_session_database(config.session, dem, out)
-    sim_config = simulated_config(config, dem, db, rng, faults)
-    result = run_platform_session(sim_config, out, db, should_stop, on_status, publisher)
-    result.outcomes.setdefault("true_position", f"{sim_config.sim.lat_deg:.6f},{sim_config.sim.lon_deg:.6f}")
-    return result
-
-
-def random_position(dem: Any, db: SkylineDatabase | None, rng: np.random.Generator,
-                    margin_nodes: float = 20.0) -> tuple[float, float]:
-    """(lat, lon) drawn uniformly inside the database's grid (or the DEM) away from its edges, on terrain."""
-    for _ in range(1000):
-        if db is not None:
-            g = db.grid
-            margin_nodes = min(margin_nodes, g.n_rows / 4, g.n_cols / 4)
-            r = rng.uniform(margin_nodes, g.n_rows - margin_nodes)
-            c = rng.uniform(margin_nodes, g.n_cols - margin_nodes)
-            lon, lat = (float(v) for v in g.xy_to_lonlat(*g.rc_to_xy(r, c)))
-        else:
-            lon0, lat0, lon1, lat1 = dem.bounds_lonlat()
-            lat = float(lat0 + (lat1 - lat0) * rng.uniform(0.25, 0.75))
-            lon = float(lon0 + (lon1 - lon0) * rng.uniform(0.25, 0.75))
-        if math.isfinite(float(dem.sample_lonlat(np.atleast_1d(lon), np.atleast_1d(lat))[0])):
-            return lat, lon
-    raise InputError("no position on terrain found in the map after 1000 draws")

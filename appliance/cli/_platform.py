@@ -1,20 +1,24 @@
-"""Shared by the commands that run sessions: the notice printed when a run drives the simulated platform only
-because no ``[platform]`` was given, and the ``--live`` option (the Foxglove live view)."""
+"""The command line chooses the platform: the hardware of ``[devices]`` or the simulated twins of
+``[sim]`` (``[platform] kind``), and prints a notice when it drives the simulated platform only
+because no ``[platform]`` was given.  Nothing below the command line imports the simulator.  Also
+the ``--live`` option (the Foxglove live view) of the commands that run sessions."""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from appliance.config import Config
+from appliance.config import Config, PlatformKind
 
 if TYPE_CHECKING:
-    from appliance.logbook.live import LiveServer
+    from appliance.acquisition.session import SessionResult
+    from appliance.drivers.factory import Devices
+    from appliance.logbook.live import LiveServer, Publisher
 
 LOG = logging.getLogger(__name__)
 
@@ -36,7 +40,7 @@ def platform_given(config_path: str | Path | None) -> bool:
 
 def simulated_notice(command: str, config: Config, config_path: str | Path | None) -> str | None:
     """The one line to print on stderr, or None when the platform was chosen explicitly or is hardware."""
-    if config.platform.kind != "sim" or platform_given(config_path):
+    if config.platform.kind is not PlatformKind.SIM or platform_given(config_path):
         return None
     source = "no --config given" if config_path is None else f"{config_path} has no [platform] table"
     return (f"viper {command}: running the SIMULATED platform ({source}); set [platform] kind = \"hardware\" "
@@ -70,3 +74,41 @@ def live_server(address: str | None) -> Iterator[LiveServer | None]:
         yield server
     finally:
         server.close()
+
+
+def open_devices(config: Config) -> Devices:
+    """The devices of ``[platform] kind``, with the calibrations of ``[devices]`` (file or inline)."""
+    from appliance.device_calibration import load_device_calibration
+
+    calibration = load_device_calibration(config.devices)
+    if config.platform.kind is PlatformKind.HARDWARE:
+        from appliance.drivers.factory import open_hardware_platform
+
+        return open_hardware_platform(config, calibration)
+    from appliance.sim.platform import open_sim_platform
+
+    return open_sim_platform(config, calibration=calibration)
+
+
+def session_runner(config: Config, seed: int | None = None, publisher: Publisher | None = None
+                   ) -> Callable[[Path, Callable[[], bool], Callable[[str], None]], SessionResult]:
+    """What one session of ``viper capture`` or the session daemon runs: on the hardware, a session
+    with the ``[session] database``; in simulation, a whole field session at a random position of the
+    ``[sim] dem`` map (``seed`` chooses it); every logged message also goes to ``publisher``, the
+    live view, when given."""
+
+    def run(log_dir: Path, should_stop: Callable[[], bool], on_status: Callable[[str], None]) -> SessionResult:
+        if config.platform.kind is PlatformKind.SIM:
+            from appliance.sim.field_session import run_field_session
+
+            result, _ = run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
+                                         publisher=publisher)
+            return result
+        from appliance.acquisition.onboard import load_session_database
+        from appliance.acquisition.session import run_platform_session
+
+        on_status("loading the skyline database")
+        db = load_session_database(config.session)
+        return run_platform_session(open_devices, config, log_dir, db, should_stop, on_status, publisher)
+
+    return run

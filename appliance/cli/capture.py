@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
-from appliance.cli._platform import add_live_option, live_server, warn_if_simulated
+from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import load_config
 from appliance.logsetup import StatusLine
 
@@ -28,7 +28,7 @@ def _capture(args: argparse.Namespace) -> int:
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     with live_server(args.live) as live, StatusLine("capture") as status:
-        result = run_one_session(config, log_dir, seed=args.seed, on_status=status, publisher=live)
+        result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status)
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
     for name, outcome in result.outcomes.items():

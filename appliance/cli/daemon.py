@@ -7,7 +7,7 @@ from pathlib import Path
 
 from appliance.acquisition.daemon import SessionDaemon
 from appliance.acquisition.notify import Notifier
-from appliance.cli._platform import add_live_option, live_server, warn_if_simulated
+from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import load_config
 
 
@@ -26,6 +26,6 @@ def _session(args: argparse.Namespace) -> int:
     warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     with live_server(args.live) as live:
-        daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), publisher=live)
+        daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config, publisher=live))
         daemon.install_signal_handlers()
         return daemon.run()

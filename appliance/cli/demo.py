@@ -3,7 +3,7 @@
 Level, calibrate the compass, GPS ground truth, capture, estimate, on the simulated platform (the
 real drivers over the twins) at a random position; prints the estimate against the GPS truth and
 leaves the MCAP log and the report in ``--out``.  ``--skyline-only`` is the quicker synthetic-skyline
-demo (:func:`appliance.demo.run_demo`).
+demo (:func:`appliance.sim.demo.run_demo`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ from pathlib import Path
 
 from appliance.atomic import check_output_folder
 from appliance.config import CameraDeviceConfig, Config, DevicesConfig, LogbookConfig, SessionConfig, SimConfig
-from appliance.demo import run_demo
 from appliance.errors import InputError
 
 
@@ -42,16 +41,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--time-rate {args.time_rate}: must be a positive number")
     if args.skyline_only:
         return run_skyline_only(args)
-    from appliance.acquisition.replay import ReplayResult, SessionData, write_report
-    from appliance.acquisition.session import run_field_session
-    from appliance.demo import demo_database
-    from appliance.logbook.summary import great_circle_m
+    from appliance.acquisition.replay import session_report
+    from appliance.position import truth_error_m
+    from appliance.sim.demo import DEMO_DEM, demo_database
+    from appliance.sim.field_session import run_field_session
     from appliance.terrain.dem import load_dem
 
     out = check_output_folder(args.out)
     print("Viper demo: a simulated field session on the jacksboro DEM (Cumberland Mountains, Tennessee)")
     t0 = time.monotonic()
-    dem = load_dem("jacksboro")
+    dem = load_dem(DEMO_DEM)
     db = demo_database(dem, out)
     print(f"  setup      skyline database {db.path} ready in {time.monotonic() - t0:.0f} s")
     t1 = time.monotonic()
@@ -60,13 +59,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
     config = demo_config(out, args.time_rate)
-    r = run_field_session(config, out, seed=args.seed, dem=dem, db=db, on_status=status)
-    lat, lon = map(float, r.outcomes["true_position"].split(","))
-    print(f"  session    {r.status.value}: " + ", ".join(f"{k} {v}" for k, v in r.outcomes.items()
-                                                       if k != "true_position"))
+    r, sim_truth = run_field_session(config, out, seed=args.seed, dem=dem, db=db, on_status=status)
+    lat, lon = sim_truth.lat_deg, sim_truth.lon_deg
+    print(f"  session    {r.status.value}: " + ", ".join(f"{k} {v}" for k, v in r.outcomes.items()))
     for problem in r.problems:
         print(f"  problem    {problem}")
-    print(f"  true       {lat:.6f}, {lon:.6f}  (simulated; camera {config.sim.mast_height_m} m above the ground)")
+    print(f"  true       {lat:.6f}, {lon:.6f}  (simulated; camera {sim_truth.mast_height_m} m above the ground)")
     if r.truth is not None and r.truth.lat_deg is not None and r.truth.lon_deg is not None:
         print(f"  GPS truth  {r.truth.lat_deg:.6f}, {r.truth.lon_deg:.6f}  ({r.truth.used} fixes, "
               f"sigma {r.truth.sigma_m:.1f} m)")
@@ -75,18 +73,14 @@ def run(args: argparse.Namespace) -> int:
         cell = (p.cell_size_m[0] * p.cell_size_m[1]) ** 0.5
         err = "no GPS truth" if r.error_m is None else f"{r.error_m:.0f} m from the GPS truth"
         flag = "AMBIGUOUS" if p.result.ambiguous else "ok"
-        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {flag}: {err} ({great_circle_m(p.lat, p.lon, lat, lon):.0f} m "
+        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {flag}: {err} ({truth_error_m(db, p, (lat, lon)):.0f} m "
               f"from the true position; database nodes {cell:.0f} m apart)")
         for note in p.result.notes:
             print(f"  note       {note}")
         print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells), "
               f"heading correction {p.result.heading_correction_deg:+.1f} deg, "
               f"{360 - p.result.n_valid} of 360 azimuths missing")
-        truth = None if r.truth is None or r.truth.lat_deg is None or r.truth.lon_deg is None \
-            else (r.truth.lat_deg, r.truth.lon_deg)
-        data = SessionData(r.log_path, [], None, truth, r.error_m, True, None)
-        res = ReplayResult(r.log_path.stem, data, r.panorama, r.skyline, p, r.error_m, results_log=r.log_path)
-        page = write_report([res], db, out)
+        page = session_report(r, db, out)
         print(f"  report     {page}")
     print(f"  log        {r.log_path}  (open in Foxglove; 'viper log info', 'viper replay')")
     print(f"  time       {time.monotonic() - t1:.0f} s for the session after setup")
@@ -94,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
+    from appliance.sim.demo import run_demo
+
     check_output_folder(args.out)
     r = run_demo(args.out, args.seed)
     p = r.position

@@ -10,9 +10,8 @@ import argparse
 import json
 import time
 
-from appliance.cli._platform import warn_if_simulated
+from appliance.cli._platform import open_devices, warn_if_simulated
 from appliance.config import load_config
-from appliance.drivers.factory import open_platform
 from appliance.errors import DeviceError
 
 
@@ -37,7 +36,7 @@ def _emit(device: str, read) -> object:  # type: ignore[no-untyped-def]
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("devices", config, args.config)
-    with open_platform(config) as p:
+    with open_devices(config) as p:
         fix = None
         if p.gps is not None:
             end = time.monotonic() + args.seconds

@@ -9,7 +9,7 @@ import math
 from pathlib import Path
 
 from appliance.atomic import check_output_folder
-from appliance.config import load_config
+from appliance.config import load_config, override
 from appliance.errors import InputError
 from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
@@ -67,13 +67,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config).estimator
-    sigma = cfg.sigma_deg if args.sigma is None else _pair(args.sigma, "--sigma")
-    if not 0 < sigma[0] <= sigma[1]:
-        raise InputError(f"--sigma {sigma[0]},{sigma[1]}: expected 0 < LO <= HI")
-    tolerance = None if args.unknown_heading else (
-        cfg.heading_tolerance_deg if args.heading_tolerance is None else args.heading_tolerance)
-    if tolerance is not None and not 0 <= tolerance <= 180:
-        raise InputError(f"--heading-tolerance {tolerance}: expected 0..180 degrees")
+    if args.sigma is not None:
+        cfg = override(cfg, "--sigma", sigma_deg=_pair(args.sigma, "--sigma"))
+    if args.heading_tolerance is not None:
+        cfg = override(cfg, "--heading-tolerance", heading_tolerance_deg=args.heading_tolerance)
+    if args.occlusion_weight is not None:
+        cfg = override(cfg, "--occlusion-weight", occlusion_weight=args.occlusion_weight)
+    if args.map_sigma is not None:
+        cfg = override(cfg, "--map-sigma", map_vertical_sigma_m=args.map_sigma)
+    sigma = cfg.sigma_deg
+    tolerance = None if args.unknown_heading else cfg.heading_tolerance_deg
     truths = [_pair(t, "--truth") for t in args.truth]
     if truths and len(truths) != len(args.skylines):
         raise InputError(f"{len(args.skylines)} skylines but {len(truths)} --truth values")
@@ -83,16 +86,15 @@ def run(args: argparse.Namespace) -> int:
     if moves and not args.fuse:
         raise InputError("--move is only used with --fuse")
     skylines = [(s, read_skyline_csv(s)) for s in args.skylines]
+    for name, sky in skylines:
+        if sky.valid_fraction < cfg.min_valid_fraction:
+            raise InputError(f"{name}: {int(sky.valid.sum())} valid azimuths ({sky.valid_fraction:.0%}), below "
+                             f"[estimator] min_valid_fraction {cfg.min_valid_fraction:.0%}")
     db = load_database(args.db)
     height = args.height
     if height is not None and not (math.isfinite(height) and -100.0 < height < 1000.0):
         raise InputError(f"--height {height}: expected a height in metres above the map's surface, -100..1000")
-    occ = cfg.occlusion_weight if args.occlusion_weight is None else args.occlusion_weight
-    if not (math.isfinite(occ) and 0.0 <= occ < 1.0):
-        raise InputError(f"--occlusion-weight {occ}: expected 0 <= W < 1")
-    map_sigma = cfg.map_vertical_sigma_m if args.map_sigma is None else args.map_sigma
-    if not (math.isfinite(map_sigma) and 0.0 <= map_sigma < 1000.0):
-        raise InputError(f"--map-sigma {map_sigma}: expected metres, 0..1000")
+    occ, map_sigma = cfg.occlusion_weight, cfg.map_vertical_sigma_m
     if args.fuse:
         positions = locate_sequence(db, skylines, moves, sigma, tolerance, height, occ, map_sigma)
     else:
@@ -106,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.outputs import write_geotiff, write_png, write_points_geojson, write_region_geojson
+            from appliance.estimate_outputs import write_geotiff, write_png, write_points_geojson, write_region_geojson
 
             stem = f"{i + 1:02d}-{Path(name).stem}"
             write_png(db, pos, sky, report / f"{stem}.png", truth)

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import pkgutil
 import re
 import sys
 import typing
 from collections.abc import Sequence
 
-import appliance.cli as cli_pkg
 from appliance import __version__
 from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
 from appliance.errors import ViperError
@@ -45,7 +43,48 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: Every subcommand: its module under appliance.cli (whose ``register`` adds its parser) and the one-line
+#: help that ``viper --help`` lists.  Only the module of the command being run is imported, so that a
+#: command starts without loading what the others need (a test checks this table against the modules).
+COMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": ("calibrate", "calibrate the theodolite sigma, camera, compass, inclinometers"),
+    "capture": ("capture", "run one field session now and write its MCAP log"),
+    "daemon": ("daemon", "run the appliance's daemons (under systemd)"),
+    "dem": ("dem", "inspect a DEM"),
+    "demo": ("demo", "a whole simulated field session on the embedded jacksboro map"),
+    "devices": ("devices", "open the sensor platform (hardware or sim) and print a reading of each"),
+    "estimate": ("estimate", "estimate the position from skyline CSVs and a skyline database"),
+    "gps": ("gps", "print GPS fixes from a serial port, pyserial URL or recorded NMEA log"),
+    "log": ("log", "inspect and repair session logs (MCAP)"),
+    "precompute": ("precompute", "render the skyline of every candidate node into a database"),
+    "render": ("render", "render the skyline seen from a point of a DEM"),
+    "replay": ("replay", "rerun stitch, skyline and estimate from session logs; report"),
+    "skyline": ("skyline", "detect the skyline in a panorama or a photo and write the azimuth/elevation CSV"),
+    "stitch": ("stitch", "stitch images taken at known stage angles into a panorama"),
+}
+
+
+#: global options (before the command) that take a value: their value is never the command
+GLOBAL_VALUE_OPTIONS = frozenset({"--log-level"})
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The subcommand named on the command line (the first word that names one, other than the
+    value of a global option such as ``--log-level``), if any."""
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in GLOBAL_VALUE_OPTIONS:
+            skip = True
+        elif a in COMMANDS:
+            return a
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``viper`` parser; ``command``'s module is imported and its full parser registered, every
+    other command is listed by name and help only (all of them when ``command`` is "*")."""
     parser = OneLineParser(
         prog="viper",
         description="Viper field appliance: position from the skyline, matched against a DEM.",
@@ -55,19 +94,18 @@ def build_parser() -> argparse.ArgumentParser:
                         help="messages on stderr at this level and above (default info); under systemd each "
                              "line carries its journal priority")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for info in sorted(pkgutil.iter_modules(cli_pkg.__path__), key=lambda m: m.name):
-        if info.name == "main" or info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{cli_pkg.__name__}.{info.name}")
-        register = getattr(module, "register", None)
-        if register is not None:
-            register(sub)
+    for name, (module_name, help_text) in COMMANDS.items():
+        if command in (name, "*"):
+            importlib.import_module(f"appliance.cli.{module_name}").register(sub)
+        else:
+            sub.add_parser(name, help=help_text, add_help=False)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
+    argv = join_negative_values(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(command_of(argv))
+    args = parser.parse_args(argv)
     func = getattr(args, "func", None)
     if func is None:
         parser.print_help(sys.stderr)

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 
 from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.atomic import check_output_folder
-from appliance.config import load_config
-from appliance.errors import ConfigError, InputError
+from appliance.config import load_config, override
+from appliance.errors import InputError
 from appliance.logsetup import ProgressCallback
 
 if TYPE_CHECKING:
@@ -45,12 +45,11 @@ def truth_on_map(db: SkylineDatabase, truth: tuple[float, float]) -> bool:
 
 
 def parse_sigma(text: str) -> tuple[float, float]:
+    """``LO,HI`` as two numbers (their range is checked with the configuration's)."""
     try:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
         raise InputError(f"--sigma: expected LO,HI in degrees, got {text!r}") from None
-    if not 0 < lo <= hi:
-        raise InputError(f"--sigma: need 0 < LO <= HI, got {lo}, {hi}")
     return lo, hi
 
 
@@ -63,21 +62,21 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     est = config.estimator
     if args.sigma:
-        est = dataclasses.replace(est, sigma_deg=parse_sigma(args.sigma))
+        est = override(est, "--sigma", sigma_deg=parse_sigma(args.sigma))
     if args.heading_tolerance is not None:
-        est = dataclasses.replace(est, heading_tolerance_deg=args.heading_tolerance)
+        est = override(est, "--heading-tolerance", heading_tolerance_deg=args.heading_tolerance)
     session = config.session
     if args.db:
         session = dataclasses.replace(session, database=Path(args.db))
-    dem = None
-    if session.database is None:
+    db = load_session_database(session)
+    if db is None:
+        from appliance.sim.demo import DEMO_DEM, demo_database
         from appliance.terrain.dem import load_dem
 
-        dem = load_dem("jacksboro")
-        LOG.warning("no --db: using the demo map's database (jacksboro) in ./viper-demo")
-    db = load_session_database(session, dem, Path("viper-demo"))
-    if db is None:
-        raise ConfigError("no skyline database: give --db")
+        LOG.warning("no --db: using the demo map's database (%s) in ./viper-demo", DEMO_DEM)
+        demo_dir = Path("viper-demo")
+        demo_dir.mkdir(parents=True, exist_ok=True)
+        db = demo_database(load_dem(DEMO_DEM), demo_dir)
     out = Path(args.out)
 
     elsewhere: list[str] = []

@@ -1,16 +1,19 @@
-"""``open_platform(config)``: the appliance's devices, real or simulated, behind one interface.
+"""The appliance's devices behind one interface: :func:`build_devices` wires the drivers to their
+sources, :func:`open_hardware_platform` to the devices named in ``[devices.*]``.
 
-``[platform] kind = "hardware"`` opens the devices named in ``[devices.*]``; ``kind = "sim"`` starts
-the simulated twins of ``[sim]`` (:mod:`appliance.sim.platform`), which speak the same wire
-protocols, so the same drivers run in both cases.  The returned :class:`Devices` has the attributes
-the acquisition layer's ``Platform`` has (``clock``, ``tilt``, ``compass``, ``stage``, ``camera``,
-``gps``, ``leveller``, ``camera_height_m``) plus ``heading``; see :mod:`appliance.drivers.devices`
-for each device's methods.  A device not configured (empty ``source``) is ``None``.  Always
-``close()`` it (or use it as a context manager): that stops the twins and closes the ports.
+The simulated twins (:func:`appliance.sim.platform.open_sim_platform`) speak the same wire
+protocols and call :func:`build_devices` too, so the same drivers run in both cases; the caller
+(the command line, :mod:`appliance.cli._platform`) chooses between them.  The returned
+:class:`Devices` has the attributes the acquisition layer's ``Platform`` has (``clock``, ``tilt``,
+``compass``, ``stage``, ``camera``, ``gps``, ``leveller``) plus ``heading``; see
+:mod:`appliance.drivers.devices` for each device's methods.  A device not configured (empty
+``source``) is ``None``.  Always ``close()`` it (or use it as a context manager): that stops the
+twins and closes the ports.  Calibrations arrive as objects (:class:`DeviceCalibration`); the
+drivers read no file.
 
 Example::
 
-    with open_platform(load_config("viper.toml")) as p:
+    with open_hardware_platform(config, load_device_calibration(config.devices)) as p:
         fixes = p.gps.poll()
         p.stage.move_to(90.0)
         frame = p.camera.capture()
@@ -21,38 +24,50 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Protocol
 
-import tomlkit
-import tomlkit.exceptions
-
-from appliance.config import Config
-from appliance.drivers.accelerometer import CALIBRATION_TABLE as INCLINOMETER_TABLE
+from appliance.config import CompassKind, Config, InclinometerKind
 from appliance.drivers.accelerometer import Adxl345, TiltOffset
 from appliance.drivers.devices import AccelTilt, MagnetometerCompass, NmeaCompass, PtuStage, SystemClock
 from appliance.drivers.gps_reader import GpsReader, GpsSourceOptions, open_gps
 from appliance.drivers.i2c import I2cBus, open_smbus
-from appliance.drivers.magnetometer import CALIBRATION_TABLE as MAGNETOMETER_TABLE
 from appliance.drivers.magnetometer import HardSoftIron, Hmc5883l
 from appliance.drivers.ptu import PanTiltUnit
 from appliance.drivers.transport import Backoff, ReconnectingStream, open_serial
-from appliance.errors import ConfigError, DeviceError
+from appliance.errors import DeviceError
+
+if TYPE_CHECKING:
+    from appliance.drivers.camera import V4l2Camera
 
 log = logging.getLogger(__name__)
 
 
+class Clock(Protocol):
+    """UTC time (ns), a monotonic clock and sleep: the system's, or the simulated world's."""
+
+    def now_ns(self) -> int: ...
+
+    def monotonic_s(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+class Leveller(Protocol):
+    """Whoever adjusts the tripod: a person reading the guidance, or the simulated one."""
+
+    def instruct(self, instruction: str) -> None: ...
+
+
 @dataclass
 class Devices:
-    clock: Any
+    clock: Clock
     gps: GpsReader | None
-    tilt: Any
-    compass: Any
-    heading: Any
+    tilt: AccelTilt | NmeaCompass | None
+    compass: MagnetometerCompass | None
+    heading: MagnetometerCompass | NmeaCompass | None
     stage: PtuStage | None
-    camera: Any
-    leveller: Any = None
-    camera_height_m: float = 1.5
+    camera: V4l2Camera | None
+    leveller: Leveller | None = None
     _closers: list[Callable[[], None]] = field(default_factory=list)
 
     def close(self) -> None:
@@ -70,47 +85,12 @@ class Devices:
         self.close()
 
 
-def _calibration_table(config: Config, name: str) -> tuple[dict[str, Any] | None, str]:
-    """The ``[name]`` table of ``[devices] calibration_file`` (None if no file or no such table)."""
-    path = config.devices.calibration_file
-    if path is None:
-        return None, ""
-    try:
-        doc = tomlkit.parse(Path(path).read_text(encoding="utf-8")).unwrap()
-    except FileNotFoundError:
-        raise ConfigError(f"devices.calibration_file: {path}: file not found") from None
-    except tomlkit.exceptions.ParseError as exc:
-        raise ConfigError(f"devices.calibration_file: {path}: not valid TOML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"devices.calibration_file: {path}: cannot read: {exc}") from None
-    table = doc.get(name)
-    if table is not None and not isinstance(table, dict):
-        raise ConfigError(f"{path}: {name} is not a table")
-    return table, f"{path} [{name}]"
+@dataclass(frozen=True)
+class DeviceCalibration:
+    """The calibrations the drivers apply: the magnetometer's hard/soft iron, the inclinometer's offsets."""
 
-
-def calibration_of(config: Config) -> HardSoftIron:
-    """The magnetometer's hard/soft iron (tesla): the calibration file's [compass], else [devices.compass]."""
-    c = config.devices.compass
-    inline = HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix)
-    table, source = _calibration_table(config, MAGNETOMETER_TABLE)
-    if table is None:
-        return inline
-    if inline != HardSoftIron():
-        raise ConfigError(f"compass calibration given twice: in [devices.compass] and in {source}; keep one")
-    return HardSoftIron.from_table(table, source)
-
-
-def tilt_offset_of(config: Config) -> TiltOffset:
-    """The inclinometer's offsets (deg): the calibration file's [inclinometer], else [devices.inclinometer]."""
-    c = config.devices.inclinometer
-    inline = TiltOffset(c.pitch_offset_deg, c.roll_offset_deg)
-    table, source = _calibration_table(config, INCLINOMETER_TABLE)
-    if table is None:
-        return inline
-    if inline != TiltOffset():
-        raise ConfigError(f"inclinometer offsets given twice: in [devices.inclinometer] and in {source}; keep one")
-    return TiltOffset.from_table(table, source)
+    hard_soft_iron: HardSoftIron = field(default_factory=HardSoftIron)
+    tilt_offset: TiltOffset = field(default_factory=TiltOffset)
 
 
 def build_devices(
@@ -119,8 +99,9 @@ def build_devices(
     stage_source: str,
     compass_nmea_source: str,
     bus: I2cBus | None,
-    camera: Any,
-    clock: Any,
+    camera: V4l2Camera | None,
+    clock: Clock,
+    calibration: DeviceCalibration,
 ) -> Devices:
     """Wire the drivers to the given sources (shared by the hardware and the simulated platform)."""
     d = config.devices
@@ -133,14 +114,13 @@ def build_devices(
             gps = open_gps(gps_source, GpsSourceOptions(d.gps.baudrate, d.gps.read_timeout_s), backoff=backoff,
                            clock_ns=clock_ns)
             closers.append(gps.close)
-        tilt: Any = None
-        compass: Any = None
-        heading: Any = None
-        if d.inclinometer.kind == "adxl345" and bus is not None:
+        accel_tilt: AccelTilt | None = None
+        compass: MagnetometerCompass | None = None
+        heading: MagnetometerCompass | NmeaCompass | None = None
+        if d.inclinometer.kind is InclinometerKind.ADXL345 and bus is not None:
             try:
-                tilt = AccelTilt(Adxl345(bus, d.inclinometer.i2c_address), d.inclinometer.samples,
-                                 tilt_offset_of(config),
-                                 clock_ns)
+                accel_tilt = AccelTilt(Adxl345(bus, d.inclinometer.i2c_address), d.inclinometer.samples,
+                                 calibration.tilt_offset, clock_ns)
             except DeviceError as exc:
                 log.warning("inclinometer absent: %s", exc)
         nmea_compass = None
@@ -150,16 +130,17 @@ def build_devices(
                                         initial=open_serial(src, d.compass.baudrate, 0.05))
             closers.append(stream.close)
             nmea_compass = NmeaCompass(stream, d.compass.tnt_angle_scale_deg, clock_ns)
-        if d.compass.kind == "hmc5883l" and bus is not None:
+        if d.compass.kind is CompassKind.HMC5883L and bus is not None:
             try:
                 compass = MagnetometerCompass(Hmc5883l(bus, d.compass.i2c_address, d.compass.gain),
-                                              calibration_of(config), tilt, clock_ns)
+                                              calibration.hard_soft_iron, accel_tilt, clock_ns)
                 heading = compass
             except DeviceError as exc:
                 log.warning("magnetometer absent: %s", exc)
-        elif d.compass.kind == "nmea":
+        elif d.compass.kind is CompassKind.NMEA:
             heading = nmea_compass
-        if d.inclinometer.kind == "nmea" and nmea_compass is not None:
+        tilt: AccelTilt | NmeaCompass | None = accel_tilt
+        if d.inclinometer.kind is InclinometerKind.NMEA and nmea_compass is not None:
             tilt = nmea_compass
         stage = None
         if stage_source:
@@ -174,14 +155,20 @@ def build_devices(
         for c in reversed(closers):
             c()
         raise
-    return Devices(clock, gps, tilt, compass, heading, stage, camera,
-                   camera_height_m=config.terrain.camera_height_m, _closers=closers)
+    return Devices(clock, gps, tilt, compass, heading, stage, camera, _closers=closers)
 
 
-def open_hardware_platform(config: Config) -> Devices:
+def uses_nmea_compass(config: Config) -> bool:
+    """Whether the NMEA compass's port is needed (as the heading or as the inclinometer)."""
+    d = config.devices
+    return d.compass.kind is CompassKind.NMEA or d.inclinometer.kind is InclinometerKind.NMEA
+
+
+def open_hardware_platform(config: Config, calibration: DeviceCalibration) -> Devices:
+    """The devices of ``[devices.*]``; one that does not answer is logged and left out (None)."""
     d = config.devices
     bus = None
-    if d.compass.kind == "hmc5883l" or d.inclinometer.kind == "adxl345":
+    if d.compass.kind is CompassKind.HMC5883L or d.inclinometer.kind is InclinometerKind.ADXL345:
         try:
             bus = open_smbus(d.compass.i2c_bus)
         except DeviceError as exc:
@@ -195,18 +182,5 @@ def open_hardware_platform(config: Config) -> Devices:
             camera = V4l2Camera(d.camera, load_intrinsics(d.camera.intrinsics_file))
         except DeviceError as exc:
             log.warning("camera absent: %s", exc)
-    compass_src = d.compass.nmea_source if "nmea" in (d.compass.kind, d.inclinometer.kind) else ""
-    return build_devices(config, d.gps.source, d.stage.source, compass_src, bus, camera, SystemClock())
-
-
-def open_platform(config: Config) -> Devices:
-    """The devices of ``config.platform.kind`` ("hardware" or "sim")."""
-    for name, kind in (("compass", config.devices.compass.kind), ("inclinometer", config.devices.inclinometer.kind)):
-        allowed = ("hmc5883l", "nmea") if name == "compass" else ("adxl345", "nmea")
-        if kind not in allowed:
-            raise ConfigError(f"devices.{name}.kind: expected one of {allowed}, got {kind!r}")
-    if config.platform.kind == "hardware":
-        return open_hardware_platform(config)
-    from appliance.sim.platform import open_sim_platform
-
-    return open_sim_platform(config)
+    compass_src = d.compass.nmea_source if uses_nmea_compass(config) else ""
+    return build_devices(config, d.gps.source, d.stage.source, compass_src, bus, camera, SystemClock(), calibration)

@@ -1,4 +1,4 @@
-"""Error policy of streaming readers: what a reader does with a record it cannot use.
+"""Error policy of streaming readers (:class:`appliance.errors.ErrorPolicy`) applied and counted.
 
 Daemons log and count (``LOG``), tests raise (``RAISE``), batch tools may only count (``SKIP``).
 Whatever the policy, a bad record never becomes a value: it is dropped and counted.
@@ -6,17 +6,12 @@ Whatever the policy, a bad record never becomes a value: it is dropped and count
 
 from __future__ import annotations
 
-import enum
 import logging
 from collections import Counter
 
-from appliance.errors import ViperError
+from appliance.errors import ErrorPolicy, ViperError
 
-
-class ErrorPolicy(enum.Enum):
-    RAISE = "raise"
-    LOG = "log"
-    SKIP = "skip"
+__all__ = ["ErrorCounter", "ErrorPolicy"]
 
 
 class ErrorCounter:

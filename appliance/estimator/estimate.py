@@ -41,7 +41,6 @@ from appliance.estimator.search import (
     TauModel,
     box_decimate,
     decimated,
-    ssd_all_shifts,
     ssd_coarse,
     ssd_for_shifts,
 )
@@ -90,6 +89,9 @@ class SkylineGrid:
     terrain: Terrain | None = None
     distance_min_m: float = 1.0
     distance_log_step: float = 0.05
+    #: the first pass made ahead (at the database's build): :attr:`coarse`, and :meth:`coarse_tau2`
+    #: with no map error; None = made on first use
+    first_pass: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def n_azimuths(self) -> int:
@@ -135,6 +137,8 @@ class SkylineGrid:
         azimuths (uint8 codes); made once per map error."""
         assert self.distance_codes is not None
         cache = self._coarse_tau2_cache
+        if map_sigma_m == 0.0 and self.first_pass is not None:
+            return self.first_pass[2]
         if map_sigma_m not in cache:
             cache[map_sigma_m] = parallax.coarse_tau2_codes(
                 self.codes, self.distance_codes, self.offset_deg, self.step_deg, self.ground_gradient2, self.rho2_m2,
@@ -144,7 +148,9 @@ class SkylineGrid:
     @cached_property
     def coarse(self) -> tuple[np.ndarray, np.ndarray]:
         """Codes averaged over runs of COARSE_STRIDE azimuths, and the nodes lacking terrain
-        somewhere: made once, on first use, for every estimate on this grid."""
+        somewhere: made once, at the database's build or on first use, for every estimate on this grid."""
+        if self.first_pass is not None:
+            return self.first_pass[0], self.first_pass[1]
         return decimated(self.codes, self.offset_deg, COARSE_STRIDE)
 
     @property
@@ -295,6 +301,59 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
     return chosen
 
 
+#: Nodes per block of the every-heading first pass: (block x headings) scores stay small.
+HEADING_BLOCK_NODES = 16384
+
+
+def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarray, w_grid: np.ndarray,
+                              n_eff: float, sig_ref: float, cap: float, map_sigma_m: float,
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """No compass: every node scored at every heading of the first pass (whole runs of
+    COARSE_STRIDE azimuths), keeping its best; returns the first pass's (scores, occluded weights,
+    log-normalisers) and, per node, the band of fine shifts around its best heading to rescore."""
+    n_nodes, n_az = grid.codes.shape
+    m_dec = box_decimate(m, COARSE_STRIDE)
+    w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
+    scale = n_az / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n_az, 1)
+    tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
+    codes_c, partial = grid.coarse
+    shifts = np.arange(m_dec.size)
+    best = np.empty(n_nodes, dtype=np.float32)
+    best_occ = np.empty(n_nodes, dtype=np.float32)
+    best_arg = np.empty(n_nodes, dtype=np.int64)
+    pen = np.empty(n_nodes)
+    occ = np.empty((min(HEADING_BLOCK_NODES, n_nodes), shifts.size), dtype=np.float32)
+    for lo in range(0, n_nodes, HEADING_BLOCK_NODES):
+        hi = min(lo + HEADING_BLOCK_NODES, n_nodes)
+        block_tau = None if tau_c is None else (tau_c[0][lo:hi], tau_c[1], tau_c[2])
+        o = occ[: hi - lo]
+        ssd, p = ssd_coarse((codes_c[lo:hi], partial[lo:hi]), grid.offset_deg[lo:hi], grid.step_deg[lo:hi], m_dec,
+                            shifts, block_tau, np.nan_to_num(w_dec), cap, o)
+        k = np.argmin(_capped(ssd, o, cap), axis=1)
+        rows = np.arange(hi - lo)
+        best[lo:hi], best_occ[lo:hi], best_arg[lo:hi] = ssd[rows, k], o[rows, k], k
+        pen[lo:hi] = p
+    # the coarse heading is good to half a run: rescore a band of fine shifts around it
+    half = COARSE_STRIDE // 2 + 1
+    band = np.arange(-half, half + 1)
+    node_shifts = (best_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
+    return ((best * np.float32(scale))[:, None], (best_occ * np.float32(scale))[:, None], pen * scale,
+            node_shifts)
+
+
+def _argmin_columns(a: np.ndarray) -> np.ndarray:
+    """np.argmin(a, axis=1) for a tall array of a few columns (the first of equal minima), column by
+    column: numpy's reduction along a short row is several times slower."""
+    best = a[:, 0].copy()
+    arg = np.zeros(a.shape[0], dtype=np.int64)
+    for k in range(1, a.shape[1]):
+        col = a[:, k]
+        better = col < best
+        np.copyto(best, col, where=better)
+        arg[better] = k
+    return arg
+
+
 def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
     """Residual sums with each occluded measurement counting the cap: what ranks headings."""
     return ssd if not math.isfinite(cap) else ssd + occluded * cap
@@ -437,27 +496,16 @@ def estimate(
         coarse_pen = coarse_pen.astype(np.float64) * scale
         node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
     else:
-        coarse_best = np.full(n_nodes, np.inf, dtype=np.float64)
-        coarse_arg = np.zeros(n_nodes, dtype=np.int64)
-        scale = n / max(int(np.isfinite(box_decimate(m, COARSE_STRIDE)).sum()), 1)
-        for start, block in ssd_all_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, COARSE_STRIDE):
-            stop = start + block.shape[0]
-            coarse_arg[start:stop] = np.argmin(block, axis=1)
-            coarse_best[start:stop] = np.min(block, axis=1) * scale
-        # the coarse shift is good to half a coarse step: search a band of fine shifts around it
-        half = COARSE_STRIDE // 2 + 1
-        band = np.arange(-half, half + 1)
-        node_shifts = (coarse_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
-        coarse = np.repeat(coarse_best[:, None], band.size, axis=1).astype(np.float32)
-        coarse_occ = np.zeros_like(coarse)
-        coarse_pen = np.zeros(n_nodes)
+        coarse, coarse_occ, coarse_pen, node_shifts = _every_heading_first_pass(
+            grid, m, valid, w_grid, n_eff, sig_ref, cap, map_sigma_m)
 
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
     # the residual grows, so each node's best first-pass shift decides for the node (an occluded
     # measurement counting the cap there).
-    k_c = np.argmin(_capped(coarse, coarse_occ, cap), axis=1)
-    cmin = np.take_along_axis(coarse, k_c[:, None], axis=1)[:, 0].astype(np.float64)
-    cocc = np.take_along_axis(coarse_occ, k_c[:, None], axis=1)[:, 0].astype(np.float64)
+    k_c = _argmin_columns(_capped(coarse, coarse_occ, cap))
+    rows = np.arange(n_nodes)
+    cmin = coarse[rows, k_c].astype(np.float64)
+    cocc = coarse_occ[rows, k_c].astype(np.float64)
     c_lo, c_up = mixture_log_likelihood_bounds(cmin, n_eff, cocc, sig_lo, sig_hi, occlusion_weight)
     c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)

@@ -9,7 +9,8 @@
 - :mod:`appliance.logbook.summary`: what ``viper log info`` prints.
 """
 
-from appliance.logbook.reader import ErrorPolicy, LogMessage, LogReader
+from appliance.errors import ErrorPolicy
+from appliance.logbook.reader import LogMessage, LogReader
 from appliance.logbook.recover import RecoveryReport, recover_log
 from appliance.logbook.writer import Logbook, LogbookFullError
 

@@ -2,16 +2,16 @@
 
 :class:`LogReader` reads the file sequentially (it never needs the summary), so a log that was
 truncated anywhere yields every message of every complete chunk before the cut.  What happens at
-the first unreadable byte depends on the :class:`ErrorPolicy`: ``RAISE`` raises :class:`LogError`
-naming the offset; ``STOP`` ends the iteration there and records the problem in
-``reader.problem`` (``reader.complete`` is False).
+the first unreadable byte depends on the :class:`~appliance.errors.ErrorPolicy`: ``RAISE`` raises
+:class:`LogError` naming the offset; ``SKIP`` ends the iteration there and records the problem in
+``reader.problem`` (``reader.complete`` is False); ``LOG`` does the same and logs a warning.
 """
 
 from __future__ import annotations
 
-import enum
 import io
 import json
+import logging
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -25,15 +25,12 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding
 from mcap_protobuf.decoder import DecoderFactory
 
-from appliance.errors import LogError
+from appliance.errors import ErrorPolicy, LogError
+
+log = logging.getLogger(__name__)
 
 # What a corrupt or truncated byte stream raises inside mcap's reader (CRC errors are ValueErrors).
 _CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError)
-
-
-class ErrorPolicy(enum.Enum):
-    RAISE = "raise"
-    STOP = "stop"
 
 
 @dataclass(frozen=True)
@@ -88,7 +85,7 @@ class LogReader:
     ``size_bytes``.
     """
 
-    def __init__(self, path: str | Path, policy: ErrorPolicy = ErrorPolicy.STOP) -> None:
+    def __init__(self, path: str | Path, policy: ErrorPolicy = ErrorPolicy.SKIP) -> None:
         self.path = Path(path)
         self.policy = policy
         self.complete = False
@@ -145,6 +142,8 @@ class LogReader:
                 problem = f"message on unknown channel {rec.channel_id} at {rec.log_time} ns"
                 if self.policy is ErrorPolicy.RAISE:
                     raise LogError(f"{self.path}: {problem}")
+                if self.policy is ErrorPolicy.LOG:
+                    log.warning("%s: %s", self.path, problem)
                 return None
             schema = self.schemas.get(channel.schema_id)
             return LogMessage(
@@ -167,10 +166,12 @@ class LogReader:
         self.problem = problem
         if self.policy is ErrorPolicy.RAISE:
             raise LogError(f"{self.path}: {problem}")
+        if self.policy is ErrorPolicy.LOG:
+            log.warning("%s: %s", self.path, problem)
 
 
 def read_messages(
-    path: str | Path, policy: ErrorPolicy = ErrorPolicy.STOP
+    path: str | Path, policy: ErrorPolicy = ErrorPolicy.SKIP
 ) -> tuple[list[LogMessage], LogReader]:
     """All messages of a log in file order, and the reader (for ``complete``/``problem``)."""
     reader = LogReader(path, policy)

@@ -17,8 +17,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
 from appliance.atomic import atomic_output, check_output_path
-from appliance.errors import LogError
-from appliance.logbook.reader import ErrorPolicy, LogReader
+from appliance.errors import ErrorPolicy, LogError
+from appliance.logbook.reader import LogReader
 from appliance.logbook.sink import DurableFile
 from appliance.logbook.writer import LIBRARY, PROFILE, remove_stale_reserves
 
@@ -44,7 +44,7 @@ def recover_log(src: str | Path, dst: str | Path, overwrite: bool = False) -> Re
     if src_p.resolve() == dst_p.resolve():
         raise LogError(f"{dst_p}: the recovered log must not overwrite its source")
     check_output_path(dst_p, [src_p], overwrite)
-    reader = LogReader(src_p, ErrorPolicy.STOP)
+    reader = LogReader(src_p, ErrorPolicy.SKIP)
     remove_stale_reserves(src_p.parent)
     with atomic_output(dst_p) as tmp:
         tmp.unlink()  # DurableFile creates its file itself and never opens an existing one

@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import datetime as dt
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from appliance.bodies import geodesic_distance_m
+from appliance.errors import ErrorPolicy
 from appliance.logbook import topics
-from appliance.logbook.reader import ErrorPolicy, LogReader
-
-EARTH_RADIUS_M = 6_371_008.8
+from appliance.logbook.reader import LogReader
 
 
 @dataclass
@@ -44,12 +43,12 @@ class LogSummary:
 
     @property
     def error_m(self) -> float | None:
-        """Distance between the last estimate and the GPS truth (great circle, metres)."""
+        """Distance between the last estimate and the GPS truth (geodesic on WGS84, metres)."""
         if self.estimate is not None and self.estimate.get("error_m") is not None:
             return float(self.estimate["error_m"])
         if self.estimate is None or self.truth is None:
             return None
-        return great_circle_m(
+        return geodesic_distance_m(
             self.estimate["lat"], self.estimate["lon"], self.truth["lat"], self.truth["lon"]
         )
 
@@ -93,18 +92,8 @@ def utc_text(time_ns: int) -> str:
     return f"{stamp}.{ns // 1_000_000:03d}Z"
 
 
-def great_circle_m(
-    lat1: float, lon1: float, lat2: float, lon2: float, radius_m: float = EARTH_RADIUS_M
-) -> float:
-    """Haversine distance in metres on a sphere of ``radius_m``."""
-    p1, p2 = math.radians(lat1), math.radians(lat2)
-    dp, dl = p2 - p1, math.radians(lon2 - lon1)
-    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
-    return 2 * radius_m * math.asin(min(1.0, math.sqrt(a)))
-
-
 def summarize_log(path: str | Path) -> LogSummary:
-    reader = LogReader(path, ErrorPolicy.STOP)
+    reader = LogReader(path, ErrorPolicy.SKIP)
     stats: dict[str, TopicStats] = {}
     estimate: dict[str, Any] | None = None
     truth: dict[str, Any] | None = None

@@ -15,7 +15,8 @@ topic                         schema                      content
 ``/tf``                       foxglove.FrameTransform     attitude (world->platform), stage (->camera),
                                                           camera->camera_optical, world->skyline-grid
 ``/log``                      foxglove.Log                daemon and procedure messages
-``/region``                   foxglove.GeoJSON            the estimate's region (cells) and the estimate
+``/region``                   foxglove.GeoJSON            the estimate's region (cells) and the estimate;
+                                                          strict properties (``GEOJSON_FEATURE_PROPERTIES``)
 ``/estimate/posterior``       foxglove.Grid               log10 lower posterior, frame ``skyline-grid``
 ============================  ==========================  ===========================================
 
@@ -193,3 +194,21 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     SKYLINE_DETECTED: "viper.Skyline",
     SKYLINE_RENDERED: "viper.Skyline",
 }
+
+#: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the
+#: report's layers (``-region.geojson``, ``-points.geojson``): each feature's ``properties`` by its
+#: ``kind``, strict like the JSON schemas above (every property declared, no other allowed).
+GEOJSON_FEATURE_PROPERTIES: dict[str, dict[str, Any]] = {
+    "region": _nested(
+        {"name": _STR, "kind": {"const": "region"}, "area_m2": _NUM, "n_cells": _INT, "lower": _NUM, "upper": _NUM},
+        ("name", "kind", "area_m2", "n_cells", "lower", "upper"),
+    ),
+    "estimate": _nested(
+        {"name": _STR, "kind": {"const": "estimate"}, "lower": _NUM, "upper": _NUM, "heading_correction_deg": _NUM},
+        ("name", "kind", "lower", "upper", "heading_correction_deg"),
+    ),
+    "truth": _nested({"name": _STR, "kind": {"const": "truth"}}, ("name", "kind")),
+}
+
+#: the geometry of each kind of feature
+GEOJSON_FEATURE_GEOMETRY: dict[str, str] = {"region": "MultiPolygon", "estimate": "Point", "truth": "Point"}

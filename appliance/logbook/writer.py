@@ -36,6 +36,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from appliance.atomic import remove_if_unheld
+from appliance.config import Compression
 from appliance.errors import LogError
 from appliance.logbook.live import Publisher
 from appliance.logbook.messages import to_jsonable
@@ -46,7 +47,8 @@ LOG = logging.getLogger(__name__)
 PROFILE = "viper"
 LIBRARY = "viper-appliance logbook"
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
-COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+COMPRESSIONS = {Compression.ZSTD: CompressionType.ZSTD, Compression.LZ4: CompressionType.LZ4,
+                Compression.NONE: CompressionType.NONE}
 
 
 class LogbookFullError(LogError):
@@ -69,14 +71,15 @@ class Logbook:
         name: str = "log",
         fsync_interval_s: float = 2.0,
         chunk_size_bytes: int = 256 * 1024,
-        compression: str = "zstd",
+        compression: Compression = Compression.ZSTD,
         reserve_path: Path | None = None,
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
         publisher: Publisher | None = None,
     ) -> None:
         if compression not in COMPRESSIONS:
-            raise LogError(f"{name}: unknown compression {compression!r} (known: {', '.join(COMPRESSIONS)})")
+            known = ", ".join(c.value for c in COMPRESSIONS)
+            raise LogError(f"{name}: unknown compression {compression!r} (known: {known})")
         if not fsync_interval_s > 0:
             raise LogError(f"{name}: fsync_interval_s must be positive, got {fsync_interval_s}")
         self.name = name
@@ -112,7 +115,7 @@ class Logbook:
         *,
         fsync_interval_s: float = 2.0,
         chunk_size_bytes: int = 256 * 1024,
-        compression: str = "zstd",
+        compression: Compression = Compression.ZSTD,
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
         publisher: Publisher | None = None,

@@ -14,8 +14,10 @@ import logging
 import math
 
 from appliance.config import Config, SimConfig
+from appliance.drivers.accelerometer import TiltOffset
 from appliance.drivers.camera import V4l2Camera
-from appliance.drivers.factory import Devices, build_devices
+from appliance.drivers.factory import DeviceCalibration, Devices, build_devices, uses_nmea_compass
+from appliance.drivers.magnetometer import HardSoftIron
 from appliance.errors import ConfigError
 from appliance.sim.camera_twin import SimVideoCapture
 from appliance.sim.i2c_chips import FakeI2cBus, SimAdxl345, SimHmc5883l
@@ -46,8 +48,15 @@ def make_world(sim: SimConfig, dem: object | None = None) -> SimWorld:
                     SimClock(start, sim.time_rate))
 
 
-def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
+def open_sim_platform(config: Config, with_camera: bool = True,
+                      calibration: DeviceCalibration | None = None) -> Devices:
+    """The twins of ``[sim]`` started and the real drivers on them; ``calibration`` defaults to the
+    inline values of ``[devices.compass]`` and ``[devices.inclinometer]``."""
     sim = config.sim
+    if calibration is None:
+        c, i = config.devices.compass, config.devices.inclinometer
+        calibration = DeviceCalibration(HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix),
+                                        TiltOffset(i.pitch_offset_deg, i.roll_offset_deg))
     dem = None
     if with_camera or sim.ground_elevation_m is None:
         from appliance.terrain.dem import load_dem
@@ -57,7 +66,7 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
     scratch = SimFolder()
     stops: list = []
     try:
-        return _start_twins(config, world, dem, stops, scratch, with_camera)
+        return _start_twins(config, world, dem, stops, scratch, with_camera, calibration)
     except BaseException:
         for s in reversed(stops):
             s()
@@ -66,7 +75,7 @@ def open_sim_platform(config: Config, with_camera: bool = True) -> Devices:
 
 
 def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: list, scratch: SimFolder,
-                 with_camera: bool) -> Devices:
+                 with_camera: bool, calibration: DeviceCalibration) -> Devices:
     sim, faults, folder = config.sim, config.sim.faults, scratch.path
     gps_port = PtyPort(folder / "gps")
     gps_twin = GpsTwin(world, gps_port, sim, faults)
@@ -75,7 +84,7 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
                        miss_step_every=faults.stage_miss_step_every, miss_positions=faults.stage_miss_positions,
                        stall_at_deg=faults.stage_stall_at_deg)
     compass_src = ""
-    if "nmea" in (config.devices.compass.kind, config.devices.inclinometer.kind):
+    if uses_nmea_compass(config):
         c_port = PtyPort(folder / "compass")
         c_twin = NmeaCompassTwin(world, c_port)
         c_twin.start()
@@ -107,8 +116,7 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
 
         camera = V4l2Camera(cam_cfg, intr, video_capture, world.clock.now_ns)
     devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
-                            world.clock)
-    devices.camera_height_m = sim.mast_height_m
+                            world.clock, calibration)
     devices.leveller = SimLeveller(world)
     devices._closers[:0] = [scratch.remove, *stops]
     devices.world = world  # type: ignore[attr-defined]

@@ -13,6 +13,10 @@ File layout (little-endian)::
               ground_m float32[n_nodes]
               convergence_deg float32[n_nodes]  (true azimuth of grid north)
               terrain_m float32[terrain rows, terrain cols]  (the heights the skylines were built on)
+              coarse_codes uint8[n_nodes, n_azimuths / 4]  (the estimator's first pass: codes averaged
+                                                 over runs of four azimuths)
+              coarse_partial bool[n_nodes]      (the node lacks terrain somewhere, or is nodata)
+              coarse_tau2 uint8[n_nodes, n_azimuths / 4]  (the parallax variance of each run, log codes)
     checksums uint32[1 + blocks]                (CRC32 of bytes 0..end of the header, then of each
                                                  CHECKSUM_BLOCK bytes of the arrays; the header's
                                                  "checksum" entry gives its offset and block size)
@@ -25,8 +29,7 @@ fast the skyline moves with position (parallax), and the terrain grid lets the e
 exact skylines between nodes; candidate node (0, 0) is terrain node (row0, col0), same spacing.
 
 The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
-block.  Version 2 files written before the checksums existed carry no "checksum" entry and load
-unverified.
+block.  The first-pass arrays are made at build time so that no estimate has to make them.
 
 Nodes form a regular grid in a metric CRS: the DEM's own when it is a projected CRS with scale
 close to 1, else a transverse Mercator centred on the search area.  Node (row, col) lies at
@@ -37,9 +40,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -51,13 +56,14 @@ from pyproj import CRS, Transformer
 
 from appliance.atomic import atomic_output
 from appliance.errors import DatabaseError, DemError, InputError
+from appliance.estimator.estimate import COARSE_STRIDE, SkylineGrid
 from appliance.numerics import FAST_FINITE
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.sweep import HorizonSweeper
 
 MAGIC = b"VIPERDB\0"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 DISTANCE_MIN_M = 1.0
 DISTANCE_LOG_STEP = 0.05
 MISSING_CODE = 255
@@ -141,6 +147,11 @@ class SkylineDatabase:
     convergence_deg: np.ndarray
     terrain_m: np.ndarray
     terrain_origin: tuple[int, int]
+    #: the estimator's first pass, made at build: box-averaged codes, the nodes lacking terrain
+    #: somewhere, and the parallax variance of each run of azimuths
+    coarse_codes: np.ndarray
+    coarse_partial: np.ndarray
+    coarse_tau2: np.ndarray
 
     @property
     def n_azimuths(self) -> int:
@@ -305,6 +316,29 @@ def plan_grids(
     return cand, terr, (tr1 - r1, c0 - tc0)
 
 
+def lattice_of(dem: Dem, grid: NodeGrid) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Where ``grid`` lies in the lattice its nodes belong to: (row, col) of its node (0, 0) and
+    the lattice's shape.  A grid at the DEM's own spacing is a window of the DEM's pixels; any other
+    is its own lattice."""
+    if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
+        col0, row0 = dem.xy_to_pixel(np.array(grid.x0), np.array(grid.y0))
+        r, c = int(round(float(row0))), int(round(float(col0)))
+        if abs(r - row0) < 1e-6 and abs(c - col0) < 1e-6:
+            return (r, c), dem.shape
+    return (0, 0), (grid.n_rows, grid.n_cols)
+
+
+def run_threads(fn: Callable[[int], None], items: Iterable[int], workers: int | None = None) -> Iterator[int]:
+    """Call ``fn`` on every item from a pool of threads (default: one per core); yields each item as
+    it completes.  ``fn`` is expected to spend its time in kernels that release the GIL."""
+    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=max(int(n), 1)) as pool:
+        futures = {pool.submit(fn, i): i for i in items}
+        for fut in as_completed(futures):
+            fut.result()
+            yield futures[fut]
+
+
 def terrain_on_grid(dem: Dem, grid: NodeGrid) -> np.ndarray:
     """DEM heights (m, NaN = nodata) at the grid's nodes, bilinear."""
     if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
@@ -360,30 +394,30 @@ def _atan(x: float) -> float:
     return -r if x < 0 else r
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
-def _store_centidegrees(tan: np.ndarray, far: np.ndarray, out: np.ndarray, dist: np.ndarray, j: int) -> None:
-    """out[node, j] = elevation in hundredths of a degree (int16; MISSING_CDEG where NaN);
-    dist[node, j] = the horizon's log-quantised range."""
+@numba.njit(cache=True, nogil=True, fastmath=FAST_FINITE)
+def _store_centidegrees(tan: np.ndarray, far: np.ndarray, out: np.ndarray, dist: np.ndarray) -> None:
+    """One azimuth of every node (row-major over the window): out[node] = elevation in hundredths
+    of a degree (int16; MISSING_CDEG where NaN); dist[node] = the horizon's log-quantised range."""
     rows, cols = tan.shape
     scale = 100.0 * 180.0 / math.pi
     inv_log = 1.0 / DISTANCE_LOG_STEP
-    for r in numba.prange(rows):
+    for r in range(rows):
         line = tan[r]
         fline = far[r]
         base = r * cols
         for c in range(cols):
             t = line[c]
             if t != t:
-                out[base + c, j] = MISSING_CDEG
-                dist[base + c, j] = MISSING_CODE
+                out[base + c] = MISSING_CDEG
+                dist[base + c] = MISSING_CODE
             else:
-                out[base + c, j] = np.int16(round(_atan(t) * scale))
+                out[base + c] = np.int16(round(_atan(t) * scale))
                 f = fline[c]
                 if f != f:
-                    dist[base + c, j] = MISSING_CODE
+                    dist[base + c] = MISSING_CODE
                 else:
                     code = round(math.log(max(f, DISTANCE_MIN_M) / DISTANCE_MIN_M) * inv_log)
-                    dist[base + c, j] = min(max(code, 0), MISSING_CODE - 1)
+                    dist[base + c] = min(max(code, 0), MISSING_CODE - 1)
 
 
 @numba.njit(cache=True)
@@ -412,38 +446,48 @@ def _quantize_row(row: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: n
             codes[i, j] = min(max(round((e - o) / st), 0), MISSING_CODE - 1)
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _turn_and_quantize(cdeg: np.ndarray, dgrid: np.ndarray, shift: np.ndarray, codes: np.ndarray,
-                       dist: np.ndarray, offs: np.ndarray, steps: np.ndarray) -> None:
-    """Resample each node's skyline from grid to true azimuths (true = grid + shift steps, linear on
-    the circle; ranges from the nearer azimuth), then quantise it."""
-    n, n_az = cdeg.shape
-    for i in numba.prange(n):
-        row = np.empty(n_az)
-        src = cdeg[i]
-        dsrc = dgrid[i]
-        sh = shift[i]
-        whole = int(math.floor(sh))
-        w = sh - whole
-        if w == 0.0 and whole == 0:
-            for j in range(n_az):
-                c = src[j]
-                row[j] = np.nan if c == MISSING_CDEG else c / 100.0
-                dist[i, j] = dsrc[j]
-        else:
-            # value at grid azimuth j - shift: between j - whole - 1 (weight w) and j - whole (1 - w)
-            for j in range(n_az):
-                i1 = (j - whole) % n_az
-                i0 = (i1 - 1) % n_az
-                a = src[i0]
-                b = src[i1]
-                if a == MISSING_CDEG or b == MISSING_CDEG:
-                    row[j] = np.nan
-                    dist[i, j] = MISSING_CODE
-                else:
-                    row[j] = (a * w + b * (1.0 - w)) / 100.0
-                    dist[i, j] = dsrc[i0] if w >= 0.5 else dsrc[i1]
-        _quantize_row(row, codes, offs, steps, i)
+                       dist: np.ndarray, offs: np.ndarray, steps: np.ndarray, lo: int, hi: int) -> None:
+    """Nodes lo..hi-1: resample each node's skyline (cdeg[azimuth, node], azimuth-major) from grid
+    to true azimuths (true = grid + shift steps, linear on the circle; ranges from the nearer
+    azimuth), then quantise it into codes[node]."""
+    n_az = cdeg.shape[0]
+    block = 256
+    src = np.empty((block, n_az), dtype=np.int16)
+    dsrc = np.empty((block, n_az), dtype=np.uint8)
+    row = np.empty(n_az)
+    for b0 in range(lo, hi, block):
+        b1 = min(b0 + block, hi)
+        for j in range(n_az):  # a block of nodes gathered azimuth by azimuth: contiguous reads
+            for i in range(b0, b1):
+                src[i - b0, j] = cdeg[j, i]
+                dsrc[i - b0, j] = dgrid[j, i]
+        for i in range(b0, b1):
+            s = src[i - b0]
+            ds = dsrc[i - b0]
+            sh = shift[i]
+            whole = int(math.floor(sh))
+            w = sh - whole
+            if w == 0.0 and whole == 0:
+                for j in range(n_az):
+                    c = s[j]
+                    row[j] = np.nan if c == MISSING_CDEG else c / 100.0
+                    dist[i, j] = ds[j]
+            else:
+                # value at grid azimuth j - shift: between j - whole - 1 (weight w) and j - whole (1 - w)
+                for j in range(n_az):
+                    i1 = (j - whole) % n_az
+                    i0 = (i1 - 1) % n_az
+                    a = s[i0]
+                    bb = s[i1]
+                    if a == MISSING_CDEG or bb == MISSING_CDEG:
+                        row[j] = np.nan
+                        dist[i, j] = MISSING_CODE
+                    else:
+                        row[j] = (a * w + bb * (1.0 - w)) / 100.0
+                        dist[i, j] = ds[i0] if w >= 0.5 else ds[i1]
+            _quantize_row(row, codes, offs, steps, i)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -485,8 +529,13 @@ def build_database(
     refraction: float | None = None,
     max_range_m: float = DEFAULT_MAX_RANGE_M,
     progress: Callable[[int, int, str], None] | None = _progress,
+    workers: int | None = None,
 ) -> dict:
-    """Render every candidate node's skyline and write the database atomically; returns its header."""
+    """Render every candidate node's skyline and write the database atomically; returns its header.
+
+    Azimuths are swept in parallel on ``workers`` threads (default: one per core), each running
+    single-threaded kernels that release the GIL: a busy machine slows the build in proportion,
+    with no threads spinning at barriers."""
     if not 8 <= n_azimuths <= 3600:
         raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
     if not 0.0 <= height_m < 1000.0:
@@ -499,15 +548,21 @@ def build_database(
     gamma = grid_convergence_deg(cand, dem.crs.geodetic_crs or dem.crs)
     step_az = 360.0 / n_azimuths
     n = cand.n_nodes
-    cdeg = np.empty((n, n_azimuths), dtype=np.int16)  # centidegrees at grid azimuths
-    dgrid = np.empty((n, n_azimuths), dtype=np.uint8)  # ranges at grid azimuths
-    sl = (slice(ro, ro + cand.n_rows), slice(co, co + cand.n_cols))
-    sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff)
-    for j in range(n_azimuths):
-        tan = sweeper.tan_grid(j * step_az)
-        _store_centidegrees(tan[sl], sweeper.distance_m[sl], cdeg, dgrid, j)
+    cdeg = np.empty((n_azimuths, n), dtype=np.int16)  # centidegrees at grid azimuths, one row per azimuth
+    dgrid = np.empty((n_azimuths, n), dtype=np.uint8)  # ranges at grid azimuths
+    origin, shape = lattice_of(dem, terr)
+    sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff, (ro, co, cand.n_rows, cand.n_cols),
+                             origin, shape)
+
+    def one_azimuth(j: int) -> None:
+        tan, far = sweeper.horizons(j * step_az)
+        _store_centidegrees(tan, far, cdeg[j], dgrid[j])
+
+    done = 0
+    for _ in run_threads(one_azimuth, range(n_azimuths), workers):
+        done += 1
         if progress is not None:
-            progress(j + 1, n_azimuths, "skylines")
+            progress(done, n_azimuths, "skylines")
 
     header = {
         "format": "viper-skyline-db",
@@ -528,18 +583,20 @@ def build_database(
         "distance_code": {"min_m": DISTANCE_MIN_M, "log_step": DISTANCE_LOG_STEP},
         "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
     }
-    ground = Z[sl].ravel().astype(np.float32)
-    _write(out_path, header, cdeg, dgrid, gamma.ravel(), step_az, ground, Z.astype(np.float32))
+    ground = Z[ro : ro + cand.n_rows, co : co + cand.n_cols].ravel().astype(np.float32)
+    _write(out_path, header, cdeg, dgrid, gamma.ravel(), step_az, ground, Z.astype(np.float32), cand, workers)
     return header
 
 
 def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarray, gamma_deg: np.ndarray,
-           step_az: float, ground: np.ndarray, terrain: np.ndarray) -> None:
-    n, n_az = cdeg.shape
+           step_az: float, ground: np.ndarray, terrain: np.ndarray, cand: NodeGrid, workers: int | None) -> None:
+    n_az, n = cdeg.shape
+    n_coarse = n_az // COARSE_STRIDE
     layout = {}
     pos = 0
     sizes = (("codes", n * n_az), ("distance", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n),
-             ("ground_m", 4 * n), ("convergence_deg", 4 * n), ("terrain_m", 4 * terrain.size))
+             ("ground_m", 4 * n), ("convergence_deg", 4 * n), ("terrain_m", 4 * terrain.size),
+             ("coarse_codes", n * n_coarse), ("coarse_partial", n), ("coarse_tau2", n * n_coarse))
     for name, nbytes in sizes:
         layout[name] = pos
         pos += -(-nbytes // ALIGN) * ALIGN
@@ -560,11 +617,25 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
         offs = np.empty(n, np.float32)
         steps = np.empty(n, np.float32)
         shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
-        _turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps)
+        chunk = 4096
+
+        def quantize_chunk(lo: int, codes: np.ndarray = codes, dist: np.ndarray = dist) -> None:
+            _turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps, lo, min(lo + chunk, n))
+
+        for _ in run_threads(quantize_chunk, range(0, n, chunk), workers):
+            pass
         gam = np.asarray(gamma_deg, dtype=np.float32)
         for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground), ("convergence_deg", gam),
                           ("terrain_m", np.ascontiguousarray(terrain, dtype=np.float32).ravel())):
             mm[layout[name] : layout[name] + 4 * arr.size] = arr.view(np.uint8)
+        # the estimator's first pass, exactly as it would make it from the arrays above
+        grid = SkylineGrid(codes, offs, steps, cand.n_rows, cand.n_cols, cand.dx_m, cand.dy_m, dist, ground,
+                           distance_min_m=DISTANCE_MIN_M, distance_log_step=DISTANCE_LOG_STEP)
+        coarse, partial = grid.coarse
+        for name, arr in (("coarse_codes", coarse), ("coarse_partial", partial.view(np.uint8)),
+                          ("coarse_tau2", grid.coarse_tau2(0.0))):
+            mm[layout[name] : layout[name] + arr.size] = np.ascontiguousarray(arr).ravel()
+        del grid, coarse, partial
         mm.flush()
         crcs = [zlib.crc32(head)] + block_checksums(mm)
         del mm, codes, dist
@@ -656,6 +727,10 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
         th = header["terrain"]
         n_t = int(th["n_rows"]) * int(th["n_cols"])
         terrain = mm[lay["terrain_m"] : lay["terrain_m"] + 4 * n_t].view(np.float32).reshape(th["n_rows"], th["n_cols"])
+        n_c = n * (n_az // COARSE_STRIDE)
+        coarse = mm[lay["coarse_codes"] : lay["coarse_codes"] + n_c].reshape(n, n_az // COARSE_STRIDE)
+        partial = mm[lay["coarse_partial"] : lay["coarse_partial"] + n].view(np.bool_)
+        coarse_tau2 = mm[lay["coarse_tau2"] : lay["coarse_tau2"] + n_c].reshape(n, n_az // COARSE_STRIDE)
     except DatabaseError:
         raise
     except (ValueError, OSError, KeyError, TypeError, IndexError) as exc:
@@ -672,4 +747,4 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
     if grid.n_nodes != n:
         raise DatabaseError(f"{p}: grid of {grid.n_nodes} nodes but {n} skylines")
     return SkylineDatabase(str(p), header, grid, codes, f32["offset_deg"], f32["step_deg"], f32["ground_m"], dist,
-                           f32["convergence_deg"], terrain, (row0, col0))
+                           f32["convergence_deg"], terrain, (row0, col0), coarse, partial, coarse_tau2)

@@ -18,6 +18,7 @@ rows that a line crosses in each column (bilinear along the line).
 from __future__ import annotations
 
 import math
+import threading
 
 import numba
 import numpy as np
@@ -55,7 +56,7 @@ def _tangent(hs: np.ndarray, hz: np.ndarray, n: int, s: float, zo: float) -> int
     return hi
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _sweep_canonical(
     W: np.ndarray,
     out: np.ndarray,
@@ -66,35 +67,45 @@ def _sweep_canonical(
     r_eff: float,
     delay: int,
     spacing: float,
-    scratch: np.ndarray,
+    hs: np.ndarray,
+    hz: np.ndarray,
+    v0: int,
+    u0: int,
+    voff: int,
+    uoff: int,
 ) -> None:
-    """Lines v = k*spacing + u*tau (0 <= tau <= 1) over W[v, u]; ahead is increasing u.
+    """Lines V = k*spacing + U*tau (0 <= tau <= 1) over W[v, u]; ahead is increasing u.
+
+    (V, U) = (v + voff, u + uoff) are the lattice's coordinates: the lines, and which node each
+    serves, are those of the whole lattice, whatever window of it W is.  ``out`` and ``far`` cover
+    the nodes v0 <= v < v0 + out.shape[0], u0 <= u < u0 + out.shape[1]; only the lines through them
+    are swept, and only from the far end to the window.
 
     A node takes its far-field horizon from the nearest line (at most spacing/2 rows away) and only
     from terrain at least ``delay`` columns ahead: the line's points enter the hull ``delay``
     columns late, leaving the near field to the exact ray samples of :func:`_near_field`.
     """
     nv, nu = W.shape
-    kmin = int(math.floor(-(nu - 1) * tau / spacing)) - 2
-    kmax = int(math.ceil(nv / spacing)) + 2
+    wv, wu = out.shape
+    v1 = v0 + wv
+    u1 = u0 + wu
+    kmin = int(math.floor((v0 + voff - 1 - (u1 - 1 + uoff) * tau) / spacing)) - 2
+    kmax = int(math.ceil((v1 + voff - (u0 + uoff) * tau) / spacing)) + 2
     inv2r = 0.5 / r_eff
-    for kk in numba.prange(kmax - kmin + 1):
-        k = kmin + kk
-        tid = numba.get_thread_id()
-        hs = scratch[tid, 0]
-        hz = scratch[tid, 1]
+    for k in range(kmin, kmax + 1):
         n = 0
-        for u in range(nu - 1, -delay - 1, -1):
+        for u in range(nu - 1, u0 - 1, -1):
             # enter the point of column u + delay into the hull
             ui = u + delay
             if ui <= nu - 1:
-                vi = spacing * k + ui * tau
-                if 0.0 <= vi <= nv - 1:
-                    a = int(math.floor(vi))
+                vg = spacing * k + (ui + uoff) * tau
+                if voff <= vg <= voff + nv - 1:
+                    ag = int(math.floor(vg))
+                    a = ag - voff
                     if a >= nv - 1:
                         z = W[nv - 1, ui]
                     else:
-                        f = vi - a
+                        f = vg - ag
                         z = W[a, ui] * (1.0 - f) + W[a + 1, ui] * f
                     if not math.isnan(z):
                         si = ui * step_m
@@ -108,13 +119,14 @@ def _sweep_canonical(
                         hs[n] = si
                         hz[n] = zp
                         n += 1
-            if u < 0:
+            if u >= u1:
                 continue
-            v = spacing * k + u * tau
-            if v < -0.5:
+            vg = spacing * k + (u + uoff) * tau
+            if vg < v0 + voff - 0.5:
                 break
-            rn = int(math.floor(v + 0.5))
-            if rn < 0 or rn > nv - 1 or int(math.floor((rn - u * tau) / spacing + 0.5)) != k:
+            rg = int(math.floor(vg + 0.5))
+            rn = rg - voff
+            if rn < v0 or rn >= v1 or int(math.floor((rg - (u + uoff) * tau) / spacing + 0.5)) != k:
                 continue
             zn = W[rn, u]
             if n == 0 or math.isnan(zn):
@@ -122,22 +134,24 @@ def _sweep_canonical(
             s = u * step_m
             zo = zn + height_m - s * s * inv2r
             t = _tangent(hs, hz, n, s, zo)
-            out[rn, u] = (hz[t] - zo) / (hs[t] - s) + s / r_eff
-            far[rn, u] = hs[t] - s
+            out[rn - v0, u - u0] = (hz[t] - zo) / (hs[t] - s) + s / r_eff
+            far[rn - v0, u - u0] = hs[t] - s
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _near_field(
     W: np.ndarray, out: np.ndarray, far: np.ndarray, tau: float, step_m: float, height_m: float, r_eff: float,
-    fractions: np.ndarray,
+    fractions: np.ndarray, v0: int, u0: int,
 ) -> None:
-    """Raise ``out`` (tangents) by terrain sampled on the exact ray at fractions of a column step,
-    and set ``far`` to the distance of each sample that raised it.
+    """Raise ``out`` (tangents of the window's nodes, as in :func:`_sweep_canonical`) by terrain
+    sampled on the exact ray at fractions of a column step, and set ``far`` to the distance of each
+    sample that raised it.
 
     For one fraction every node's sample sits at the same offset from it, so the bilinear weights
     are shared and the inner loop runs over contiguous memory.
     """
     nv, nu = W.shape
+    wv, wu = out.shape
     for fi in range(fractions.size):
         fr = fractions[fi]
         du0 = int(math.floor(fr))
@@ -151,18 +165,16 @@ def _near_field(
         d = fr * step_m
         drop = height_m + d * d * (0.5 / r_eff)
         inv_d = 1.0 / d
-        u_end = nu - du0 - 1
-        v_end = nv - dv0 - 1
-        n_u = max(u_end, 0)
-        for v in numba.prange(max(v_end, 0)):
+        n_u = max(min(u0 + wu, nu - du0 - 1) - u0, 0)
+        for v in range(v0, min(v0 + wv, nv - dv0 - 1)):
             # row slices, indexed by range variables: contiguous and vectorisable
-            a0 = W[v + dv0, du0 : du0 + n_u]
-            a1 = W[v + dv0, du0 + 1 : du0 + 1 + n_u]
-            b0 = W[v + dv0 + 1, du0 : du0 + n_u]
-            b1 = W[v + dv0 + 1, du0 + 1 : du0 + 1 + n_u]
-            here = W[v, :n_u]
-            dest = out[v, :n_u]
-            dest_far = far[v, :n_u]
+            a0 = W[v + dv0, u0 + du0 : u0 + du0 + n_u]
+            a1 = W[v + dv0, u0 + du0 + 1 : u0 + du0 + 1 + n_u]
+            b0 = W[v + dv0 + 1, u0 + du0 : u0 + du0 + n_u]
+            b1 = W[v + dv0 + 1, u0 + du0 + 1 : u0 + du0 + 1 + n_u]
+            here = W[v, u0 : u0 + n_u]
+            dest = out[v - v0, :n_u]
+            dest_far = far[v - v0, :n_u]
             for u in range(n_u):
                 z = a0[u] * w00 + a1[u] * w01 + b0[u] * w10 + b1[u] * w11
                 t = (z - here[u] - drop) * inv_d
@@ -180,41 +192,91 @@ NEAR_FIELD_COLUMNS = 2
 LINE_SPACING_ROWS = 0.5
 
 
+def _orient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.ndarray:
+    v = a.T if transpose else a
+    if flip_u:
+        v = v[:, ::-1]
+    if flip_v:
+        v = v[::-1, :]
+    return v
+
+
 class HorizonSweeper:
-    """Horizons of every node of one grid, azimuth after azimuth, reusing its buffers.
+    """Horizons of the nodes of a window of one grid, one azimuth per call; calls from several
+    threads run in parallel (the kernels release the GIL, and each thread has its own buffers).
 
     ``elevation_m[row, col]`` is a north-up grid (row increases southwards) with spacing ``dx_m``
-    east and ``dy_m`` north.  The kernels march along rows of a canonical view of the grid (the
-    azimuth turned into increasing columns, rows rising by at most one per column); the eight
-    canonical copies are made once.
+    east and ``dy_m`` north.  ``window`` = (row0, col0, n_rows, n_cols) are the nodes whose horizons
+    are wanted (default: every node).  The grid is a window of a larger lattice of ``lattice_shape``
+    whose node (row, col) is the grid's (row - lattice_origin[0], col - lattice_origin[1]): the
+    sweep lines are placed on the lattice, so a node's horizon does not depend on which window of
+    the lattice the grid is, as long as it holds the terrain the horizon sees.  The kernels march
+    along rows of a canonical view of the grid (the azimuth turned into increasing columns, rows
+    rising by at most one per column); the canonical copies are made once each.
     """
 
-    def __init__(self, elevation_m: np.ndarray, dx_m: float, dy_m: float, height_m: float, r_eff_m: float):
+    def __init__(self, elevation_m: np.ndarray, dx_m: float, dy_m: float, height_m: float, r_eff_m: float,
+                 window: tuple[int, int, int, int] | None = None,
+                 lattice_origin: tuple[int, int] = (0, 0), lattice_shape: tuple[int, int] | None = None):
         self.Z = np.ascontiguousarray(elevation_m, dtype=np.float64)
         self.dx_m, self.dy_m = float(dx_m), float(dy_m)
         self.height_m, self.r_eff_m = float(height_m), float(r_eff_m)
-        self.result = np.full(self.Z.shape, np.nan)
-        self.distance_m = np.full(self.Z.shape, np.nan)
+        nr, nc = self.Z.shape
+        self.window = (0, 0, nr, nc) if window is None else tuple(int(v) for v in window)
+        r0, c0, wr, wc = self.window
+        if not (0 <= r0 and 0 <= c0 and wr >= 1 and wc >= 1 and r0 + wr <= nr and c0 + wc <= nc):
+            raise ValueError(f"window {self.window} outside the grid {self.Z.shape}")
+        self.lattice_origin = (int(lattice_origin[0]), int(lattice_origin[1]))
+        self.lattice_shape = (nr, nc) if lattice_shape is None else (int(lattice_shape[0]), int(lattice_shape[1]))
         self._canonical: dict[tuple[bool, bool, bool], np.ndarray] = {}
-        self._work: dict[tuple[int, int], np.ndarray] = {}
-        self._work_far: dict[tuple[int, int], np.ndarray] = {}
-        n = max(self.Z.shape) + NEAR_FIELD_COLUMNS + 2
-        self._scratch = np.empty((int(numba.config.NUMBA_NUM_THREADS), 2, n))  # type: ignore[attr-defined]
+        self._lock = threading.Lock()
+        self._local = threading.local()
 
-    @staticmethod
-    def _orient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.ndarray:
-        v = a.T if transpose else a
-        if flip_u:
-            v = v[:, ::-1]
-        if flip_v:
-            v = v[::-1, :]
-        return v
+    def _view(self, key: tuple[bool, bool, bool]) -> np.ndarray:
+        with self._lock:
+            W = self._canonical.get(key)
+            if W is None:
+                W = np.ascontiguousarray(_orient(self.Z, *key))
+                self._canonical[key] = W
+        return W
 
-    def tan_grid(self, grid_azimuth_deg: float) -> np.ndarray:
-        """Tangent of the horizon elevation at every node along one grid azimuth (clockwise from grid
-        north); NaN where the node is nodata or no terrain lies ahead.  The array is the sweeper's
-        own buffer, overwritten by the next call; ``distance_m`` then holds the ground distance (m)
-        to the terrain point that forms each node's horizon."""
+    def _placement(self, key: tuple[bool, bool, bool]) -> tuple[int, int, int, int, int, int]:
+        """The window's first canonical node (v0, u0), its canonical shape, and the lattice offsets
+        (voff, uoff) of canonical node (0, 0)."""
+        transpose, flip_u, flip_v = key
+        nr, nc = self.Z.shape
+        r0, c0, wr, wc = self.window
+        lr, lc = self.lattice_origin
+        NR, NC = self.lattice_shape
+        # (axis extent, window start, window size, lattice start, lattice extent) along canonical v and u
+        rows = (nr, r0, wr, lr, NR)
+        cols = (nc, c0, wc, lc, NC)
+        along_v, along_u = (cols, rows) if transpose else (rows, cols)
+
+        def place(axis: tuple[int, int, int, int, int], flip: bool) -> tuple[int, int, int]:
+            n, start, size, lat0, lat_n = axis
+            if flip:
+                return n - start - size, size, (lat_n - 1 - lat0) - (n - 1)
+            return start, size, lat0
+
+        v0, wv, voff = place(along_v, flip_v)
+        u0, wu, uoff = place(along_u, flip_u)
+        return v0, u0, wv, wu, voff, uoff
+
+    def _buffers(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        loc = self._local
+        if getattr(loc, "shape", None) != shape:
+            n = max(self.Z.shape) + NEAR_FIELD_COLUMNS + 2
+            loc.out, loc.far = np.empty(shape), np.empty(shape)
+            loc.hs, loc.hz = np.empty(n), np.empty(n)
+            loc.shape = shape
+        return loc.out, loc.far, loc.hs, loc.hz
+
+    def horizons(self, grid_azimuth_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """(tangent of the horizon elevation, ground distance (m) to the terrain point that forms
+        it) at every node of the window along one grid azimuth (clockwise from grid north); NaN
+        where the node is nodata or no terrain lies ahead.  Views of this thread's own buffers,
+        overwritten by its next call."""
         a = math.radians(grid_azimuth_deg)
         dcol = math.sin(a) / self.dx_m
         drow = -math.cos(a) / self.dy_m
@@ -223,27 +285,26 @@ class HorizonSweeper:
         if transpose:
             du, dv, du_m, dv_m = drow, dcol, self.dy_m, self.dx_m
         key = (transpose, du < 0, dv < 0)
-        W = self._canonical.get(key)
-        if W is None:
-            W = np.ascontiguousarray(self._orient(self.Z, *key))
-            self._canonical[key] = W
-        out = self._work.get(W.shape)
-        far = self._work_far.get(W.shape)
-        if out is None or far is None:
-            out = np.empty(W.shape)
-            far = np.empty(W.shape)
-            self._work[W.shape] = out
-            self._work_far[W.shape] = far
+        W = self._view(key)
+        v0, u0, wv, wu, voff, uoff = self._placement(key)
+        out, far, hs, hz = self._buffers((wv, wu))
         out.fill(np.nan)
         far.fill(np.nan)
         tau = abs(dv / du)
         step = math.hypot(du_m, tau * dv_m)
         _sweep_canonical(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
-                         LINE_SPACING_ROWS, self._scratch)
-        _near_field(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS)
-        self._orient(self.result, *key)[...] = out
-        self._orient(self.distance_m, *key)[...] = far
-        return self.result
+                         LINE_SPACING_ROWS, hs, hz, v0, u0, voff, uoff)
+        _near_field(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS, v0, u0)
+        # back from the canonical view to the window's rows and columns
+        untranspose = (lambda x: x.T) if transpose else (lambda x: x)
+        back = [out, far]
+        for i, arr in enumerate(back):
+            if key[1]:
+                arr = arr[:, ::-1]
+            if key[2]:
+                arr = arr[::-1, :]
+            back[i] = untranspose(arr)
+        return back[0], back[1]
 
 
 def horizon_tan_grid(
@@ -255,4 +316,4 @@ def horizon_tan_grid(
     r_eff_m: float,
 ) -> np.ndarray:
     """Tangent of the horizon elevation at every node along one grid azimuth (see HorizonSweeper)."""
-    return HorizonSweeper(elevation_m, dx_m, dy_m, height_m, r_eff_m).tan_grid(grid_azimuth_deg).copy()
+    return HorizonSweeper(elevation_m, dx_m, dy_m, height_m, r_eff_m).horizons(grid_azimuth_deg)[0].copy()

@@ -1,5 +1,6 @@
-"""The demo on the embedded map (matplotlib's jacksboro DEM): a skyline seen from a random point
-between grid nodes, read by a noisy, partly occluded sensor with a compass error, then located."""
+"""The demo map (matplotlib's embedded jacksboro DEM) and its skyline database, and the
+skyline-only demo: a skyline seen from a random point between grid nodes, read by a noisy, partly
+occluded sensor with a compass error, then located."""
 
 from __future__ import annotations
 
@@ -8,12 +9,17 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.bodies import geodesic_distance_m
+from appliance.config import EstimatorConfig
 from appliance.estimator import estimate
 from appliance.position import Position, place, skyline_grid
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import SkylineDatabase, build_database, load_database
 from appliance.terrain.dem import Dem, load_dem
 from appliance.terrain.horizon import render_skyline
+
+#: the DEM of ``viper demo`` and of the simulated platform by default
+DEMO_DEM = "jacksboro"
 
 
 @dataclass(frozen=True)
@@ -30,7 +36,7 @@ class DemoResult:
 
 def demo_database(dem: Dem, out_dir: Path) -> SkylineDatabase:
     """The demo map's database, built once and kept beside the demo's outputs."""
-    path = out_dir / "jacksboro.viperdb"
+    path = out_dir / f"{DEMO_DEM}.viperdb"
     if path.exists():
         try:
             return load_database(path, dem)
@@ -52,11 +58,14 @@ def sensor_reading(true_el: np.ndarray, rng: np.random.Generator, noise_deg: flo
 
 
 def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
-             sigma_deg: tuple[float, float] = (0.3, 0.8)) -> DemoResult:
+             estimator: EstimatorConfig | None = None) -> DemoResult:
+    """A synthetic noisy skyline at a random point of the demo map, located with ``estimator``
+    (default: the configuration's defaults); the skyline, a picture and the result in ``out_dir``."""
+    cfg = EstimatorConfig() if estimator is None else estimator
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    dem = load_dem("jacksboro")
+    dem = load_dem(DEMO_DEM)
     db = demo_database(dem, out)
     g = db.grid
     while True:
@@ -69,10 +78,10 @@ def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
     sky = sensor_reading(truth.elevation_deg, rng, compass_error_deg=compass)
     sky_path = out / "skyline.csv"
     write_skyline_csv(sky, sky_path)
-    res = estimate(skyline_grid(db), sky.azimuth_deg, sky.elevation_deg, sigma_deg, 4.0)
+    res = estimate(skyline_grid(db), sky.azimuth_deg, sky.elevation_deg, cfg.sigma_deg, cfg.heading_tolerance_deg)
     res_pos = place(db, res, str(sky_path))
-    _, _, err = dem.geod.inv(res_pos.lon, res_pos.lat, float(lon), float(lat))
-    from appliance.outputs import write_png
+    err = geodesic_distance_m(res_pos.lat, res_pos.lon, float(lat), float(lon), dem.body)
+    from appliance.estimate_outputs import write_png
 
     pic = out / "estimate.png"
     write_png(db, res_pos, sky, pic, truth=(float(lat), float(lon)))

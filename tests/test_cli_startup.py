@@ -1,0 +1,47 @@
+"""The command line starts at once: only the command being run is imported."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pkgutil
+import subprocess
+import sys
+
+import appliance.cli as cli_pkg
+from appliance.cli.main import COMMANDS, build_parser, command_of
+
+
+def test_the_command_table_lists_every_command_module_with_its_own_help():
+    modules = {m.name for m in pkgutil.iter_modules(cli_pkg.__path__)
+               if m.name != "main" and not m.name.startswith("_")}
+    assert {module for module, _ in COMMANDS.values()} == modules
+    full = build_parser("*")
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    listed = {c.dest: c.help for c in sub._choices_actions}
+    assert listed == {name: help_text for name, (_, help_text) in COMMANDS.items()}
+
+
+def _modules_after(argv: list[str]) -> set[str]:
+    code = (f"import json, sys\nfrom appliance.cli.main import main\ntry:\n    main({argv!r})\n"
+            "except SystemExit:\n    pass\nprint(json.dumps(sorted(sys.modules)), file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return set(json.loads(out.stderr.strip().splitlines()[-1]))
+
+
+def test_help_loads_no_numerical_library():
+    for argv in (["--help"], ["--log-level", "debug", "--help"]):
+        loaded = _modules_after(argv)
+        assert not {"numpy", "numba", "scipy", "cv2", "rasterio", "pyproj", "tqdm"} & loaded, argv
+        assert not any(m.startswith("appliance.cli.") and m != "appliance.cli.main" for m in loaded), argv
+
+
+def test_a_command_loads_its_own_module_only():
+    loaded = _modules_after(["skyline", "--help"])
+    assert "appliance.cli.skyline" in loaded
+    assert not {"appliance.cli.estimate", "appliance.cli.precompute", "appliance.estimator.estimate"} & loaded
+
+
+def test_the_command_is_found_after_global_options():
+    assert command_of(["--version"]) is None
+    assert command_of(["estimate", "db", "demo.csv"]) == "estimate"
