@@ -1,10 +1,13 @@
 """An estimate's outputs: the records a log holds of it and the files that open elsewhere.
 
 The session, ``viper replay`` and ``viper demo`` write an estimate into their logs with
-:func:`write_estimate_records` (LocationFix, the full JSON record, the region as GeoJSON, the lower
-posterior as a Foxglove Grid, the skyline rendered at the estimate); ``viper estimate --report`` and
-the replay report write its files (:func:`write_png`, :func:`write_geotiff`, :func:`write_geojson`).
-The region becomes GeoJSON in one place, :func:`region_features`.
+:func:`write_estimate_records` (LocationFix, the full JSON record, the region as GeoJSON, the
+world -> skyline-grid transform, the lower posterior as a Foxglove Grid, the skyline rendered at the
+estimate); ``viper estimate --report`` and the replay report write its files (:func:`write_png`,
+:func:`write_geotiff`: float32, NaN nodata; :func:`write_region_geojson`: the region's polygons only;
+:func:`write_points_geojson`: the estimate and the truth).  The region becomes GeoJSON in one place,
+:func:`region_polygons`; its features and their properties (:func:`region_feature`,
+:func:`estimate_feature`) are the same in the log's ``/region`` and in the files.
 """
 
 from __future__ import annotations
@@ -32,9 +35,8 @@ def region_mask(db: SkylineDatabase, pos: Position) -> np.ndarray:
     return mask.reshape(db.grid.n_rows, db.grid.n_cols)
 
 
-def region_features(db: SkylineDatabase, pos: Position) -> list[dict[str, Any]]:
-    """The region (polygons of its cells, lon/lat in the body's geographic CRS) and the estimate (a
-    point) as two GeoJSON features."""
+def region_polygons(db: SkylineDatabase, pos: Position) -> list[list[list[list[float]]]]:
+    """The region's cells merged into polygons: rings of [lon, lat] (WGS84 or the body's geographic CRS)."""
     from rasterio import features
 
     polys = []
@@ -47,27 +49,50 @@ def region_features(db: SkylineDatabase, pos: Position) -> list[dict[str, Any]]:
             lon, lat = db.grid.xy_to_lonlat(xy[:, 0], xy[:, 1])
             rings.append([[round(float(a), 7), round(float(b), 7)] for a, b in zip(lon, lat, strict=True)])
         polys.append(rings)
+    return polys
+
+
+def region_feature(db: SkylineDatabase, pos: Position) -> dict[str, Any]:
+    """The region as one GeoJSON MultiPolygon feature (lon/lat)."""
     r = pos.result
-    region = {
+    return {
         "type": "Feature",
         "properties": {"name": "region", "kind": "region", "area_m2": r.region_area_m2,
-                       "lower": r.lower, "upper": r.upper},
-        "geometry": {"type": "MultiPolygon", "coordinates": polys},
+                       "n_cells": int(r.region_nodes.size), "lower": r.lower, "upper": r.upper},
+        "geometry": {"type": "MultiPolygon", "coordinates": region_polygons(db, pos)},
     }
-    point = {
+
+
+def estimate_feature(pos: Position) -> dict[str, Any]:
+    """The estimate as one GeoJSON Point feature (lon/lat)."""
+    r = pos.result
+    return {
         "type": "Feature",
         "properties": {"name": "estimate", "kind": "estimate", "lower": r.lower, "upper": r.upper,
                        "heading_correction_deg": r.heading_correction_deg},
-        "geometry": {"type": "Point", "coordinates": [pos.lon, pos.lat]},
+        "geometry": {"type": "Point", "coordinates": [float(pos.lon), float(pos.lat)]},
     }
-    return [region, point]
+
+
+def truth_feature(truth: tuple[float, float]) -> dict[str, Any]:
+    """The truth (lat, lon) as one GeoJSON Point feature (lon/lat)."""
+    return {"type": "Feature", "properties": {"name": "truth", "kind": "truth"},
+            "geometry": {"type": "Point", "coordinates": [float(truth[1]), float(truth[0])]}}
+
+
+def region_features(db: SkylineDatabase, pos: Position) -> list[dict[str, Any]]:
+    """The log's ``/region``: the region (polygons of its cells, lon/lat in the body's geographic
+    CRS) and the estimate (a point), the same features as :func:`write_region_geojson` and
+    :func:`write_points_geojson` write."""
+    return [region_feature(db, pos), estimate_feature(pos)]
 
 
 def posterior_grid(db: SkylineDatabase, pos: Position, time_ns: int, floor_decades: float = 20.0) -> Any:
     """The lower posterior (log10, floored ``floor_decades`` below its peak) as a Foxglove Grid.
 
     Row 0 is the grid's southernmost row; cells are ``dx_m`` x ``dy_m`` metres in the frame
-    ``skyline-grid`` whose origin is the south-west node.
+    ``skyline-grid`` whose origin is the south-west corner of the south-west node's cell (placed in
+    ``world`` by :func:`posterior_transform`).
     """
     g = db.grid
     lower = np.asarray(pos.result.log_lower_map, float).reshape(g.n_rows, g.n_cols) / math.log(10.0)
@@ -75,6 +100,20 @@ def posterior_grid(db: SkylineDatabase, pos: Position, time_ns: int, floor_decad
     floored = np.where(np.isfinite(lower), np.maximum(lower, top - floor_decades), top - floor_decades)
     return m.grid(time_ns, floored[::-1], (g.dx_m, g.dy_m), (0.0, 0.0), frame_id="skyline-grid",
                   field_name="log10_lower_posterior")
+
+
+def posterior_transform(db: SkylineDatabase, pos: Position, time_ns: int) -> Any:
+    """world -> skyline-grid, with the world's origin at the estimate: the grid's south-west corner
+    rotated from grid into true east/north by the grid convergence at the estimate's node."""
+    g = db.grid
+    x0, y0 = g.rc_to_xy(g.n_rows - 0.5, -0.5)
+    gamma = float(db.convergence_deg[pos.result.node])
+    dx_m = (float(x0) - pos.x) * g.dx_m / g.dx
+    dy_m = (float(y0) - pos.y) * g.dy_m / g.dy
+    c, s = math.cos(math.radians(gamma)), math.sin(math.radians(gamma))
+    # grid north at true azimuth gamma: grid +x = (cos g, -sin g), grid +y = (sin g, cos g) in (east, north)
+    east, north = c * dx_m + s * dy_m, -s * dx_m + c * dy_m
+    return m.grid_transform(time_ns, east, north, gamma)
 
 
 def rendered_skyline(db: SkylineDatabase, pos: Position) -> Skyline:
@@ -110,37 +149,48 @@ def estimate_record(db: SkylineDatabase, pos: Position, skyline: Skyline,
 
 def write_estimate_records(log: Logbook, time_ns: int, db: SkylineDatabase, pos: Position, skyline: Skyline,
                            truth: tuple[float, float] | None) -> EstimateRecord:
-    """The estimate into ``log``: LocationFix, full JSON record, region (GeoJSON), lower posterior (Grid)
-    and the skyline rendered at the estimate; returns the record with its error against ``truth``."""
+    """The estimate into ``log``: LocationFix, full JSON record, region (GeoJSON), world -> skyline-grid
+    (FrameTransform), lower posterior (Grid) and the skyline rendered at the estimate; returns the
+    record with its error against ``truth``."""
     rec = estimate_record(db, pos, skyline, truth)
     cell_m = math.sqrt(pos.cell_size_m[0] * pos.cell_size_m[1])
     log.write_proto(t.ESTIMATE_FIX, m.location_fix(time_ns, pos.lat, pos.lon, sigma_m=cell_m, frame_id="estimate"),
                     time_ns)
     log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
     log.write_proto(t.REGION, m.geojson(region_features(db, pos)), time_ns)
+    log.write_proto(t.TF, posterior_transform(db, pos, time_ns), time_ns)
     log.write_proto(t.POSTERIOR, posterior_grid(db, pos, time_ns), time_ns)
     log.write_json(t.SKYLINE_RENDERED, "viper.Skyline", skyline_payload(rendered_skyline(db, pos)), time_ns)
     log.flush()
     return rec
 
 
-def write_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
-    """The region as polygons (lon/lat, WGS84 or the body's geographic CRS) plus the estimate."""
-    fc = {"type": "FeatureCollection", "features": region_features(db, pos)}
+def write_region_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
+    """One layer of polygons only: the estimate's region as a MultiPolygon (lon/lat)."""
+    fc = {"type": "FeatureCollection", "features": [region_feature(db, pos)]}
     write_text_atomic(Path(path), json.dumps(fc))
 
 
+def write_points_geojson(pos: Position, path: str | Path, truth: tuple[float, float] | None = None) -> None:
+    """One layer of points only: the estimate, and the truth (lat, lon) where known."""
+    features = [estimate_feature(pos)]
+    if truth is not None:
+        features.append(truth_feature(truth))
+    write_text_atomic(Path(path), json.dumps({"type": "FeatureCollection", "features": features}))
+
+
 def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
-    """Two bands, log10 of the lower and upper posterior of each node (its best heading)."""
+    """Two float32 bands, log10 of the lower and upper posterior of each node (its best heading); NaN is
+    nodata (a posterior of zero), so no finite value, however small, is mistaken for nodata."""
     import rasterio
 
     p = Path(path)
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
-    bands = np.where(np.isfinite(bands), bands, -9999.0).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
+    bands = np.where(np.isfinite(bands), bands, np.nan).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
     with atomic_output(p) as tmp, rasterio.open(
         tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
-        crs=g.crs.to_wkt(), transform=g.transform, nodata=-9999.0,
+        crs=g.crs.to_wkt(), transform=g.transform, nodata=float("nan"),
     ) as ds:
         ds.write(bands)
         ds.set_band_description(1, "log10 lower posterior")

@@ -95,6 +95,29 @@ def test_the_example_configurations_load():
         load_config(p)
 
 
+def _written_keys(path):
+    """Keys set or shown commented out (``# key = value``) in a TOML example, with their table."""
+    keys, table = set(), ""
+    for line in path.read_text().splitlines():
+        head = re.match(r"^\[([\w.]+)\]", line)
+        if head:
+            table = head.group(1) + "."
+            continue
+        key = re.match(r"^#? ?(\w+) = ", line)
+        if key:
+            keys.add(table + key.group(1))
+    return keys
+
+
+@pytest.mark.parametrize("name,kind,skip", [("hardware.toml", "hardware", "sim."), ("sim.toml", "sim", None)])
+def test_the_complete_examples_show_every_key(name, kind, skip):
+    path = Path(__file__).resolve().parents[1] / "examples" / name
+    assert load_config(path).platform.kind == kind
+    expected = {k for k in _keys(Config) if skip is None or not k.startswith(skip)}
+    assert sorted(expected - _written_keys(path)) == []
+    assert sorted(_written_keys(path) - set(_keys(Config))) == []
+
+
 @pytest.mark.parametrize("text,name", [
     ("[estimator]\nocclusion_weight = 1.0\n", "estimator.occlusion_weight"),
     ("[estimator]\nmap_vertical_sigma_m = -1.0\n", "estimator.map_vertical_sigma_m"),

@@ -64,12 +64,19 @@ def test_json_estimate_within_two_cells_between_nodes(db_path, tmp_path, capsys)
     rep = tmp_path / "rep"
     with rasterio.open(next(rep.glob("*-posterior.tif"))) as ds:
         assert ds.count == 2 and ds.crs.to_epsg() == 4326
-        lower = ds.read(1)
-        assert np.nanmax(lower[lower > -9999]) == pytest.approx(np.log10(max(rec["lower"], 1e-300)), abs=0.5) \
+        assert ds.dtypes == ("float32", "float32") and np.isnan(ds.nodata)
+        lower = ds.read(1, masked=True)
+        # nodata is outside the data: every finite value is data, and the masked cells are exactly the NaNs
+        assert np.array_equal(np.ma.getmaskarray(lower), np.isnan(ds.read(1)))
+        assert float(lower.max()) == pytest.approx(np.log10(max(rec["lower"], 1e-300)), abs=0.5) \
             or rec["lower"] == 0.0
-    gj = json.loads(next(rep.glob("*-region.geojson")).read_text())
-    assert gj["features"][0]["geometry"]["type"] == "MultiPolygon"
-    assert gj["features"][1]["geometry"]["coordinates"] == pytest.approx([rec["lon"], rec["lat"]], abs=1e-6)
+    region = json.loads(next(rep.glob("*-region.geojson")).read_text())
+    assert [f["geometry"]["type"] for f in region["features"]] == ["MultiPolygon"]
+    assert region["features"][0]["properties"]["n_cells"] == rec["region"]["n_cells"]
+    points = json.loads(next(rep.glob("*-points.geojson")).read_text())
+    assert [f["properties"]["kind"] for f in points["features"]] == ["estimate", "truth"]
+    assert points["features"][0]["geometry"]["coordinates"] == pytest.approx([rec["lon"], rec["lat"]], abs=1e-6)
+    assert points["features"][1]["geometry"]["coordinates"] == pytest.approx([lon, lat])
     assert next(rep.glob("*.png")).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -128,3 +135,28 @@ def test_a_skyline_from_elsewhere_is_not_confident(db_path, tmp_path, capsys):
     rec = json.loads(capsys.readouterr().out)
     assert rec["ambiguous"] or any("poor match" in n for n in rec["notes"])
     assert rec["region"]["n_cells"] > 25 or any("poor match" in n for n in rec["notes"])
+
+
+def test_the_readme_python_api_snippet_locates_a_skyline(db_path, tmp_path, monkeypatch):
+    import re
+    import shutil
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Python API", 1)[1]
+    snippet = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    assert len(snippet.strip().splitlines()) <= 7
+    lat, lon = 36.5731, -84.2687
+    shutil.copy(db_path, tmp_path / "map.viperdb")
+    sky = _skyline_at(tmp_path, "s.csv", lat, lon, seed=3)
+    from appliance.skyline import read_skyline_csv
+
+    np.save(tmp_path / "elevation.npy", read_skyline_csv(sky).elevation_deg)
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(snippet, "README.md", "exec"), scope)
+    pos = scope["pos"]
+    db = scope["db"]
+    cell = float(np.hypot(db.grid.dx_m, db.grid.dy_m)) / np.sqrt(2)
+    geod = load_dem("jacksboro").geod
+    assert geod.inv(pos.lon, pos.lat, lon, lat)[2] <= 2 * cell

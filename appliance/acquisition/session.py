@@ -29,6 +29,7 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 from appliance.skyline import Skyline
 
 if TYPE_CHECKING:
+    from appliance.logbook.live import Publisher
     from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
 
@@ -119,6 +120,7 @@ class Session:
             if self.p.camera is not None:
                 intr = self.p.camera.intrinsics
                 self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
+                self.log.write_proto(t.TF, m.optical_transform(self.now()), self.now())
             self.say("info", f"session {r.session_id} started")
             self.log.flush()
             self.step("level", self.do_level)
@@ -309,6 +311,9 @@ class Session:
             sky = onboard.mask_stage_angles(sky, platform_heading, self.cfg.session.body_mask_deg)
         self.result.skyline = sky
         self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), self.now())
+        overlay = m.skyline_annotations(self.now(), pano.azimuth_to_column(sky.azimuth_deg),
+                                        pano.elevation_to_row(sky.elevation_deg))
+        self.log.write_proto(t.PANORAMA_SKYLINE, overlay, self.now())
         self.on_status("estimate: searching the skyline database")
         pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
         self.result.estimate = pos
@@ -342,8 +347,10 @@ def run_session(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     approx_position: tuple[float, float] | None = None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
-    """Run one session on ``platform``; the log goes to a new file in ``log_dir``."""
+    """Run one session on ``platform``; the log goes to a new file in ``log_dir`` (and every message
+    also to ``publisher``, the live view, when given)."""
     session_id = uuid.uuid4().hex[:8]
     path = session_log_path(log_dir, platform.clock.now_ns(), session_id)
     lc = config.logbook
@@ -353,6 +360,7 @@ def run_session(
         chunk_size_bytes=lc.chunk_size_bytes,
         compression=lc.compression,
         reserve_bytes=lc.reserve_bytes,
+        publisher=publisher,
     )
     result = SessionResult(path, session_id)
     return Session(platform, logbook, config, db, result, should_stop, on_status, approx_position).run()
@@ -365,9 +373,11 @@ def run_platform_session(
     db: SkylineDatabase | None = None,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
+    publisher: Publisher | None = None,
 ) -> SessionResult:
     """One session on the devices ``open_devices(config)`` gives (the caller chooses the hardware or
     the simulated twins); they are closed when the session ends."""
     on_status("opening the devices")
     with open_devices(config) as devices:
-        return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status)
+        return run_session(platform_of(devices), config, Path(log_dir), db, should_stop, on_status,
+                           publisher=publisher)

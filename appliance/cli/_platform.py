@@ -1,11 +1,15 @@
 """The command line chooses the platform: the hardware of ``[devices]`` or the simulated twins of
 ``[sim]`` (``[platform] kind``), and prints a notice when it drives the simulated platform only
-because no ``[platform]`` was given.  Nothing below the command line imports the simulator."""
+because no ``[platform]`` was given.  Nothing below the command line imports the simulator.  Also
+the ``--live`` option (the Foxglove live view) of the commands that run sessions."""
 
 from __future__ import annotations
 
+import argparse
+import logging
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -14,6 +18,9 @@ from appliance.config import Config, PlatformKind
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
     from appliance.drivers.factory import Devices
+    from appliance.logbook.live import LiveServer, Publisher
+
+LOG = logging.getLogger(__name__)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -43,7 +50,30 @@ def simulated_notice(command: str, config: Config, config_path: str | Path | Non
 def warn_if_simulated(command: str, config: Config, config_path: str | Path | None) -> None:
     line = simulated_notice(command, config, config_path)
     if line is not None:
-        print(line, file=sys.stderr, flush=True)
+        LOG.warning(line)
+
+
+def add_live_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--live", metavar="[HOST:]PORT",
+        help="serve the session live to Foxglove (WebSocket) on PORT, bound to 127.0.0.1 unless HOST is given "
+             "(off by default)")
+
+
+@contextmanager
+def live_server(address: str | None) -> Iterator[LiveServer | None]:
+    """The live view of ``--live`` (None when the option was not given), stopped on exit."""
+    if address is None:
+        yield None
+        return
+    from appliance.logbook.live import LiveServer, parse_address
+
+    host, port = parse_address(address)
+    server = LiveServer(host, port)
+    try:
+        yield server
+    finally:
+        server.close()
 
 
 def open_devices(config: Config) -> Devices:
@@ -60,23 +90,25 @@ def open_devices(config: Config) -> Devices:
     return open_sim_platform(config, calibration=calibration)
 
 
-def session_runner(config: Config, seed: int | None = None
+def session_runner(config: Config, seed: int | None = None, publisher: Publisher | None = None
                    ) -> Callable[[Path, Callable[[], bool], Callable[[str], None]], SessionResult]:
     """What one session of ``viper capture`` or the session daemon runs: on the hardware, a session
     with the ``[session] database``; in simulation, a whole field session at a random position of the
-    ``[sim] dem`` map (``seed`` chooses it)."""
+    ``[sim] dem`` map (``seed`` chooses it); every logged message also goes to ``publisher``, the
+    live view, when given."""
 
     def run(log_dir: Path, should_stop: Callable[[], bool], on_status: Callable[[str], None]) -> SessionResult:
         if config.platform.kind is PlatformKind.SIM:
             from appliance.sim.field_session import run_field_session
 
-            result, _ = run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status)
+            result, _ = run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
+                                         publisher=publisher)
             return result
         from appliance.acquisition.onboard import load_session_database
         from appliance.acquisition.session import run_platform_session
 
         on_status("loading the skyline database")
         db = load_session_database(config.session)
-        return run_platform_session(open_devices, config, log_dir, db, should_stop, on_status)
+        return run_platform_session(open_devices, config, log_dir, db, should_stop, on_status, publisher)
 
     return run

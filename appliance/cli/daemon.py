@@ -7,7 +7,7 @@ from pathlib import Path
 
 from appliance.acquisition.daemon import SessionDaemon
 from appliance.acquisition.notify import Notifier
-from appliance.cli._platform import session_runner, warn_if_simulated
+from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import load_config
 
 
@@ -17,6 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s = sub.add_parser("session", help="run sessions on the schedule of [session]; SIGTERM ends cleanly")
     s.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
     s.add_argument("--log-dir", metavar="DIR", help="override logbook.log_dir")
+    add_live_option(s)
     s.set_defaults(func=_session)
 
 
@@ -24,6 +25,7 @@ def _session(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
-    daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config))
-    daemon.install_signal_handlers()
-    return daemon.run()
+    with live_server(args.live) as live:
+        daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config, publisher=live))
+        daemon.install_signal_handlers()
+        return daemon.run()

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
-import sys
 from pathlib import Path
 
 from appliance.atomic import check_output_folder
@@ -15,7 +15,9 @@ from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
-REPORT_FILES = (".png", "-posterior.tif", "-region.geojson")
+LOG = logging.getLogger(__name__)
+
+REPORT_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
 
 
 def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
@@ -106,12 +108,13 @@ def run(args: argparse.Namespace) -> int:
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.estimate_outputs import write_geojson, write_geotiff, write_png
+            from appliance.estimate_outputs import write_geotiff, write_png, write_points_geojson, write_region_geojson
 
             stem = f"{i + 1:02d}-{Path(name).stem}"
             write_png(db, pos, sky, report / f"{stem}.png", truth)
             write_geotiff(db, pos, report / f"{stem}-posterior.tif")
-            write_geojson(db, pos, report / f"{stem}-region.geojson")
+            write_region_geojson(db, pos, report / f"{stem}-region.geojson")
+            write_points_geojson(pos, report / f"{stem}-points.geojson", truth)
         if args.json:
             print(json.dumps(record), flush=True)
         else:
@@ -121,5 +124,5 @@ def run(args: argparse.Namespace) -> int:
                   f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
             for note in pos.result.notes:
-                print(f"  {note}", file=sys.stderr)
+                LOG.info("  %s", note)
     return 0

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from appliance import __version__
 from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
 from appliance.errors import ViperError
+from appliance.logsetup import LEVELS, configure_logging
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus sign.
 NUMBER_LIST_OPTIONS = frozenset({"--truth", "--move", "--search-bounds", "--sigma", "--stage-angles", "--lat",
@@ -63,9 +64,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+#: global options (before the command) that take a value: their value is never the command
+GLOBAL_VALUE_OPTIONS = frozenset({"--log-level"})
+
+
 def command_of(argv: Sequence[str]) -> str | None:
-    """The subcommand named on the command line (the first word that names one), if any."""
-    return next((a for a in argv if a in COMMANDS), None)
+    """The subcommand named on the command line (the first word that names one, other than the
+    value of a global option such as ``--log-level``), if any."""
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a in GLOBAL_VALUE_OPTIONS:
+            skip = True
+        elif a in COMMANDS:
+            return a
+    return None
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -76,6 +90,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Viper field appliance: position from the skyline, matched against a DEM.",
     )
     parser.add_argument("--version", action="version", version=f"viper {__version__}")
+    parser.add_argument("--log-level", choices=LEVELS, default="info",
+                        help="messages on stderr at this level and above (default info); under systemd each "
+                             "line carries its journal priority")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
         if command in (name, "*"):
@@ -93,6 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if func is None:
         parser.print_help(sys.stderr)
         return 2
+    configure_logging(args.log_level)
     forget_created_folders()
     try:
         return int(func(args) or 0)

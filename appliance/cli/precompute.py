@@ -8,6 +8,7 @@ import time
 from appliance.atomic import check_output_path
 from appliance.errors import InputError
 from appliance.estimator.estimate import COARSE_STRIDE
+from appliance.logsetup import ProgressCallback
 from appliance.terrain.database import build_database, plan_grids
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     header = build_database(
         dem, args.out, args.search_bounds, args.spacing, args.height, args.azimuths,
-        args.refraction, args.max_range,
+        args.refraction, args.max_range, progress=ProgressCallback("azimuth"),
     )
     g = header["grid"]
     n = g["n_rows"] * g["n_cols"]

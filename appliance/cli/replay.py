@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -11,11 +12,14 @@ from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
+from appliance.logsetup import ProgressCallback
 
 if TYPE_CHECKING:
     from appliance.terrain.database import SkylineDatabase
 
 REPLAY_FILES = (".replay.mcap", ".map.png", ".panorama.png")
+
+LOG = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -69,15 +73,19 @@ def run(args: argparse.Namespace) -> int:
         from appliance.sim.demo import DEMO_DEM, demo_database
         from appliance.terrain.dem import load_dem
 
-        print(f"no --db: using the demo map's database ({DEMO_DEM}) in ./viper-demo")
+        LOG.warning("no --db: using the demo map's database (%s) in ./viper-demo", DEMO_DEM)
         demo_dir = Path("viper-demo")
         demo_dir.mkdir(parents=True, exist_ok=True)
         db = demo_database(load_dem(DEMO_DEM), demo_dir)
     out = Path(args.out)
 
     elsewhere: list[str] = []
+    bar = ProgressCallback("log")
+    shown = [0]
 
     def show(r: ReplayResult) -> None:
+        shown[0] += 1
+        bar(shown[0], len(args.logs), "replay")
         if r.data.truth is not None and not truth_on_map(db, r.data.truth):
             elsewhere.append(str(r.data.path))
             print(f"{r.data.path}: GPS truth {r.data.truth[0]:.6f}, {r.data.truth[1]:.6f} lies outside the database")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from appliance.atomic import check_output_path
 from appliance.errors import InputError
+from appliance.logsetup import progress
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
 from appliance.vision.panorama import read_image, save_panorama, sidecar_path
 from appliance.vision.stitching import Shot, stitch
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         if len(parsed) != len(paths):
             raise InputError(f"--stage-angles gives {len(parsed)} angles for {len(paths)} images")
         angles = list(parsed)
-    images = [read_image(p) for p in paths]
+    images = [read_image(p) for p in progress(paths, len(paths), "reading", "image")]
     h, w = images[0].shape[:2]
     if args.calibration:
         intrinsics = load_intrinsics(args.calibration)

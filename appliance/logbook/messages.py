@@ -2,7 +2,11 @@
 
 Frames: ``world`` is local east-north-up at the tripod; ``platform`` is the levelled base rotated
 by the heading (yaw), then pitch and roll from the inclinometers; ``camera`` is the platform
-rotated about its vertical axis by the stage angle.  Azimuths and headings are degrees clockwise
+rotated about its vertical axis by the stage angle, so that at rest its +x points right, +y forward
+(along the optical axis) and +z up; ``camera_optical`` is the same camera in the optical convention
+of images and calibrations (+x right, +y down, +z forward); ``skyline-grid`` is the skyline
+database's grid (x east along the map's columns, y north along its rows, origin at the south-west
+corner), placed in ``world`` by :func:`grid_transform`.  Azimuths and headings are degrees clockwise
 from true north; in ENU the rotation about up is counter-clockwise, hence ``yaw = -azimuth``.
 """
 
@@ -19,9 +23,11 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.GeoJSON_pb2 import GeoJSON
 from foxglove_schemas_protobuf.Grid_pb2 import Grid
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -41,14 +47,17 @@ def timestamp(time_ns: int) -> Timestamp:
     return ts
 
 
+CAMERA_OPTICAL = "camera_optical"
+
+
 def compressed_image(
-    time_ns: int, data: bytes, fmt: str = "jpeg", frame_id: str = "camera"
+    time_ns: int, data: bytes, fmt: str = "jpeg", frame_id: str = CAMERA_OPTICAL
 ) -> CompressedImage:
     return CompressedImage(timestamp=timestamp(time_ns), frame_id=frame_id, data=bytes(data), format=fmt)
 
 
 def camera_calibration(
-    time_ns: int, intrinsics: CameraIntrinsics, frame_id: str = "camera"
+    time_ns: int, intrinsics: CameraIntrinsics, frame_id: str = CAMERA_OPTICAL
 ) -> CameraCalibration:
     k = intrinsics.matrix
     p = np.hstack([k, np.zeros((3, 1))])
@@ -118,6 +127,42 @@ def attitude_transform(time_ns: int, heading_deg: float, roll_deg: float, pitch_
 def stage_transform(time_ns: int, stage_deg: float) -> FrameTransform:
     """platform -> camera: the pan stage's angle (clockwise seen from above)."""
     return frame_transform(time_ns, "platform", "camera", -stage_deg)
+
+
+def optical_transform(time_ns: int) -> FrameTransform:
+    """camera -> camera_optical: optical +z (forward) on the camera's +y, +x on +x, +y (down) on -z."""
+    return frame_transform(time_ns, "camera", CAMERA_OPTICAL, 0.0, 0.0, -90.0)
+
+
+def grid_transform(time_ns: int, east_m: float, north_m: float, convergence_deg: float,
+                   frame_id: str = "skyline-grid") -> FrameTransform:
+    """world -> ``frame_id``: the grid's origin ``east_m``/``north_m`` metres from the world's origin
+    (along true east and north), its +y axis (grid north) at the true azimuth ``convergence_deg``."""
+    tf = frame_transform(time_ns, "world", frame_id, -convergence_deg)
+    tf.translation.x, tf.translation.y = float(east_m), float(north_m)
+    return tf
+
+
+def skyline_annotations(time_ns: int, columns: np.ndarray, rows: np.ndarray,
+                        rgba: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 1.0)) -> ImageAnnotations:
+    """The skyline drawn over an image: one line strip per run of valid points (pixel ``columns`` and
+    ``rows``, NaN = none); a run also ends where the columns jump back (a panorama's seam)."""
+    cols = np.asarray(columns, float)
+    rws = np.asarray(rows, float)
+    valid = np.isfinite(cols) & np.isfinite(rws)
+    breaks = np.flatnonzero(~valid | np.concatenate([[False], np.diff(cols) < 0]))
+    out = ImageAnnotations()
+    start = 0
+    for stop in [*breaks.tolist(), cols.size]:
+        run = np.arange(start, stop)
+        run = run[valid[run]]
+        if run.size >= 2:
+            line = out.points.add(timestamp=timestamp(time_ns), type=PointsAnnotation.LINE_STRIP, thickness=2.0)
+            line.outline_color.r, line.outline_color.g, line.outline_color.b, line.outline_color.a = rgba
+            for i in run:
+                line.points.add(x=float(cols[i]), y=float(rws[i]))
+        start = stop
+    return out
 
 
 def log_message(time_ns: int, level: str, text: str, name: str = "viper") -> Log:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,7 +68,7 @@ class LogSummary:
         out = [f"{self.path}: {self.size_bytes} bytes, {self.message_count} messages, {state}"]
         span = self.span_ns
         if span is not None:
-            out.append(f"time span: {span[0]} .. {span[1]} ns ({(span[1] - span[0]) / 1e9:.3f} s)")
+            out.append(f"time span: {utc_text(span[0])} .. {utc_text(span[1])} ({(span[1] - span[0]) / 1e9:.3f} s)")
         width = max((len(t) for t in self.topics), default=5)
         for name, st in sorted(self.topics.items()):
             out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}")
@@ -82,6 +83,13 @@ class LogSummary:
         elif self.estimate is None:
             out.append("no estimate in this log")
         return out
+
+
+def utc_text(time_ns: int) -> str:
+    """A log time (ns since the Unix epoch) as ISO 8601 UTC to the millisecond: 2026-06-01T12:00:05.250Z."""
+    seconds, ns = divmod(int(time_ns), 1_000_000_000)
+    stamp = dt.datetime.fromtimestamp(seconds, tz=dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
+    return f"{stamp}.{ns // 1_000_000:03d}Z"
 
 
 def summarize_log(path: str | Path) -> LogSummary:

@@ -2,24 +2,30 @@
 
 Foxglove messages (protobuf, schema names ``foxglove.*``):
 
-==========================  ==========================  ===========================================
-topic                       schema                      content
-==========================  ==========================  ===========================================
-``/camera/image``           foxglove.CompressedImage    each captured frame (JPEG or PNG)
-``/camera/calibration``     foxglove.CameraCalibration  the intrinsics used for the session
-``/camera/panorama``        foxglove.CompressedImage    the panorama stitched from the tagged frames
-``/gps/fix``                foxglove.LocationFix        every GPS fix as received
-``/gps/truth``              foxglove.LocationFix        the averaged ground truth of the session
-``/estimate/fix``           foxglove.LocationFix        the onboard (or replayed) estimate
-``/tf``                     foxglove.FrameTransform     attitude (world->platform), stage (->camera)
-``/log``                    foxglove.Log                daemon and procedure messages
-``/region``                 foxglove.GeoJSON            the estimate's region (cells) and the estimate
-``/estimate/posterior``     foxglove.Grid               log10 lower posterior over the database grid
-==========================  ==========================  ===========================================
+============================  ==========================  ===========================================
+topic                         schema                      content
+============================  ==========================  ===========================================
+``/camera/image``             foxglove.CompressedImage    each captured frame (JPEG or PNG)
+``/camera/calibration``       foxglove.CameraCalibration  the intrinsics used for the session
+``/camera/panorama``          foxglove.CompressedImage    the panorama stitched from the tagged frames
+``/camera/panorama/skyline``  foxglove.ImageAnnotations   the detected skyline drawn over the panorama
+``/gps/fix``                  foxglove.LocationFix        every GPS fix as received
+``/gps/truth``                foxglove.LocationFix        the averaged ground truth of the session
+``/estimate/fix``             foxglove.LocationFix        the onboard (or replayed) estimate
+``/tf``                       foxglove.FrameTransform     attitude (world->platform), stage (->camera),
+                                                          camera->camera_optical, world->skyline-grid
+``/log``                      foxglove.Log                daemon and procedure messages
+``/region``                   foxglove.GeoJSON            the estimate's region (cells) and the estimate;
+                                                          strict properties (``GEOJSON_FEATURE_PROPERTIES``)
+``/estimate/posterior``       foxglove.Grid               log10 lower posterior, frame ``skyline-grid``
+============================  ==========================  ===========================================
 
 JSON-schema messages (schema names ``viper.*``): raw heading, tilt and stage readings, the tag of
-every capture, the result of each procedure and the estimate's full record.  log_time of every
-message is the acquisition time in nanoseconds since the Unix epoch (UTC).
+every capture, the result of each procedure and the estimate's full record.  Their schemas are
+strict: every field a writer writes is declared and no other is allowed (``additionalProperties``
+false), so a reader can rely on the names.  log_time of every message is the acquisition time in
+nanoseconds since the Unix epoch (UTC).  The same messages go live to Foxglove with ``--live``
+(:mod:`appliance.logbook.live`).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from typing import Any
 
 IMAGE = "/camera/image"
 PANORAMA = "/camera/panorama"
+PANORAMA_SKYLINE = "/camera/panorama/skyline"
 CALIBRATION = "/camera/calibration"
 GPS_FIX = "/gps/fix"
 GPS_TRUTH = "/gps/truth"
@@ -48,24 +55,34 @@ SKYLINE_RENDERED = "/skyline/rendered"
 
 _NUM = {"type": ["number", "null"]}
 _INT = {"type": "integer"}
+_COUNT = {"type": ["integer", "null"]}
 _STR = {"type": "string"}
+_OPT_STR = {"type": ["string", "null"]}
+_BOOL = {"type": "boolean"}
+_NUMBERS = {"type": "array", "items": {"type": ["number", "null"]}}
 
 
 def _object(title: str, properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A strict object schema: every field a writer may write is declared, and no other is allowed."""
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": title,
         "type": "object",
         "properties": properties,
         "required": list(required),
-        "additionalProperties": True,
+        "additionalProperties": False,
     }
+
+
+def _nested(properties: dict[str, Any], required: tuple[str, ...] = ()) -> dict[str, Any]:
+    return {"type": "object", "properties": properties, "required": list(required), "additionalProperties": False}
 
 
 JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     "viper.HeadingRaw": _object(
-        "Raw compass reading: heading (deg clockwise from magnetic north) and field (any unit)",
-        {"heading_deg": _NUM, "mag_x": _NUM, "mag_y": _NUM, "mag_z": _NUM, "device": _STR},
+        "Raw compass reading: heading (deg clockwise from magnetic north), field (any unit) and the pan "
+        "stage's angle (deg) when it was read",
+        {"heading_deg": _NUM, "mag_x": _NUM, "mag_y": _NUM, "mag_z": _NUM, "stage_deg": _NUM, "device": _STR},
     ),
     "viper.TiltRaw": _object(
         "Raw inclinometer reading: roll and pitch in degrees", {"roll_deg": _NUM, "pitch_deg": _NUM}
@@ -82,13 +99,36 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "roll_deg": _NUM,
             "pitch_deg": _NUM,
             "yaw_deg": _NUM,
-            "black": {"type": "boolean"},
+            "black": _BOOL,
         },
         ("index", "stage_deg"),
     ),
     "viper.Procedure": _object(
-        "Outcome of one procedure (level, compass, truth, capture, estimate)",
-        {"procedure": _STR, "status": _STR, "reason": _STR},
+        "Outcome of one procedure (level, compass, truth, capture, estimate) and its measured values",
+        {
+            "procedure": {"enum": ["level", "compass", "truth", "capture", "estimate"]},
+            "status": {"enum": ["ok", "ambiguous", "degraded", "failed"]},
+            "reason": _STR,
+            # level
+            "roll_deg": _NUM,
+            "pitch_deg": _NUM,
+            # compass: heading of the platform from magnetic north (deg), hard- and soft-iron fit
+            "heading_magnetic_deg": _NUM,
+            "hard_iron": _NUMBERS,
+            "soft_iron": {"type": "array", "items": _NUMBERS},
+            "residual": _NUM,
+            # truth: averaged GPS position (deg), its standard error and spread (m), fixes used and rejected
+            "lat": _NUM,
+            "lon": _NUM,
+            "sigma_m": _NUM,
+            "spread_m": _NUM,
+            "fix_type": _OPT_STR,
+            "used": _COUNT,
+            "rejected": _COUNT,
+            # capture and estimate
+            "frames": _COUNT,
+            "region_cells": _COUNT,
+        },
         ("procedure", "status"),
     ),
     "viper.Session": _object(
@@ -97,17 +137,41 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     "viper.Estimate": _object(
         "The estimate's full record (appliance.position.Position.to_json) and its error against the GPS truth",
         {
+            "skyline": _STR,
             "lat": _NUM,
             "lon": _NUM,
+            "x": _NUM,
+            "y": _NUM,
+            "crs": _STR,
             "heading_correction_deg": _NUM,
             "lower": _NUM,
             "upper": _NUM,
+            "log10_lower": _NUM,
+            "region": _nested(
+                {
+                    "area_m2": _NUM,
+                    "cell_size_m": _NUMBERS,
+                    "n_cells": _INT,
+                    "cells": {"type": "array", "items": _NUMBERS},
+                    "cells_truncated": _BOOL,
+                },
+                ("area_m2", "n_cells", "cells"),
+            ),
+            "ambiguous": _BOOL,
+            "status": {"enum": ["ok", "ambiguous"]},
             "rms_residual_deg": _NUM,
+            "valid_azimuths": _INT,
+            "sigma_deg": _NUMBERS,
+            "candidates": _INT,
+            "elapsed_ms": _NUM,
+            "notes": {"type": "array", "items": _STR},
+            "truth": _nested({"lat": _NUM, "lon": _NUM, "error_m": _NUM}, ("lat", "lon")),
             "valid_fraction": _NUM,
             "error_m": _NUM,
             "truth_lat": _NUM,
             "truth_lon": _NUM,
         },
+        ("lat", "lon", "lower", "upper", "region", "status"),
     ),
     "viper.Skyline": _object(
         "A skyline: elevation (deg above horizontal) per azimuth (deg clockwise from north); null=missing",
@@ -130,3 +194,21 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     SKYLINE_DETECTED: "viper.Skyline",
     SKYLINE_RENDERED: "viper.Skyline",
 }
+
+#: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the
+#: report's layers (``-region.geojson``, ``-points.geojson``): each feature's ``properties`` by its
+#: ``kind``, strict like the JSON schemas above (every property declared, no other allowed).
+GEOJSON_FEATURE_PROPERTIES: dict[str, dict[str, Any]] = {
+    "region": _nested(
+        {"name": _STR, "kind": {"const": "region"}, "area_m2": _NUM, "n_cells": _INT, "lower": _NUM, "upper": _NUM},
+        ("name", "kind", "area_m2", "n_cells", "lower", "upper"),
+    ),
+    "estimate": _nested(
+        {"name": _STR, "kind": {"const": "estimate"}, "lower": _NUM, "upper": _NUM, "heading_correction_deg": _NUM},
+        ("name", "kind", "lower", "upper", "heading_correction_deg"),
+    ),
+    "truth": _nested({"name": _STR, "kind": {"const": "truth"}}, ("name", "kind")),
+}
+
+#: the geometry of each kind of feature
+GEOJSON_FEATURE_GEOMETRY: dict[str, str] = {"region": "MultiPolygon", "estimate": "Point", "truth": "Point"}

@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import json
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -37,10 +38,12 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from appliance.atomic import remove_if_unheld
 from appliance.config import Compression
 from appliance.errors import LogError
+from appliance.logbook.live import Publisher
 from appliance.logbook.messages import to_jsonable
 from appliance.logbook.sink import DurableFile, Sink
 from appliance.logbook.topics import JSON_SCHEMAS
 
+LOG = logging.getLogger(__name__)
 PROFILE = "viper"
 LIBRARY = "viper-appliance logbook"
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
@@ -56,8 +59,9 @@ class Logbook:
     """Writes one session's MCAP file.  Not thread-safe: one writer per session.
 
     ``sink`` is the file (normally a :class:`DurableFile`); ``clock`` a monotonic clock in seconds,
-    used only for the periodic flush.  Every message's log_time (and publish_time) is its
-    acquisition time in nanoseconds since the Unix epoch.
+    used only for the periodic flush; ``publisher`` (the live view) receives every message written.
+    Every message's log_time (and publish_time) is its acquisition time in nanoseconds since the Unix
+    epoch.
     """
 
     def __init__(
@@ -71,6 +75,7 @@ class Logbook:
         reserve_path: Path | None = None,
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
+        publisher: Publisher | None = None,
     ) -> None:
         if compression not in COMPRESSIONS:
             known = ", ".join(c.value for c in COMPRESSIONS)
@@ -86,6 +91,9 @@ class Logbook:
         self._state = "open"
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}
+        self._publisher = publisher
+        self._schema_data: dict[str, tuple[str, bytes]] = {}
+        self._published: dict[str, tuple[str, str, bytes, str]] = {}
         self.messages_written = 0
         self.messages_durable = 0
         self.flushes = 0
@@ -110,6 +118,7 @@ class Logbook:
         compression: Compression = Compression.ZSTD,
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
+        publisher: Publisher | None = None,
     ) -> Logbook:
         """A new log at ``path`` (its directory is created; an existing file is never overwritten)."""
         p = Path(path)
@@ -130,6 +139,7 @@ class Logbook:
                 reserve_path=reserve,
                 reserve_bytes=reserve_bytes,
                 clock=clock,
+                publisher=publisher,
             )
         except LogError:
             sink.close()
@@ -160,6 +170,7 @@ class Logbook:
         )
         data = message.SerializeToString()
         self._add(channel_id, log_time_ns, data, sequence)
+        self._publish(topic, data, log_time_ns)
 
     def write_json(
         self, topic: str, schema_name: str, payload: Any, log_time_ns: int, sequence: int = 0
@@ -173,6 +184,7 @@ class Logbook:
         )
         data = json.dumps(to_jsonable(payload), allow_nan=False, separators=(",", ":")).encode()
         self._add(channel_id, log_time_ns, data, sequence)
+        self._publish(topic, data, log_time_ns)
 
     def flush(self) -> None:
         """Close the chunk in progress, write it and fsync: everything written so far is durable."""
@@ -223,13 +235,27 @@ class Logbook:
         schema_id = self._schemas.get(schema_name)
         if schema_id is None:
             schema_encoding, data = schema()
+            self._schema_data[schema_name] = (schema_encoding, data)
             schema_id = self._guarded(
                 lambda: self._writer.register_schema(schema_name, schema_encoding, data)
             )
             self._schemas[schema_name] = schema_id
+        self._published[topic] = (schema_name, *self._schema_data[schema_name], encoding)
         channel_id = self._guarded(lambda: self._writer.register_channel(topic, encoding, schema_id))
         self._channels[topic] = (channel_id, schema_name)
         return channel_id
+
+    def _publish(self, topic: str, data: bytes, log_time_ns: int) -> None:
+        """Hand a written message to the live view; a failing live view never stops the log."""
+        if self._publisher is None:
+            return
+        schema_name, schema_encoding, schema_data, message_encoding = self._published[topic]
+        try:
+            self._publisher.publish(topic, schema_name, schema_encoding, schema_data, message_encoding, data,
+                                    int(log_time_ns))
+        except Exception as exc:  # the live view is optional: log once and carry on without it
+            LOG.warning("%s: live view dropped after an error on %s: %s", self.name, topic, exc)
+            self._publisher = None
 
     @staticmethod
     def _proto_schema(message: Any) -> tuple[str, bytes]:

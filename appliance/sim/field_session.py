@@ -24,6 +24,7 @@ from appliance.sim.demo import DEMO_DEM
 from appliance.sim.platform import open_sim_platform
 
 if TYPE_CHECKING:
+    from appliance.logbook.live import Publisher
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
 
@@ -104,13 +105,15 @@ def run_field_session(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     db: SkylineDatabase | None = None,
+    publisher: Publisher | None = None,
 ) -> tuple[SessionResult, SimTruth]:
     """A whole simulated session at a random position of the ``[sim] dem`` map; the log goes to
     ``out_dir``.  Returns the session's result and the simulated truth.
 
     The platform is :func:`appliance.sim.platform.open_sim_platform`: the real drivers over the twins'
     wire protocols (ptys, fake I2C, a simulated V4L2 capture), faults from ``faults`` (else
-    ``[sim.faults]``).  The skyline database is ``db``, else :func:`sim_database`.
+    ``[sim.faults]``).  The skyline database is ``db``, else :func:`sim_database`.  Every logged
+    message also goes to ``publisher`` (the live view), when given.
     """
     from appliance.terrain.dem import load_dem
 
@@ -121,5 +124,6 @@ def run_field_session(
         on_status("loading the skyline database")
         db = sim_database(config, dem, out)
     sim_config = simulated_config(config, dem, db, rng, faults)
-    result = run_platform_session(open_sim_platform, sim_config, out, db, should_stop, on_status)
+    result = run_platform_session(open_sim_platform, sim_config, out, db, should_stop, on_status,
+                                  publisher)
     return result, truth_of(sim_config)
