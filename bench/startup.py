@@ -109,8 +109,9 @@ def main() -> int:
             ok = "met" if med <= TARGETS[name] else "missed"
             print(f"{name:28s} median {med * 1e3:6.0f} ms  best {best * 1e3:6.0f} ms  "
                   f"target {TARGETS[name] * 1e3:.0f} ms ({ok}), load {load:.1f}")
+            condition = "beside a busy process" if args.busy else "no spinner added"
             rows.append(f"| {date.today()} | {name} | {med * 1e3:.0f} ms | {best * 1e3:.0f} ms | "
-                        f"{TARGETS[name] * 1e3:.0f} ms | {'beside a busy process' if args.busy else 'no spinner added'}, "
+                        f"{TARGETS[name] * 1e3:.0f} ms | {condition}, "
                         f"load {load:.1f}, {os.cpu_count()} cores {platform.machine()} |")
     finally:
         stop.set()

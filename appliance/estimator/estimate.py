@@ -502,10 +502,10 @@ def estimate(
     # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
     # the residual grows, so each node's best first-pass shift decides for the node (an occluded
     # measurement counting the cap there).
-    k_c = _argmin_columns(_capped(coarse, coarse_occ, cap))
+    k_first = _argmin_columns(_capped(coarse, coarse_occ, cap))
     rows = np.arange(n_nodes)
-    cmin = coarse[rows, k_c].astype(np.float64)
-    cocc = coarse_occ[rows, k_c].astype(np.float64)
+    cmin = coarse[rows, k_first].astype(np.float64)
+    cocc = coarse_occ[rows, k_first].astype(np.float64)
     c_lo, c_up = mixture_log_likelihood_bounds(cmin, n_eff, cocc, sig_lo, sig_hi, occlusion_weight)
     c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
     lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)

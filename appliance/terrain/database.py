@@ -41,7 +41,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 import zlib
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -508,17 +507,6 @@ def quantize(elev_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return codes, offs, steps
 
 
-def _progress(done: int, total: int, label: str) -> None:
-    if not sys.stderr.isatty():
-        return
-    width = 30
-    filled = int(width * done / max(total, 1))
-    sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
-    if done >= total:
-        sys.stderr.write("\n")
-    sys.stderr.flush()
-
-
 def build_database(
     dem: Dem,
     out_path: str | Path,
@@ -528,7 +516,7 @@ def build_database(
     n_azimuths: int = 360,
     refraction: float | None = None,
     max_range_m: float = DEFAULT_MAX_RANGE_M,
-    progress: Callable[[int, int, str], None] | None = _progress,
+    progress: Callable[[int, int, str], None] | None = None,
     workers: int | None = None,
 ) -> dict:
     """Render every candidate node's skyline and write the database atomically; returns its header.
