@@ -5,7 +5,8 @@ The session, ``viper replay`` and ``viper demo`` write an estimate into their lo
 world -> skyline-grid transform, the lower posterior as a Foxglove Grid, the skyline rendered at the
 estimate); ``viper estimate --report`` and the replay report write its files (:func:`write_png`,
 :func:`write_geotiff`: float32, NaN nodata; :func:`write_region_geojson`: the region's polygons only;
-:func:`write_points_geojson`: the estimate and the truth).  The region becomes GeoJSON in one place,
+:func:`write_points_geojson`: the estimate and the truth); :func:`write_png` draws the picture of
+:mod:`appliance.estimate_picture`.  The region becomes GeoJSON in one place,
 :func:`region_polygons`; its features and their properties (:func:`region_feature`,
 :func:`estimate_feature`) are the same in the log's ``/region`` and in the files.
 """
@@ -199,52 +200,61 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
 
 def write_png(db: SkylineDatabase, pos: Position, skyline: Skyline, path: str | Path,
               truth: tuple[float, float] | None = None) -> None:
-    """Map (hillshade, lower posterior, region outline, estimate, truth) and the skylines."""
-    import matplotlib
+    """The picture of :func:`appliance.estimate_picture.estimate_figure` as a PNG; ``truth`` is (lat, lon)."""
+    from appliance.estimate_picture import estimate_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LightSource
+    fig = estimate_figure(db, pos, skyline, truth)
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
 
-    from appliance.estimator import resample_to_grid
 
-    g = db.grid
-    ground = np.asarray(db.ground_m, float).reshape(g.n_rows, g.n_cols)
-    fig, (ax_map, ax_sky) = plt.subplots(1, 2, figsize=(14, 6), gridspec_kw={"width_ratios": [1, 1.4]})
-    filled = np.where(np.isfinite(ground), ground, np.nanmin(ground))
-    shade = LightSource(azdeg=315, altdeg=45).hillshade(filled, vert_exag=2.0, dx=g.dx_m, dy=g.dy_m)
-    ax_map.imshow(shade, cmap="gray", origin="upper")
-    lower = pos.result.log_lower_map.reshape(g.n_rows, g.n_cols) / np.log(10.0)
-    top = float(np.nanmax(lower))
-    show = np.ma.masked_less(np.where(np.isfinite(lower), lower, -np.inf), top - 20.0)
-    im = ax_map.imshow(show, cmap="magma", alpha=0.6, origin="upper", vmin=top - 20.0, vmax=top)
-    fig.colorbar(im, ax=ax_map, fraction=0.046, label="log10 lower posterior")
-    ax_map.contour(region_mask(db, pos), levels=[0.5], colors="cyan", linewidths=1.0)
-    ax_map.plot(pos.result.col, pos.result.row, "c+", ms=14, mew=2, label="estimate")
-    if truth is not None:
-        tx, ty = g.lonlat_to_xy(truth[1], truth[0])
-        tr, tc = g.xy_to_rc(tx, ty)
-        ax_map.plot(float(tc), float(tr), "gx", ms=12, mew=2, label="truth")
-    ax_map.set_title(f"region {pos.result.region_area_m2 / 1e6:.3f} km^2, {pos.result.region_nodes.size} cells")
-    ax_map.legend(loc="lower right")
-    ax_map.set_xlabel("column")
-    ax_map.set_ylabel("row")
+@dataclass(frozen=True)
+class ReportEntry:
+    """One skyline of ``viper estimate --report``: its name, estimate, truth (lat, lon) and files."""
 
-    n_az = db.n_azimuths
-    az = db.azimuths_deg
-    measured = resample_to_grid((skyline.azimuth_deg + pos.result.heading_correction_deg) % 360.0,
-                                skyline.elevation_deg, n_az)
-    ax_sky.plot(az, db.skylines_deg(pos.result.node), color="tab:orange", lw=1.5, label="rendered at the estimate")
-    ax_sky.plot(az, measured, color="tab:blue", lw=1.0, label="measured (heading corrected)")
-    ax_sky.set_xlim(0, 360)
-    ax_sky.set_xlabel("azimuth (deg, clockwise from true north)")
-    ax_sky.set_ylabel("elevation (deg)")
-    ax_sky.set_title(f"{pos.lat:.5f}, {pos.lon:.5f}; residual {pos.result.rms_residual_deg:.2f} deg RMS")
-    ax_sky.legend()
-    ax_sky.grid(alpha=0.3)
-    fig.tight_layout()
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=90, format="png")
-    finally:
-        plt.close(fig)
+    name: str
+    pos: Position
+    skyline: Skyline
+    truth: tuple[float, float] | None
+    picture: Path
+    files: tuple[Path, ...]
+
+
+def write_report_page(db: SkylineDatabase, entries: list[ReportEntry], folder: str | Path,
+                      title: str = "Viper estimate") -> Path:
+    """``report.html`` in ``folder``: a table of the estimates, then per skyline its facts, picture and
+    files; returns the page's path."""
+    from appliance import report_page as rp
+    from appliance.position import estimate_status
+
+    out = Path(folder)
+    rows, sections = [], []
+    for i, e in enumerate(entries):
+        r = e.pos.result
+        err = None if e.truth is None else truth_error_m(db, e.pos, e.truth)
+        valid = f"{int(e.skyline.valid.sum())} of {e.skyline.elevation_deg.size}"
+        rows.append({
+            "skyline": e.name,
+            "status": estimate_status(db, e.pos, e.truth),
+            "lat": f"{e.pos.lat:.6f}",
+            "lon": f"{e.pos.lon:.6f}",
+            "truth_lat": "" if e.truth is None else f"{e.truth[0]:.6f}",
+            "truth_lon": "" if e.truth is None else f"{e.truth[1]:.6f}",
+            "error_m": "" if err is None else f"{err:.1f}",
+            "region_km2": f"{r.region_area_m2 / 1e6:.4f}",
+            "heading_correction_deg": f"{r.heading_correction_deg:+.2f}",
+            "valid_azimuths": valid,
+        })
+        facts = [("estimate", f"{e.pos.lat:.6f}, {e.pos.lon:.6f}"),
+                 ("error", "no truth given" if err is None else f"{err:.1f} m from the truth"),
+                 ("region", f"{r.region_area_m2 / 1e6:.4f} km², {r.region_nodes.size} cells"),
+                 ("valid azimuths", valid),
+                 ("residual", f"{r.rms_residual_deg:.2f} deg RMS")]
+        sections += [rp.heading(e.name, anchor=f"skyline-{i + 1}"), rp.facts_table(facts),
+                     "<p>" + " · ".join(rp.link(f, out) for f in e.files) + "</p>",
+                     rp.image(e.picture, out, e.picture.stem)]
+    parts = [rp.paragraph(rp.shown_path(db.path, out), "Skyline database:"),
+             rp.table(rows, {i: f"#skyline-{i + 1}" for i in range(len(entries))}), *sections]
+    page = out / "report.html"
+    write_text_atomic(page, rp.page(title, parts))
+    return page

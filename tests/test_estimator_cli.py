@@ -78,6 +78,12 @@ def test_json_estimate_within_two_cells_between_nodes(db_path, tmp_path, capsys)
     assert points["features"][0]["geometry"]["coordinates"] == pytest.approx([rec["lon"], rec["lat"]], abs=1e-6)
     assert points["features"][1]["geometry"]["coordinates"] == pytest.approx([lon, lat])
     assert next(rep.glob("*.png")).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # one page shows them all, named relative to the report folder
+    page = (rep / "report.html").read_text()
+    assert str(tmp_path) not in page and "<title>Viper estimate</title>" in page
+    for name in ("01-a.png", "01-a-posterior.tif", "01-a-region.geojson"):
+        assert f'href="{name}"' in page and (rep / name).is_file()
+    assert f"{rec['truth']['error_m']:.1f} m from the truth" in page
 
 
 def test_several_skylines_share_one_load_and_fuse(db_path, tmp_path, capsys):

@@ -6,14 +6,14 @@ angle, true heading of the optical axis, roll and pitch; same log time as the fr
 calibration and the GPS ground truth.  :func:`read_session` gathers them (a truncated log gives
 what it holds up to its last readable record, and says so); :func:`replay_session` reruns the
 onboard chain on them and writes a results log (MCAP, the same estimate topics as a session);
-:func:`write_report` draws the pictures and one HTML page, with a table of errors when several
-logs are replayed.
+:func:`write_report` draws the pictures and one HTML page (:mod:`appliance.report_page`), with a
+table of errors when several logs are replayed and the session's facts of each log
+(:mod:`appliance.acquisition.session_facts`).
 """
 
 from __future__ import annotations
 
 import csv
-import html
 import io
 import math
 from dataclasses import dataclass, field
@@ -26,6 +26,7 @@ import numpy as np
 from appliance.acquisition import onboard
 from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
+from appliance.acquisition.session_facts import FactsCollector, SessionFacts, read_session_facts
 from appliance.atomic import atomic_output, check_output_folder, write_text_atomic
 from appliance.config import EstimatorConfig
 from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError
@@ -54,6 +55,12 @@ class SessionData:
     onboard_error_m: float | None  # the onboard estimate's error, if the log has one
     complete: bool
     problem: str | None  # why reading stopped early (truncated, corrupt), or None
+    facts: SessionFacts = field(default_factory=SessionFacts)
+
+    @property
+    def frame_count(self) -> int:
+        """The tagged frames read; a session reported as it ends loads none, and counts its capture tags."""
+        return len(self.frames) if self.frames else self.facts.captures
 
 
 @dataclass
@@ -87,8 +94,10 @@ def read_session(path: str | Path) -> SessionData:
     truth = None
     onboard_error = None
     undecodable = 0
+    facts = FactsCollector()
     for msg in reader.messages():
         try:
+            facts.take(msg)
             if msg.topic == t.IMAGE:
                 img = cv2.imdecode(np.frombuffer(msg.decode().data, np.uint8), cv2.IMREAD_COLOR)
                 if img is None:
@@ -117,19 +126,21 @@ def read_session(path: str | Path) -> SessionData:
         tag = tags[ns]
         frames.append(TaggedFrame(int(tag["index"]), Frame(ns, images[ns]), float(tag["stage_deg"]),
                                   tag.get("heading_deg"), tag.get("roll_deg"), tag.get("pitch_deg")))
-    return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem)
+    return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem, facts.facts)
 
 
-def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path) -> Path:
-    """The replay report of a session that has just run (its estimate, not a rerun); the page's path."""
+def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path, title: str) -> Path:
+    """The report, titled ``title``, of a session that has just run (its estimate, not a rerun), with the
+    facts its log holds; the page's path."""
     truth = None
     if session.truth is not None and session.truth.lat_deg is not None and session.truth.lon_deg is not None:
         truth = (session.truth.lat_deg, session.truth.lon_deg)
     data = SessionData(path=session.log_path, frames=[], intrinsics=None, truth=truth,
-                       onboard_error_m=session.error_m, complete=True, problem=None)
+                       onboard_error_m=session.error_m, complete=True, problem=None,
+                       facts=read_session_facts(session.log_path))
     res = ReplayResult(session.log_path.stem, data, panorama=session.panorama, skyline=session.skyline,
                        position=session.estimate, error_m=session.error_m, results_log=session.log_path)
-    return write_report([res], db, out_dir)
+    return write_report([res], db, out_dir, title)
 
 
 def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
@@ -225,7 +236,7 @@ def summary_rows(results: list[ReplayResult], db: SkylineDatabase) -> list[dict[
         rows.append({
             "log": str(r.data.path),
             "status": "" if p is None else estimate_status(db, p, r.data.truth),
-            "frames": str(len(r.data.frames)),
+            "frames": str(r.data.frame_count),
             "complete": "yes" if r.data.complete else "no",
             "lat": "" if p is None else f"{p.lat:.6f}",
             "lon": "" if p is None else f"{p.lon:.6f}",
@@ -234,15 +245,19 @@ def summary_rows(results: list[ReplayResult], db: SkylineDatabase) -> list[dict[
             "error_m": _fmt(r.error_m),
             "onboard_error_m": _fmt(r.data.onboard_error_m),
             "region_km2": "" if p is None else f"{p.result.region_area_m2 / 1e6:.4f}",
+            "valid_azimuths": "" if r.skyline is None else str(int(r.skyline.valid.sum())),
             "heading_correction_deg": "" if p is None else f"{p.result.heading_correction_deg:+.2f}",
             "failure": r.failure or "",
         })
     return rows
 
 
-def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> Path:
-    """PNG pictures per log, ``summary.csv`` and ``report.html``; returns the HTML page's path."""
+def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path, title: str | None = None) -> Path:
+    """PNG pictures per log, ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay
+    of N logs"); returns the HTML page's path."""
+    from appliance import report_page as rp
     from appliance.estimate_outputs import write_png
+    from appliance.position import estimate_status
 
     check_output_folder(out_dir)
     for r in results:
@@ -260,37 +275,36 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
     writer.writeheader()
     writer.writerows(rows)
     write_text_atomic(csv_path, table.getvalue())
+    if title is None:
+        title = f"Viper replay of {len(results)} log{'s' if len(results) != 1 else ''}"
+    parts = [rp.paragraph(rp.shown_path(db.path, out_dir), "Skyline database:")]
     errors = [r.error_m for r in results if r.error_m is not None]
-    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Viper replay</title>",
-             "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-             "td,th{border:1px solid #aaa;padding:3px 8px;text-align:right}img{max-width:100%}</style></head><body>",
-             f"<h1>Viper replay of {len(results)} log{'s' if len(results) != 1 else ''}</h1>",
-             f"<p>Skyline database: {html.escape(str(db.path))}</p>"]
     if errors:
-        parts.append(f"<p>Error against the GPS truth: median {np.median(errors):.1f} m, "
-                     f"max {max(errors):.1f} m over {len(errors)} estimates (<a href='summary.csv'>CSV</a>)</p>")
-    parts.append("<table><tr>" + "".join(f"<th>{html.escape(k)}</th>" for k in (rows[0] if rows else {})) + "</tr>")
-    for row in rows:
-        parts.append("<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row.values()) + "</tr>")
-    parts.append("</table>")
-    for r in results:
-        parts.append(f"<h2>{html.escape(r.name)}</h2>")
-        for note in r.notes:
-            parts.append(f"<p><b>note:</b> {html.escape(note)}</p>")
-        if r.failure:
-            parts.append(f"<p><b>no estimate:</b> {html.escape(r.failure)}</p>")
-        if r.position is not None:
-            from appliance.position import estimate_status
+        parts.append(f"<p>Error against the GPS truth: median {np.median(errors):.1f} m, max {max(errors):.1f} m "
+                     f"over {len(errors)} estimate{'s' if len(errors) != 1 else ''} "
+                     f"({rp.link(csv_path, out_dir, 'CSV')})</p>")
+    def shown(r: ReplayResult, text: str) -> str:
+        return rp.without_folders(text, [r.data.path, db.path, *([r.results_log] if r.results_log else [])], out_dir)
 
+    shown_rows = [{k: shown(r, v) for k, v in row.items()} for row, r in zip(rows, results, strict=True)]
+    parts.append(rp.table(shown_rows, {i: f"#log-{i + 1}" for i in range(len(results))}))
+    for i, r in enumerate(results):
+        parts.append(rp.heading(r.name, anchor=f"log-{i + 1}"))
+        for note in r.notes:
+            parts.append(rp.paragraph(shown(r, note), "note:"))
+        if r.failure:
+            parts.append(rp.paragraph(shown(r, r.failure), "no estimate:"))
+        if r.position is not None:
             err = "no GPS truth" if r.error_m is None else f"{r.error_m:.1f} m from the GPS truth"
             status = estimate_status(db, r.position, r.data.truth)
-            parts.append(f"<p>estimate {r.position.lat:.6f}, {r.position.lon:.6f} <b>{status}</b>: {err}; "
-                         f"results log <code>{html.escape(str(r.results_log))}</code></p>")
+            parts.append(rp.paragraph(f"{r.position.lat:.6f}, {r.position.lon:.6f} {status}: {err}", "estimate"))
+        if r.results_log is not None:
+            parts.append(f"<p><b>results log</b> {rp.link(r.results_log, out_dir)}</p>")
+        parts.append(rp.facts_table(r.data.facts.rows()))
         for pic in r.pictures:
-            parts.append(f"<p><img src='{html.escape(pic.name)}' alt='{html.escape(pic.stem)}'></p>")
-    parts.append("</body></html>")
+            parts.append(rp.image(pic, out_dir, pic.stem))
     page = out_dir / "report.html"
-    write_text_atomic(page, "\n".join(parts))
+    write_text_atomic(page, rp.page(title, parts))
     return page
 
 

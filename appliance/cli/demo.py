@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells), "
               f"heading correction {p.result.heading_correction_deg:+.1f} deg, "
               f"{360 - p.result.n_valid} of 360 azimuths missing")
-        page = session_report(r, db, out)
+        page = session_report(r, db, out, "Viper demo: a simulated field session on the jacksboro map")
         print(f"  report     {page}")
     print(f"  log        {r.log_path}  (open in Foxglove; 'viper log info', 'viper replay')")
     print(f"  time       {time.monotonic() - t1:.0f} s for the session after setup")

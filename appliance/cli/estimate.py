@@ -18,6 +18,7 @@ from appliance.terrain.database import load_database
 LOG = logging.getLogger(__name__)
 
 REPORT_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
+REPORT_PAGE = "report.html"
 
 
 def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
@@ -60,7 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--truth", action="append", default=[], metavar="LAT,LON",
                    help="true position of each skyline's station, for the error and the picture")
     p.add_argument("--report", metavar="DIR",
-                   help="write per skyline a PNG, the posteriors as GeoTIFF and the region as GeoJSON")
+                   help="write per skyline a PNG, the posteriors as GeoTIFF and the region as GeoJSON, "
+                        "and report.html showing them all")
     p.add_argument("--force", action="store_true", help="replace report files that exist")
     p.set_defaults(func=run)
 
@@ -103,18 +105,27 @@ def run(args: argparse.Namespace) -> int:
     report = Path(args.report) if args.report else None
     if report is not None:
         names = [f"{i + 1:02d}-{Path(s).stem}{e}" for i, s in enumerate(args.skylines) for e in REPORT_FILES]
-        check_output_folder(report, [args.db, *args.skylines], names, args.force)
+        check_output_folder(report, [args.db, *args.skylines], [*names, REPORT_PAGE], args.force)
+    entries = []
     for i, (pos, (name, sky)) in enumerate(zip(positions, skylines)):
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.estimate_outputs import write_geotiff, write_png, write_points_geojson, write_region_geojson
+            from appliance.estimate_outputs import (
+                ReportEntry,
+                write_geotiff,
+                write_png,
+                write_points_geojson,
+                write_region_geojson,
+            )
 
             stem = f"{i + 1:02d}-{Path(name).stem}"
-            write_png(db, pos, sky, report / f"{stem}.png", truth)
-            write_geotiff(db, pos, report / f"{stem}-posterior.tif")
-            write_region_geojson(db, pos, report / f"{stem}-region.geojson")
-            write_points_geojson(pos, report / f"{stem}-points.geojson", truth)
+            files = tuple(report / f"{stem}{e}" for e in REPORT_FILES)
+            write_png(db, pos, sky, files[0], truth)
+            write_geotiff(db, pos, files[1])
+            write_region_geojson(db, pos, files[2])
+            write_points_geojson(pos, files[3], truth)
+            entries.append(ReportEntry(Path(name).name, pos, sky, truth, files[0], files))
         if args.json:
             print(json.dumps(record), flush=True)
         else:
@@ -125,4 +136,8 @@ def run(args: argparse.Namespace) -> int:
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
             for note in pos.result.notes:
                 LOG.info("  %s", note)
+    if report is not None:
+        from appliance.estimate_outputs import write_report_page
+
+        write_report_page(db, entries, report)
     return 0
