@@ -200,3 +200,12 @@ def test_range_limits_themselves_are_accepted(tmp_path):
     assert cfg.estimator.min_valid_fraction == 1.0 and cfg.estimator.sigma_deg == (0.4, 0.4)
     assert cfg.session.settle_s == 0.0 and cfg.sim.time_rate == 0.001
     assert cfg.sim.faults.stage_stall_at_deg == -180.0
+
+
+def test_the_estimators_default_sigma_is_the_configurations():
+    import inspect
+
+    from appliance.config import EstimatorConfig
+    from appliance.estimator import estimate
+
+    assert inspect.signature(estimate).parameters["sigma_deg"].default == EstimatorConfig().sigma_deg

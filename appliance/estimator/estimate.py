@@ -420,7 +420,7 @@ def estimate(
     grid: SkylineGrid,
     azimuth_deg: np.ndarray,
     elevation_deg: np.ndarray,
-    sigma_deg: tuple[float, float] = (0.2, 0.4),
+    sigma_deg: tuple[float, float] = (0.3, 0.8),
     heading_tolerance_deg: float | None = 4.0,
     log_prior: np.ndarray | None = None,
     min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
