@@ -7,7 +7,6 @@ stations and blurred by its uncertainty, is the prior of the next: p'(x) = (p * 
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 #: Probability floor of a transported prior, relative to its peak: only there to keep the logarithm
 #: finite where the blurred posterior underflowed; it does not weaken the prior where it has mass.
@@ -29,6 +28,8 @@ def transport_prior(
     ``posterior`` is per node (row-major, rows running south).  Probability that moves off the grid
     is lost; the result is normalised over the grid.
     """
+    from scipy import ndimage  # here, not at import: most estimates fuse nothing
+
     p = np.nan_to_num(np.asarray(posterior, float).reshape(n_rows, n_cols), nan=0.0)
     moved = ndimage.shift(p, (-north_m / dy_m, east_m / dx_m), order=1, mode="constant", cval=0.0)
     if sigma_m > 0:
