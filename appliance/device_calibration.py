@@ -43,28 +43,29 @@ def _calibration_table(devices: DevicesConfig, name: str) -> tuple[dict[str, Any
     return table, f"{path} [{name}]"
 
 
+def _file_or_inline(devices: DevicesConfig, table_name: str, inline: Any, what: str, where: str) -> Any:
+    """A calibration from the calibration file's ``table_name`` where it has one, else ``inline``; given in
+    both (the inline one not at its default) is refused."""
+    table, source = _calibration_table(devices, table_name)
+    if table is None:
+        return inline
+    if inline != type(inline)():
+        raise ConfigError(f"{what} given twice: in {where} and in {source}; keep one")
+    return type(inline).from_table(table, source)
+
+
 def calibration_of(devices: DevicesConfig) -> HardSoftIron:
     """The magnetometer's hard/soft iron (tesla): the calibration file's [compass], else [devices.compass]."""
     c = devices.compass
-    inline = HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix)
-    table, source = _calibration_table(devices, MAGNETOMETER_TABLE)
-    if table is None:
-        return inline
-    if inline != HardSoftIron():
-        raise ConfigError(f"compass calibration given twice: in [devices.compass] and in {source}; keep one")
-    return HardSoftIron.from_table(table, source)
+    return _file_or_inline(devices, MAGNETOMETER_TABLE, HardSoftIron(c.hard_iron_offset, c.soft_iron_matrix),
+                           "compass calibration", "[devices.compass]")
 
 
 def tilt_offset_of(devices: DevicesConfig) -> TiltOffset:
     """The inclinometer's offsets (deg): the calibration file's [inclinometer], else [devices.inclinometer]."""
     c = devices.inclinometer
-    inline = TiltOffset(c.pitch_offset_deg, c.roll_offset_deg)
-    table, source = _calibration_table(devices, INCLINOMETER_TABLE)
-    if table is None:
-        return inline
-    if inline != TiltOffset():
-        raise ConfigError(f"inclinometer offsets given twice: in [devices.inclinometer] and in {source}; keep one")
-    return TiltOffset.from_table(table, source)
+    return _file_or_inline(devices, INCLINOMETER_TABLE, TiltOffset(c.pitch_offset_deg, c.roll_offset_deg),
+                           "inclinometer offsets", "[devices.inclinometer]")
 
 
 def load_device_calibration(devices: DevicesConfig) -> DeviceCalibration:

@@ -315,15 +315,24 @@ def plan_grids(
     return cand, terr, (tr1 - r1, c0 - tc0)
 
 
-def lattice_of(dem: Dem, grid: NodeGrid) -> tuple[tuple[int, int], tuple[int, int]]:
-    """Where ``grid`` lies in the lattice its nodes belong to: (row, col) of its node (0, 0) and
-    the lattice's shape.  A grid at the DEM's own spacing is a window of the DEM's pixels; any other
-    is its own lattice."""
+def _dem_pixel_origin(dem: Dem, grid: NodeGrid) -> tuple[int, int] | None:
+    """(row, col) of the DEM pixel at the grid's node (0, 0) when the grid is a window of the DEM's
+    own pixels (same CRS, spacing and orientation), else None."""
     if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
         col0, row0 = dem.xy_to_pixel(np.array(grid.x0), np.array(grid.y0))
         r, c = int(round(float(row0))), int(round(float(col0)))
         if abs(r - row0) < 1e-6 and abs(c - col0) < 1e-6:
-            return (r, c), dem.shape
+            return r, c
+    return None
+
+
+def lattice_of(dem: Dem, grid: NodeGrid) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Where ``grid`` lies in the lattice its nodes belong to: (row, col) of its node (0, 0) and
+    the lattice's shape.  A grid at the DEM's own spacing is a window of the DEM's pixels; any other
+    is its own lattice."""
+    origin = _dem_pixel_origin(dem, grid)
+    if origin is not None:
+        return origin, dem.shape
     return (0, 0), (grid.n_rows, grid.n_cols)
 
 
@@ -340,13 +349,12 @@ def run_threads(fn: Callable[[int], None], items: Iterable[int], workers: int | 
 
 def terrain_on_grid(dem: Dem, grid: NodeGrid) -> np.ndarray:
     """DEM heights (m, NaN = nodata) at the grid's nodes, bilinear."""
-    if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
-        col0, row0 = dem.xy_to_pixel(np.array(grid.x0), np.array(grid.y0))
-        r, c = int(round(float(row0))), int(round(float(col0)))
-        if abs(r - row0) < 1e-6 and abs(c - col0) < 1e-6 and r >= 0 and c >= 0:
-            sub = dem.elevation_m[r : r + grid.n_rows, c : c + grid.n_cols]
-            if sub.shape == (grid.n_rows, grid.n_cols):
-                return np.array(sub, dtype=np.float64)
+    origin = _dem_pixel_origin(dem, grid)
+    if origin is not None and min(origin) >= 0:
+        r, c = origin
+        sub = dem.elevation_m[r : r + grid.n_rows, c : c + grid.n_cols]
+        if sub.shape == (grid.n_rows, grid.n_cols):
+            return np.array(sub, dtype=np.float64)
     to_dem = Transformer.from_crs(grid.crs, dem.crs, always_xy=True)
     out = np.empty((grid.n_rows, grid.n_cols))
     cols = grid.x0 + np.arange(grid.n_cols) * grid.dx
@@ -607,7 +615,7 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
         shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
         chunk = 4096
 
-        def quantize_chunk(lo: int, codes: np.ndarray = codes, dist: np.ndarray = dist) -> None:
+        def quantize_chunk(lo: int) -> None:
             _turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps, lo, min(lo + chunk, n))
 
         for _ in run_threads(quantize_chunk, range(0, n, chunk), workers):
@@ -626,7 +634,6 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
         del grid, coarse, partial
         mm.flush()
         crcs = [zlib.crc32(head)] + block_checksums(mm)
-        del mm, codes, dist
         with tmp.open("r+b") as fh:
             fh.seek(data_start + pos)
             fh.write(np.asarray(crcs, dtype="<u4").tobytes())

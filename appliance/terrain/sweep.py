@@ -201,6 +201,15 @@ def _orient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.nd
     return v
 
 
+def _unorient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.ndarray:
+    """The inverse of :func:`_orient`: a canonical view back in the grid's rows and columns."""
+    if flip_v:
+        a = a[::-1, :]
+    if flip_u:
+        a = a[:, ::-1]
+    return a.T if transpose else a
+
+
 class HorizonSweeper:
     """Horizons of the nodes of a window of one grid, one azimuth per call; calls from several
     threads run in parallel (the kernels release the GIL, and each thread has its own buffers).
@@ -295,16 +304,7 @@ class HorizonSweeper:
         _sweep_canonical(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
                          LINE_SPACING_ROWS, hs, hz, v0, u0, voff, uoff)
         _near_field(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS, v0, u0)
-        # back from the canonical view to the window's rows and columns
-        untranspose = (lambda x: x.T) if transpose else (lambda x: x)
-        back = [out, far]
-        for i, arr in enumerate(back):
-            if key[1]:
-                arr = arr[:, ::-1]
-            if key[2]:
-                arr = arr[::-1, :]
-            back[i] = untranspose(arr)
-        return back[0], back[1]
+        return _unorient(out, *key), _unorient(far, *key)
 
 
 def horizon_tan_grid(
