@@ -363,15 +363,10 @@ def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: floa
               sig_hi: float, occlusion_weight: float) -> tuple[Fit, list[Fit]]:
     """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
     node), and the fits at other places whose upper bound reaches it (rivals)."""
-    def near(f: Fit) -> int:
-        r = min(max(int(round(f.row)), 0), grid.n_rows - 1)
-        c = min(max(int(round(f.col)), 0), grid.n_cols - 1)
-        return r * grid.n_cols + c
-
     ssd = np.array([f.ssd * n / max(f.n, 1) for f in fits])
     occ = np.array([f.occluded * n / max(f.n, 1) for f in fits])
     lo, up = mixture_log_likelihood_bounds(ssd, n, occ, sig_lo, sig_hi, occlusion_weight)
-    lp = np.array([log_prior[near(f)] for f in fits])
+    lp = np.array([log_prior[_nearest_node(grid, f.row, f.col)] for f in fits])
     lo, up = lo + lp, up + lp
     k = int(np.argmax(lo))
     best = fits[k]
@@ -442,6 +437,60 @@ def estimate(
     it adds (sigma_v / d)^2 to each azimuth's variance.
     """
     t0 = time.perf_counter()
+    meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
+                    min_field_of_view_deg)
+    if heading_tolerance_deg is not None:
+        first = _compass_first_pass(grid, meas, heading_tolerance_deg)
+    else:
+        first = _FirstPass(*_every_heading_first_pass(grid, meas.elevation_deg, meas.valid, meas.weight, meas.n_eff,
+                                                      meas.sigma_ref_deg, meas.cap_deg2, meas.map_sigma_m))
+    lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
+    plausible = _plausible_nodes(first, meas, lp)
+    rescored = _rescore(grid, meas, plausible.nodes, first.node_shifts)
+    post = _posteriors(meas, lp, plausible, rescored)
+    answer = _grid_answer(grid, meas, rescored, post)
+    region, rival = post.region, False
+    notes: list[str] = []
+    if refine:
+        answer, region, rival, notes = _refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
+                                                height_m)
+    cell_area = grid.dx_m * grid.dy_m
+    area = region.size * cell_area
+    notes += _quality_notes(region.size, area, rival, answer.rms_deg, meas.sigma_hi_deg)
+    return EstimateResult(
+        row=answer.row, col=answer.col, node=post.best_node, heading_correction_deg=answer.heading_deg,
+        lower=float(np.exp(post.best_log_lower)), upper=float(np.exp(post.best_log_upper)),
+        log_lower=post.best_log_lower,
+        region_nodes=region, region_area_m2=area, log_lower_map=post.node_lower, log_upper_map=post.node_upper,
+        posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
+        sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
+        candidates=plausible.scored_nodes * first.node_shifts.shape[1],
+        elapsed_s=time.perf_counter() - t0, notes=notes,
+    )
+
+
+@dataclass(frozen=True)
+class _Measurement:
+    """The measured skyline on the database's azimuth grid, checked, and what every step weighs it by."""
+
+    elevation_deg: np.ndarray  # (n_az,) NaN = missing
+    weight: np.ndarray  # (n_az,) 0..1, 0 where missing
+    valid: np.ndarray  # (n_az,) bool
+    n_valid: int
+    n_eff: float  # the measurements' total weight: the likelihood's sample count
+    sigma_lo_deg: float
+    sigma_hi_deg: float
+    sigma_ref_deg: float  # sigma's midpoint, what the parallax model's variances are weighed against
+    cap_deg2: float  # the occlusion cap at sigma's midpoint
+    occlusion_weight: float
+    map_sigma_m: float
+
+
+def _measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, sigma_deg: tuple[float, float],
+             weights: np.ndarray | None, occlusion_weight: float, map_sigma_m: float,
+             min_field_of_view_deg: float) -> _Measurement:
+    """Step 1: the measured skyline (deg) and its weights (0..1) resampled onto the grid's azimuths,
+    the arguments checked (InputError), and sigma's midpoint (deg) and the occlusion cap (deg^2)."""
     sig_lo, sig_hi = float(sigma_deg[0]), float(sigma_deg[1])
     if not 0 < sig_lo <= sig_hi:
         raise InputError(f"sigma interval [{sig_lo}, {sig_hi}] must satisfy 0 < lo <= hi")
@@ -468,56 +517,101 @@ def estimate(
             f"skyline covers {n * step:.0f} deg of azimuth ({n} valid azimuths of {n_az}), "
             f"less than the {min_field_of_view_deg:.0f} deg needed to locate anything"
         )
-    n_nodes = grid.codes.shape[0]
-    notes: list[str] = []
-    # the parallax model's variances are weighed against sigma's midpoint
     sig_ref = 0.5 * (sig_lo + sig_hi)
-    cap = occlusion_cap_deg2(occlusion_weight, sig_ref)
-    # the likelihood's sample count: the measurements' total weight
-    n_eff = float(w_grid.sum())
+    return _Measurement(m, w_grid, valid, n, float(w_grid.sum()), sig_lo, sig_hi, sig_ref,
+                        occlusion_cap_deg2(occlusion_weight, sig_ref), occlusion_weight, map_sigma_m)
 
-    if heading_tolerance_deg is not None:
-        if heading_tolerance_deg < 0:
-            raise InputError(f"heading tolerance {heading_tolerance_deg} must be >= 0")
-        k = int(math.ceil(heading_tolerance_deg / step - 1e-9))
-        base_shifts = np.arange(-k, k + 1)
-        # first pass on skylines averaged over runs of COARSE_STRIDE azimuths, turned in whole runs:
-        # every heading of the band lies within half a run of one of them
-        k_dec = int(math.ceil(k / COARSE_STRIDE))
-        m_dec = box_decimate(m, COARSE_STRIDE)
-        w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
-        scale = n / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n, 1)
-        tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
-        coarse_occ = np.empty((n_nodes, 2 * k_dec + 1), dtype=np.float32)
-        coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
-                                        np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), cap, coarse_occ)
-        coarse *= np.float32(scale)
-        coarse_occ *= np.float32(scale)
-        coarse_pen = coarse_pen.astype(np.float64) * scale
-        node_shifts = np.broadcast_to(base_shifts, (n_nodes, base_shifts.size))
-    else:
-        coarse, coarse_occ, coarse_pen, node_shifts = _every_heading_first_pass(
-            grid, m, valid, w_grid, n_eff, sig_ref, cap, map_sigma_m)
 
-    # first pass -> plausible nodes -> rescored on every azimuth.  Both likelihood bounds fall as
-    # the residual grows, so each node's best first-pass shift decides for the node (an occluded
-    # measurement counting the cap there).
-    k_first = _argmin_columns(_capped(coarse, coarse_occ, cap))
+@dataclass(frozen=True)
+class _FirstPass:
+    """Every node scored on the first pass, and the fine shifts each node is rescored at."""
+
+    ssd: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weighted residual sums, deg^2
+    occluded: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weight of the occluded measurements
+    penalty: np.ndarray  # (n_nodes,) float64 log-normalisers
+    node_shifts: np.ndarray  # (n_nodes, n_fine_shifts) azimuth steps
+
+
+def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float) -> _FirstPass:
+    """Step 2, with a compass: every node scored on skylines averaged over runs of COARSE_STRIDE
+    azimuths, turned in whole runs across +-``heading_tolerance_deg``; every node is then rescored
+    at every azimuth step of the band."""
+    if heading_tolerance_deg < 0:
+        raise InputError(f"heading tolerance {heading_tolerance_deg} must be >= 0")
+    n_nodes = grid.codes.shape[0]
+    n, n_eff = meas.n_valid, meas.n_eff
+    k = int(math.ceil(heading_tolerance_deg / grid.az_step_deg - 1e-9))
+    base_shifts = np.arange(-k, k + 1)
+    # every heading of the band lies within half a run of one of the first pass's
+    k_dec = int(math.ceil(k / COARSE_STRIDE))
+    m_dec = box_decimate(meas.elevation_deg, COARSE_STRIDE)
+    w_dec = box_decimate(np.where(meas.valid, meas.weight, np.nan), COARSE_STRIDE)
+    scale = n / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n, 1)
+    tau_c = ((grid.coarse_tau2(meas.map_sigma_m), *parallax.tau2_tables(meas.sigma_ref_deg)) if grid.has_parallax
+             else None)
+    coarse_occ = np.empty((n_nodes, 2 * k_dec + 1), dtype=np.float32)
+    coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
+                                    np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), meas.cap_deg2,
+                                    coarse_occ)
+    coarse *= np.float32(scale)
+    coarse_occ *= np.float32(scale)
+    coarse_pen = coarse_pen.astype(np.float64) * scale
+    return _FirstPass(coarse, coarse_occ, coarse_pen, np.broadcast_to(base_shifts, (n_nodes, base_shifts.size)))
+
+
+@dataclass(frozen=True)
+class _Plausible:
+    """The nodes worth rescoring, and every node's first-pass bounds (nats)."""
+
+    nodes: np.ndarray  # sorted node indices
+    log_lower: np.ndarray  # (n_nodes,) lower log-likelihood plus log prior
+    log_upper: np.ndarray  # (n_nodes,) upper log-likelihood plus log prior
+    scored_nodes: int  # nodes with a finite first-pass score
+
+
+def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray) -> _Plausible:
+    """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
+    within RESCORE_MARGIN_NATS of the best lower one, at least MIN_RESCORE of them.  Both
+    likelihood bounds fall as the residual grows, so each node's best first-pass shift decides for
+    the node (an occluded measurement counting the cap there)."""
+    n_nodes = first.ssd.shape[0]
+    k_first = _argmin_columns(_capped(first.ssd, first.occluded, meas.cap_deg2))
     rows = np.arange(n_nodes)
-    cmin = coarse[rows, k_first].astype(np.float64)
-    cocc = coarse_occ[rows, k_first].astype(np.float64)
-    c_lo, c_up = mixture_log_likelihood_bounds(cmin, n_eff, cocc, sig_lo, sig_hi, occlusion_weight)
-    c_lo, c_up = c_lo - 0.5 * coarse_pen, c_up - 0.5 * coarse_pen
-    lp = np.zeros(n_nodes) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
+    cmin = first.ssd[rows, k_first].astype(np.float64)
+    cocc = first.occluded[rows, k_first].astype(np.float64)
+    c_lo, c_up = mixture_log_likelihood_bounds(cmin, meas.n_eff, cocc, meas.sigma_lo_deg, meas.sigma_hi_deg,
+                                               meas.occlusion_weight)
+    c_lo, c_up = c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty
+    node_lo = c_lo + lp
     node_up = c_up + lp
-    best_lo = float(np.max(c_lo + lp))
+    best_lo = float(np.max(node_lo))
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
         rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
+    return _Plausible(rescore, node_lo, node_up, int(np.isfinite(cmin).sum()))
+
+
+@dataclass(frozen=True)
+class _Rescored:
+    """The plausible nodes scored on every azimuth (float64)."""
+
+    nodes: np.ndarray  # (n_r,) sorted node indices
+    shifts: np.ndarray  # (n_r, n_k) azimuth steps
+    ssd: np.ndarray  # (n_r, n_k) weighted residual sums, deg^2
+    occluded: np.ndarray  # (n_r, n_k) weight of the occluded measurements
+    half_penalty: np.ndarray  # (n_r, 1) half the log-normaliser, nats
+    moves: np.ndarray  # (n_r, 4) linearised moves: east m, north m, heading deg, eye m (0 with no parallax)
+
+
+def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, node_shifts: np.ndarray) -> _Rescored:
+    """Step 2, the second pass: the plausible nodes at every azimuth and every shift of their band;
+    with parallax, each node's best shift then moved by its own first-order parallax within its cell
+    (east, north in m, heading in deg, eye in m)."""
+    m, w_grid, cap = meas.elevation_deg, meas.weight, meas.cap_deg2
     tau = None
     if grid.distance_codes is not None:
-        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2, sig_ref,
-                       map_sigma_m)
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2,
+                       meas.sigma_ref_deg, meas.map_sigma_m)
     occ_r32 = np.empty((rescore.size, node_shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
@@ -533,109 +627,169 @@ def estimate(
         # spacing no longer decides, what the linear model cannot say does (LINEARISED_SCALE)
         k_best = np.argmin(_capped(ssd_r, occ_r, cap), axis=1)
         shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
-        ssd_lin, pen_lin, moves_r, occ_lin = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0], sig_ref, cap,
-                                                         map_sigma_m)
+        ssd_lin, pen_lin, moves_r, occ_lin = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0],
+                                                         meas.sigma_ref_deg, cap, meas.map_sigma_m)
         ssd_r, occ_r = ssd_lin[:, None], occ_lin[:, None]
         pen_r = 0.5 * pen_lin[:, None]
+    return _Rescored(rescore, shifts_r, ssd_r, occ_r, pen_r, moves_r)
 
-    # Exact posteriors over the rescored candidates.  The others lie hundreds of nats below the
-    # best: their share of the sums is nil, and their own posteriors are their likelihood over the
-    # (unchanged) sum of the rest.
-    lp_r = lp[rescore, None] - pen_r
+
+@dataclass(frozen=True)
+class _Posteriors:
+    """The best candidate, every node's posterior bounds and the region (log posteriors in nats)."""
+
+    best_r: int  # the best candidate's row in :class:`_Rescored`
+    best_k: int  # and its shift's column
+    best_node: int
+    best_log_lower: float
+    best_log_upper: float
+    node_lower: np.ndarray  # (n_nodes,) log lower posterior of each node's best heading
+    node_upper: np.ndarray  # (n_nodes,)
+    region: np.ndarray  # nodes whose upper posterior reaches the best's lower one
+    posterior_mid: np.ndarray  # (n_nodes,) posterior at sigma's midpoint, marginal over heading
+
+
+def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, rescored: _Rescored) -> _Posteriors:
+    """Steps 3 and 4: exact posterior bounds over the rescored candidates, the best candidate and the
+    region.  The other nodes lie hundreds of nats below the best: their share of the sums is nil, and
+    their own posteriors are their first-pass likelihood over the (unchanged) sum of the rest."""
+    sig_lo, sig_hi, n_eff, occlusion_weight = meas.sigma_lo_deg, meas.sigma_hi_deg, meas.n_eff, meas.occlusion_weight
+    rescore, ssd_r, occ_r = rescored.nodes, rescored.ssd, rescored.occluded
+    lp_r = lp[rescore, None] - rescored.half_penalty
     lo_r, up_r = mixture_log_likelihood_bounds(ssd_r, n_eff, occ_r, sig_lo, sig_hi, occlusion_weight)
     post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
     best_r, best_k = divmod(best_flat, ssd_r.shape[1])
-    best_node = int(rescore[best_r])
     best_lower_log = float(post.log_lower.ravel()[best_flat])
     log_sum_up = float(np.logaddexp.reduce((up_r + lp_r).ravel()))
     log_sum_lo = float(np.logaddexp.reduce((lo_r + lp_r).ravel()))
-    node_lower = c_lo + lp - log_sum_up
-    node_upper = node_up - log_sum_lo
+    node_lower = plausible.log_lower - log_sum_up
+    node_upper = plausible.log_upper - log_sum_lo
     node_lower[rescore] = np.max(post.log_lower, axis=1)
     node_upper[rescore] = np.max(post.log_upper, axis=1)
     region = np.nonzero(node_upper >= best_lower_log)[0]
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     mid = 0.5 * (sig_lo + sig_hi)
-    node_mid = np.full(n_nodes, -np.inf)
+    node_mid = np.full(node_lower.size, -np.inf)
     ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
     node_mid -= np.logaddexp.reduce(node_mid[rescore])
-    posterior_mid = np.exp(node_mid)
+    return _Posteriors(best_r, best_k, int(rescore[best_r]), best_lower_log,
+                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, np.exp(node_mid))
 
-    shift_steps = float(shifts_r[best_r, best_k])
+
+@dataclass(frozen=True)
+class _Answer:
+    """A position in fractional grid (row, col), the heading correction (deg) and the RMS residual (deg)."""
+
+    row: float
+    col: float
+    heading_deg: float
+    rms_deg: float
+
+
+def _grid_answer(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post: _Posteriors) -> _Answer:
+    """Step 4's answer: the best candidate's node, its heading correction in (-180, 180] deg and its
+    RMS residual (deg)."""
+    n_az = grid.n_azimuths
+    shift_steps = float(rescored.shifts[post.best_r, post.best_k])
     if shift_steps > n_az / 2:
         shift_steps -= n_az
-    row, col = divmod(best_node, grid.n_cols)
-    frow, fcol, heading = float(row), float(col), shift_steps * step
-    rms = math.sqrt(float(ssd_r[best_r, best_k]) / n)
-    rival = False
-    if refine:
-        in_rescore = np.zeros(n_nodes, dtype=bool)
-        in_rescore[rescore] = True
-        scored = region[in_rescore[region]]
-        if grid.terrain is not None:
-            # every distinct mode of the region gets one exact render (heading scanned along it);
-            # the best few of those are fitted in full
-            tol = heading_tolerance_deg
-            bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
-            exact_model = Model(w_grid, occlusion_cap_deg2(occlusion_weight, sig_lo), map_sigma_m)
-            ctx = _RefineContext(grid, m, rescore, shifts_r, ssd_r, moves_r, bounds, height_m, sig_lo, exact_model)
-            # the modes worth a look: those whose upper posterior comes within SCREEN_MARGIN_NATS of
-            # the best's (the region itself is wider by the whole of sigma's interval)
-            top_up = float(np.max(node_upper[scored]))
-            worth = scored[node_upper[scored] >= top_up - SCREEN_MARGIN_NATS]
-            modes = _distinct_nodes(worth, node_lower, grid.n_cols, SCREEN_NODES, best_node)
-            # the best mode first, fitted straight from where its linearised fit moved it; when that
-            # comes down to the sensor's noise, a few more looks check for a rival, else all of them
-            first = ctx.fit_from_linear(modes[0])
-            if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
-                fits = [first] + ctx.look_and_fit(modes[1 : 1 + RIVAL_LOOKS], ctx.look_at(first))
-            else:
-                fits = ([] if first is None else [first]) + ctx.look_and_fit(modes)
-            if fits:
-                best_fit, rivals = _best_fit(fits, grid, lp, n_eff, sig_lo, sig_hi, occlusion_weight)
-                rival = bool(rivals)
-                frow, fcol, heading = best_fit.row, best_fit.col, best_fit.heading_deg
-                rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
-                if best_fit.occluded > 0.05 * best_fit.n:
-                    notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
-                                 "terrain (trees, buildings, masts?) and were left out")
-                # the cell the exact fit stands in belongs to the region
-                near = (min(max(int(round(frow)), 0), grid.n_rows - 1) * grid.n_cols
-                        + min(max(int(round(fcol)), 0), grid.n_cols - 1))
-                # the cells of the exact fit and of its rivals belong to the region
-                cells = [near] + [min(max(int(round(f.row)), 0), grid.n_rows - 1) * grid.n_cols
-                                  + min(max(int(round(f.col)), 0), grid.n_cols - 1) for f in rivals]
-                region = np.union1d(region, cells)
-        else:
-            from appliance.estimator.refine import refine_subcell
+    row, col = divmod(post.best_node, grid.n_cols)
+    rms = math.sqrt(float(rescored.ssd[post.best_r, post.best_k]) / meas.n_valid)
+    return _Answer(float(row), float(col), shift_steps * grid.az_step_deg, rms)
 
-            # refine the most likely nodes of the region (the best first) and keep the closest fit
-            order = np.argsort(-node_lower[scored])[:REFINE_NODES]
-            tries = [best_node] + [int(v) for v in scored[order] if int(v) != best_node]
-            # scored like the grid: likelihood at sigma's midpoint plus the prior of the nearest node
-            best_blend = (-math.inf, rms, frow, fcol, heading)
-            for cand in tries:
-                k_c = int(np.argmin(ssd_r[np.searchsorted(rescore, cand)]))
-                sh = float(shifts_r[np.searchsorted(rescore, cand), k_c])
-                if sh > n_az / 2:
-                    sh -= n_az
-                r_c, c_c, h_c, rms_c = refine_subcell(grid, m, cand, sh * step, math.inf)
-                near = int(round(r_c)) * grid.n_cols + int(round(c_c))
-                score = -n * rms_c * rms_c / (2.0 * mid * mid) + lp[near]
-                if score > best_blend[0]:
-                    best_blend = (score, rms_c, r_c, c_c, h_c)
-            if math.isfinite(best_blend[0]):
-                _, rms, frow, fcol, heading = best_blend
 
-    cell_area = grid.dx_m * grid.dy_m
-    area = region.size * cell_area
-    ambiguous = region.size > AMBIGUOUS_CELLS or rival
-    if region.size > AMBIGUOUS_CELLS:
+def _nearest_node(grid: SkylineGrid, row: float, col: float) -> int:
+    """The node nearest fractional grid (row, col), clamped to the grid."""
+    return (min(max(int(round(row)), 0), grid.n_rows - 1) * grid.n_cols
+            + min(max(int(round(col)), 0), grid.n_cols - 1))
+
+
+def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,
+             answer: _Answer, heading_tolerance_deg: float | None,
+             height_m: float | None) -> tuple[_Answer, np.ndarray, bool, list[str]]:
+    """Step 5: the answer refined between nodes, the region (node indices) with the cells of the
+    exact fit and of its rivals, whether a rival fits as well at another place, and the notes."""
+    in_rescore = np.zeros(post.node_lower.size, dtype=bool)
+    in_rescore[rescored.nodes] = True
+    scored = post.region[in_rescore[post.region]]
+    if grid.terrain is None:
+        return _subcell_answer(grid, meas, lp, rescored, post, scored, answer), post.region, False, []
+    fits = _exact_fits(grid, meas, rescored, post, scored, heading_tolerance_deg, height_m)
+    if not fits:
+        return answer, post.region, False, []
+    best_fit, rivals = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
+                                 meas.occlusion_weight)
+    notes: list[str] = []
+    if best_fit.occluded > 0.05 * best_fit.n:
+        notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
+                     "terrain (trees, buildings, masts?) and were left out")
+    # the cells of the exact fit and of its rivals belong to the region
+    cells = [_nearest_node(grid, best_fit.row, best_fit.col)] + [_nearest_node(grid, f.row, f.col) for f in rivals]
+    rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
+    return (_Answer(best_fit.row, best_fit.col, best_fit.heading_deg, rms), np.union1d(post.region, cells),
+            bool(rivals), notes)
+
+
+def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post: _Posteriors, scored: np.ndarray,
+                heading_tolerance_deg: float | None, height_m: float | None) -> list[Fit]:
+    """Step 5 on a map's terrain: every distinct mode of the region (``scored``: its rescored nodes)
+    gets one exact render, heading scanned along it; the best few of those are fitted in full
+    (position in grid cells, heading in deg, eye height in m)."""
+    sig_lo, step, tol = meas.sigma_lo_deg, grid.az_step_deg, heading_tolerance_deg
+    bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+    exact_model = Model(meas.weight, occlusion_cap_deg2(meas.occlusion_weight, sig_lo), meas.map_sigma_m)
+    ctx = _RefineContext(grid, meas.elevation_deg, rescored.nodes, rescored.shifts, rescored.ssd, rescored.moves,
+                         bounds, height_m, sig_lo, exact_model)
+    # the modes worth a look: those whose upper posterior comes within SCREEN_MARGIN_NATS of the
+    # best's (the region itself is wider by the whole of sigma's interval)
+    top_up = float(np.max(post.node_upper[scored]))
+    worth = scored[post.node_upper[scored] >= top_up - SCREEN_MARGIN_NATS]
+    modes = _distinct_nodes(worth, post.node_lower, grid.n_cols, SCREEN_NODES, post.best_node)
+    # the best mode first, fitted straight from where its linearised fit moved it; when that comes
+    # down to the sensor's noise, a few more looks check for a rival, else all of them
+    first = ctx.fit_from_linear(modes[0])
+    if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
+        return [first] + ctx.look_and_fit(modes[1 : 1 + RIVAL_LOOKS], ctx.look_at(first))
+    return ([] if first is None else [first]) + ctx.look_and_fit(modes)
+
+
+def _subcell_answer(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,
+                    scored: np.ndarray, answer: _Answer) -> _Answer:
+    """Step 5 with no terrain: the most likely nodes of the region (the best first) refined between
+    the database's skylines (``refine.py``); the fit of the best likelihood at sigma's midpoint plus
+    the prior of its nearest node is kept, else the grid's ``answer``."""
+    from appliance.estimator.refine import refine_subcell
+
+    n_az, step, n, rescore = grid.n_azimuths, grid.az_step_deg, meas.n_valid, rescored.nodes
+    mid = 0.5 * (meas.sigma_lo_deg + meas.sigma_hi_deg)
+    order = np.argsort(-post.node_lower[scored])[:REFINE_NODES]
+    tries = [post.best_node] + [int(v) for v in scored[order] if int(v) != post.best_node]
+    best_blend = (-math.inf, answer.rms_deg, answer.row, answer.col, answer.heading_deg)
+    for cand in tries:
+        k_c = int(np.argmin(rescored.ssd[np.searchsorted(rescore, cand)]))
+        sh = float(rescored.shifts[np.searchsorted(rescore, cand), k_c])
+        if sh > n_az / 2:
+            sh -= n_az
+        r_c, c_c, h_c, rms_c = refine_subcell(grid, meas.elevation_deg, cand, sh * step, math.inf)
+        near = int(round(r_c)) * grid.n_cols + int(round(c_c))
+        score = -n * rms_c * rms_c / (2.0 * mid * mid) + lp[near]
+        if score > best_blend[0]:
+            best_blend = (score, rms_c, r_c, c_c, h_c)
+    if not math.isfinite(best_blend[0]):
+        return answer
+    _, rms, frow, fcol, heading = best_blend
+    return _Answer(frow, fcol, heading, rms)
+
+
+def _quality_notes(region_cells: int, area_m2: float, rival: bool, rms_deg: float, sigma_hi_deg: float) -> list[str]:
+    """Notes on an answer the skyline does not single out (a wide region, a rival) or fits poorly."""
+    notes: list[str] = []
+    if region_cells > AMBIGUOUS_CELLS:
         notes.append(
-            f"ambiguous: {region.size} cells ({area / 1e6:.2f} km^2) are as likely as the best; "
+            f"ambiguous: {region_cells} cells ({area_m2 / 1e6:.2f} km^2) are as likely as the best; "
             "the skyline does not single out one position"
         )
     if rival:
@@ -643,17 +797,9 @@ def estimate(
             f"ambiguous: exact renders at another place, more than {SAME_ANSWER_CELLS:.0f} cells away, "
             "fit as well as the best"
         )
-    if rms > 3.0 * sig_hi:
+    if rms_deg > 3.0 * sigma_hi_deg:
         notes.append(
-            f"poor match: residual {rms:.2f} deg RMS against sigma up to {sig_hi:.2f} deg; "
+            f"poor match: residual {rms_deg:.2f} deg RMS against sigma up to {sigma_hi_deg:.2f} deg; "
             "the skyline may not come from this map"
         )
-    return EstimateResult(
-        row=frow, col=fcol, node=best_node, heading_correction_deg=heading,
-        lower=float(np.exp(best_lower_log)), upper=float(np.exp(post.log_upper.ravel()[best_flat])),
-        log_lower=best_lower_log,
-        region_nodes=region, region_area_m2=area, log_lower_map=node_lower, log_upper_map=node_upper,
-        posterior_map=posterior_mid, rms_residual_deg=rms, n_valid=n, sigma_deg=(sig_lo, sig_hi),
-        ambiguous=ambiguous, candidates=int(np.isfinite(cmin).sum()) * node_shifts.shape[1],
-        elapsed_s=time.perf_counter() - t0, notes=notes,
-    )
+    return notes
