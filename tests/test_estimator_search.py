@@ -9,7 +9,7 @@ import pytest
 
 from appliance.errors import InputError
 from appliance.estimator import SkylineGrid, estimate, resample_to_grid, transport_prior
-from appliance.terrain.database import quantize
+from appliance.terrain.quantize import quantize
 
 N_AZ = 360
 

@@ -11,9 +11,10 @@ from hypothesis import strategies as st
 
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, InputError
-from appliance.terrain.database import build_database, load_database, quantize
+from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline
+from appliance.terrain.quantize import quantize
 from tests.conftest import data_file
 
 # A window of jacksboro: small enough for a quick build, with the whole map around it for the horizon.

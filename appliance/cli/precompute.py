@@ -9,8 +9,9 @@ from appliance.atomic import check_output_path
 from appliance.errors import InputError
 from appliance.estimator.estimate import COARSE_STRIDE
 from appliance.logsetup import ProgressCallback
-from appliance.terrain.database import build_database, plan_grids
+from appliance.terrain.database import build_database
 from appliance.terrain.dem import load_dem
+from appliance.terrain.grid import plan_grids
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 
 MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)

@@ -21,114 +21,47 @@ File layout (little-endian)::
                                                  CHECKSUM_BLOCK bytes of the arrays; the header's
                                                  "checksum" entry gives its offset and block size)
 
-Elevation (deg) = offset + step * code.  The step is 0.1 degree (quantisation error at most 0.05
-degree) unless a node's skyline spans more than 25.4 degrees, where it grows to span/254.
-Azimuth j is ``j * 360 / n_azimuths`` degrees clockwise from true north.  Range (m) =
-DISTANCE_MIN_M * exp(DISTANCE_LOG_STEP * code): 5 % steps from 1 m to 300 km.  The range says how
-fast the skyline moves with position (parallax), and the terrain grid lets the estimator render
-exact skylines between nodes; candidate node (0, 0) is terrain node (row0, col0), same spacing.
+The codes and ranges are quantised as :mod:`appliance.terrain.quantize` says, on the node grid of
+:mod:`appliance.terrain.grid`.  The range says how fast the skyline moves with position (parallax),
+and the terrain grid lets the estimator render exact skylines between nodes; candidate node (0, 0)
+is terrain node (row0, col0), same spacing.
 
 The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
 block.  The first-pass arrays are made at build time so that no estimate has to make them.
-
-Nodes form a regular grid in a metric CRS: the DEM's own when it is a projected CRS with scale
-close to 1, else a transverse Mercator centred on the search area.  Node (row, col) lies at
-x = x0 + col * dx, y = y0 - row * dy; node index = row * n_cols + col.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import zlib
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
-import numba
 import numpy as np
-from affine import Affine
-from pyproj import CRS, Transformer
 
 from appliance.atomic import atomic_output
 from appliance.errors import DatabaseError, DemError, InputError
 from appliance.estimator.estimate import COARSE_STRIDE, SkylineGrid
-from appliance.numerics import FAST_FINITE
 from appliance.terrain.dem import Dem
+from appliance.terrain.grid import NodeGrid, grid_convergence_deg, lattice_of, plan_grids, terrain_on_grid
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
+from appliance.terrain.quantize import (
+    DISTANCE_LOG_STEP,
+    DISTANCE_MIN_M,
+    MISSING_CODE,
+    decode_distance,
+    store_centidegrees,
+    turn_and_quantize,
+)
 from appliance.terrain.sweep import HorizonSweeper
 
 MAGIC = b"VIPERDB\0"
 FORMAT_VERSION = 3
-DISTANCE_MIN_M = 1.0
-DISTANCE_LOG_STEP = 0.05
-MISSING_CODE = 255
-BASE_STEP_DEG = 0.1
-MAX_SPAN_DEG = 25.0
 ALIGN = 64
 CHECKSUM_BLOCK = 1 << 20  # bytes of the array section per CRC32
-MISSING_CDEG = np.iinfo(np.int16).min
-
-
-@dataclass(frozen=True)
-class NodeGrid:
-    """A regular grid of candidate nodes: in a metric CRS, or the lon/lat grid of a geographic DEM.
-
-    ``dx``/``dy`` are in the CRS's units; ``dx_m``/``dy_m`` the ground spacing in metres (for a
-    geographic grid, at the grid's centre latitude).
-    """
-
-    crs_wkt: str
-    x0: float
-    y0: float
-    dx: float
-    dy: float
-    n_rows: int
-    n_cols: int
-    dx_m: float
-    dy_m: float
-
-    @property
-    def n_nodes(self) -> int:
-        return self.n_rows * self.n_cols
-
-    @cached_property
-    def crs(self) -> CRS:
-        return CRS.from_wkt(self.crs_wkt)
-
-    @cached_property
-    def to_lonlat(self) -> Transformer:
-        return Transformer.from_crs(self.crs, self.crs.geodetic_crs, always_xy=True)
-
-    @cached_property
-    def from_lonlat(self) -> Transformer:
-        return Transformer.from_crs(self.crs.geodetic_crs, self.crs, always_xy=True)
-
-    def node_xy(self, index: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-        row, col = np.divmod(np.asarray(index), self.n_cols)
-        return self.x0 + col * self.dx, self.y0 - row * self.dy
-
-    def rc_to_xy(self, row: np.ndarray | float, col: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        return self.x0 + np.asarray(col) * self.dx, self.y0 - np.asarray(row) * self.dy
-
-    def xy_to_rc(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        return (self.y0 - np.asarray(y)) / self.dy, (np.asarray(x) - self.x0) / self.dx
-
-    def xy_to_lonlat(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        lon, lat = self.to_lonlat.transform(np.asarray(x, float), np.asarray(y, float))
-        return np.asarray(lon), np.asarray(lat)
-
-    def lonlat_to_xy(self, lon: np.ndarray | float, lat: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        x, y = self.from_lonlat.transform(np.asarray(lon, float), np.asarray(lat, float))
-        return np.asarray(x), np.asarray(y)
-
-    @property
-    def transform(self) -> Affine:
-        """Affine of the node grid seen as pixels centred on the nodes (for GeoTIFF output)."""
-        return Affine(self.dx, 0.0, self.x0 - self.dx / 2, 0.0, -self.dy, self.y0 + self.dy / 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,155 +120,6 @@ class SkylineDatabase:
         return body_named(self.header["body"]).effective_radius_m(self.header["refraction"])
 
 
-def encode_distance(distance_m: np.ndarray) -> np.ndarray:
-    """uint8 log-quantised ranges (255 where NaN)."""
-    d = np.asarray(distance_m, dtype=np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = np.rint(np.log(np.maximum(d, DISTANCE_MIN_M) / DISTANCE_MIN_M) / DISTANCE_LOG_STEP)
-    return np.where(np.isfinite(d), np.clip(c, 0, MISSING_CODE - 1), MISSING_CODE).astype(np.uint8)
-
-
-def decode_distance(codes: np.ndarray) -> np.ndarray:
-    c = np.asarray(codes)
-    return np.where(c == MISSING_CODE, np.nan, DISTANCE_MIN_M * np.exp(DISTANCE_LOG_STEP * c.astype(np.float64)))
-
-
-def _metric_grid_crs(dem: Dem, lon_c: float, lat_c: float) -> tuple[CRS, bool]:
-    """The CRS of the node grid, and True if it is the DEM's own (no resampling).
-
-    A geographic DEM keeps its own lon/lat grid, treated as locally metric with the spacing at the
-    search area's centre latitude; a projected DEM keeps its grid where the projection's scale is
-    within 0.2 % of 1; any other map is resampled onto a transverse Mercator grid.
-    """
-    if dem.crs.is_geographic:
-        return dem.crs, True
-    if dem.crs.is_projected:
-        try:
-            from pyproj import Proj
-
-            factors = Proj(dem.crs).get_factors(lon_c, lat_c)
-            scale = math.sqrt(factors.areal_scale)
-        except Exception:  # pyproj raises plain errors for CRSs without factors
-            scale = float("nan")
-        unit = dem.crs.axis_info[0].unit_conversion_factor if dem.crs.axis_info else 1.0
-        if abs(scale - 1.0) < 0.002 and abs(unit - 1.0) < 1e-9:
-            return dem.crs, True
-    return _tmerc(dem, lon_c, lat_c), False
-
-
-def _tmerc(dem: Dem, lon_c: float, lat_c: float) -> CRS:
-    ell = dem.crs.ellipsoid
-    a = ell.semi_major_metre if ell is not None else dem.body.semi_major_m
-    b = ell.semi_minor_metre if ell is not None else dem.body.semi_major_m
-    proj = f"+proj=tmerc +lat_0={lat_c!r} +lon_0={lon_c!r} +k=1 +x_0=0 +y_0=0 +a={a!r} +b={b!r} +units=m"
-    return CRS.from_proj4(proj + " +no_defs")
-
-
-def plan_grids(
-    dem: Dem,
-    search_bounds: tuple[float, float, float, float] | None,
-    spacing_m: float | None,
-    max_range_m: float,
-) -> tuple[NodeGrid, NodeGrid, tuple[int, int]]:
-    """Candidate grid, terrain grid (candidates plus the horizon's reach) and the candidates' offset
-    (row, col) inside the terrain grid."""
-    west, south, east, north = dem.bounds_lonlat()
-    if search_bounds is None:
-        search_bounds = (west, south, east, north)
-    sw, ss, se, sn = search_bounds
-    if not (sw < se and ss < sn):
-        raise InputError(f"search bounds {search_bounds}: expected W,S,E,N with W < E and S < N")
-    if se <= west or sw >= east or sn <= south or ss >= north:
-        raise InputError(
-            f"search bounds {search_bounds} lie outside the DEM {dem.source} "
-            f"({west:.5f}, {south:.5f}, {east:.5f}, {north:.5f})"
-        )
-    sw, ss, se, sn = max(sw, west), max(ss, south), min(se, east), min(sn, north)
-    if se - sw > 30.0 or sn - ss > 30.0:
-        raise InputError(
-            f"search area {se - sw:.1f} x {sn - ss:.1f} degrees is too large for one metric grid: "
-            "give --search-bounds W,S,E,N spanning at most 30 degrees"
-        )
-    lon_c, lat_c = (sw + se) / 2.0, (ss + sn) / 2.0
-    crs, native = _metric_grid_crs(dem, lon_c, lat_c)
-    to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
-    if native and spacing_m is None:
-        dx, dy = abs(dem.transform.a), abs(dem.transform.e)
-        ox, oy = dem.pixel_to_xy(np.array(0.0), np.array(0.0))
-        origin = (float(ox), float(oy))
-        if crs.is_geographic:
-            geod = dem.geod
-            _, _, dx_m = geod.inv(lon_c, lat_c, lon_c + dx, lat_c)
-            _, _, dy_m = geod.inv(lon_c, lat_c - dy / 2, lon_c, lat_c + dy / 2)
-        else:
-            dx_m, dy_m = dx, dy
-    else:
-        if crs.is_geographic:
-            crs, native = _tmerc(dem, lon_c, lat_c), False
-            to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
-        rx, ry = dem.resolution_m()
-        dx, dy = (rx, ry) if spacing_m is None else (float(spacing_m), float(spacing_m))
-        origin = (0.0, 0.0)
-        dx_m, dy_m = dx, dy
-    reach = max_range_m if not crs.is_geographic else max_range_m / min(dx_m / dx, dy_m / dy)
-    if not (dx > 0 and dy > 0):
-        raise InputError(f"grid spacing must be positive, got {dx} x {dy} m")
-
-    def box(lo_lon: float, lo_lat: float, hi_lon: float, hi_lat: float) -> tuple[float, ...]:
-        t = np.linspace(0, 1, 41)
-        lons = np.concatenate([lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, hi_lon),
-                               lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, lo_lon)])
-        lats = np.concatenate([np.full_like(t, lo_lat), lo_lat + (hi_lat - lo_lat) * t,
-                               np.full_like(t, hi_lat), lo_lat + (hi_lat - lo_lat) * t])
-        x, y = to_grid.transform(lons, lats)
-        return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
-
-    cx0, cy0, cx1, cy1 = box(sw, ss, se, sn)
-    tx0, ty0, tx1, ty1 = box(west, south, east, north)
-    if not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
-        tx0, ty0, tx1, ty1 = -np.inf, -np.inf, np.inf, np.inf
-    # the terrain grid holds the candidates and the horizon's reach around them, within the map
-    tx0, ty0 = min(max(tx0, cx0 - reach), cx0), min(max(ty0, cy0 - reach), cy0)
-    tx1, ty1 = max(min(tx1, cx1 + reach), cx1), max(min(ty1, cy1 + reach), cy1)
-
-    def cols(lo: float, hi: float, o: float, d: float) -> tuple[int, int]:
-        return math.ceil((lo - o) / d - 1e-9), math.floor((hi - o) / d + 1e-9)
-
-    c0, c1 = cols(cx0, cx1, origin[0], dx)
-    r0, r1 = cols(cy0, cy1, origin[1], dy)
-    tc0, tc1 = cols(tx0, tx1, origin[0], dx)
-    tr0, tr1 = cols(ty0, ty1, origin[1], dy)
-    if c1 < c0 or r1 < r0:
-        raise InputError(f"search bounds {search_bounds} contain no grid node at {dx:.1f} x {dy:.1f} m")
-    wkt = crs.to_wkt()
-    cand = NodeGrid(wkt, origin[0] + c0 * dx, origin[1] + r1 * dy, dx, dy, r1 - r0 + 1, c1 - c0 + 1, dx_m, dy_m)
-    terr = NodeGrid(
-        wkt, origin[0] + tc0 * dx, origin[1] + tr1 * dy, dx, dy, tr1 - tr0 + 1, tc1 - tc0 + 1, dx_m, dy_m
-    )
-    return cand, terr, (tr1 - r1, c0 - tc0)
-
-
-def _dem_pixel_origin(dem: Dem, grid: NodeGrid) -> tuple[int, int] | None:
-    """(row, col) of the DEM pixel at the grid's node (0, 0) when the grid is a window of the DEM's
-    own pixels (same CRS, spacing and orientation), else None."""
-    if grid.crs == dem.crs and abs(grid.dx - abs(dem.transform.a)) < 1e-12 and dem.transform.b == 0:
-        col0, row0 = dem.xy_to_pixel(np.array(grid.x0), np.array(grid.y0))
-        r, c = int(round(float(row0))), int(round(float(col0)))
-        if abs(r - row0) < 1e-6 and abs(c - col0) < 1e-6:
-            return r, c
-    return None
-
-
-def lattice_of(dem: Dem, grid: NodeGrid) -> tuple[tuple[int, int], tuple[int, int]]:
-    """Where ``grid`` lies in the lattice its nodes belong to: (row, col) of its node (0, 0) and
-    the lattice's shape.  A grid at the DEM's own spacing is a window of the DEM's pixels; any other
-    is its own lattice."""
-    origin = _dem_pixel_origin(dem, grid)
-    if origin is not None:
-        return origin, dem.shape
-    return (0, 0), (grid.n_rows, grid.n_cols)
-
-
 def run_threads(fn: Callable[[int], None], items: Iterable[int], workers: int | None = None) -> Iterator[int]:
     """Call ``fn`` on every item from a pool of threads (default: one per core); yields each item as
     it completes.  ``fn`` is expected to spend its time in kernels that release the GIL."""
@@ -345,174 +129,6 @@ def run_threads(fn: Callable[[int], None], items: Iterable[int], workers: int | 
         for fut in as_completed(futures):
             fut.result()
             yield futures[fut]
-
-
-def terrain_on_grid(dem: Dem, grid: NodeGrid) -> np.ndarray:
-    """DEM heights (m, NaN = nodata) at the grid's nodes, bilinear."""
-    origin = _dem_pixel_origin(dem, grid)
-    if origin is not None and min(origin) >= 0:
-        r, c = origin
-        sub = dem.elevation_m[r : r + grid.n_rows, c : c + grid.n_cols]
-        if sub.shape == (grid.n_rows, grid.n_cols):
-            return np.array(sub, dtype=np.float64)
-    to_dem = Transformer.from_crs(grid.crs, dem.crs, always_xy=True)
-    out = np.empty((grid.n_rows, grid.n_cols))
-    cols = grid.x0 + np.arange(grid.n_cols) * grid.dx
-    for r in range(grid.n_rows):
-        x, y = to_dem.transform(cols, np.full(grid.n_cols, grid.y0 - r * grid.dy))
-        out[r] = dem.sample(np.asarray(x), np.asarray(y))
-    return out
-
-
-def grid_convergence_deg(grid: NodeGrid, geod_crs: CRS) -> np.ndarray:
-    """True azimuth (deg) of grid north at every node, interpolated from a coarse lattice."""
-    from pyproj import Geod
-    from scipy.interpolate import RegularGridInterpolator
-
-    ell = geod_crs.ellipsoid
-    geod = Geod(a=ell.semi_major_metre, b=ell.semi_minor_metre) if ell is not None else Geod(ellps="WGS84")
-    rs = np.linspace(0, grid.n_rows - 1, min(grid.n_rows, 24))
-    cs = np.linspace(0, grid.n_cols - 1, min(grid.n_cols, 24))
-    rr, cc = np.meshgrid(rs, cs, indexing="ij")
-    x, y = grid.rc_to_xy(rr.ravel(), cc.ravel())
-    lon0, lat0 = grid.xy_to_lonlat(x, y)
-    lon1, lat1 = grid.xy_to_lonlat(x, y + grid.dy * min(1.0, 10.0 / grid.dy_m))
-    az, _, _ = geod.inv(lon0, lat0, lon1, lat1)
-    az = ((np.asarray(az) + 180.0) % 360.0) - 180.0
-    table = az.reshape(rr.shape)
-    if len(rs) < 2 or len(cs) < 2:
-        return np.full((grid.n_rows, grid.n_cols), float(np.mean(table)))
-    interp = RegularGridInterpolator((rs, cs), table)
-    R, C = np.meshgrid(np.arange(grid.n_rows), np.arange(grid.n_cols), indexing="ij")
-    return interp(np.stack([R.ravel(), C.ravel()], axis=1)).reshape(grid.n_rows, grid.n_cols)
-
-
-@numba.njit(cache=True, inline="always")
-def _atan(x: float) -> float:
-    """Arctangent to 1e-5 rad (0.0006 deg), branch-light so that loops over it vectorise."""
-    ax = abs(x)
-    inv = ax > 1.0
-    t = 1.0 / ax if inv else ax
-    t2 = t * t
-    # minimax polynomial for atan(t), 0 <= t <= 1
-    p = t * (0.99997726 + t2 * (-0.33262347 + t2 * (0.19354346 + t2 * (-0.11643287 + t2 * (0.05265332
-                                                                                         + t2 * -0.01172120)))))
-    r = 0.5 * math.pi - p if inv else p
-    return -r if x < 0 else r
-
-
-@numba.njit(cache=True, nogil=True, fastmath=FAST_FINITE)
-def _store_centidegrees(tan: np.ndarray, far: np.ndarray, out: np.ndarray, dist: np.ndarray) -> None:
-    """One azimuth of every node (row-major over the window): out[node] = elevation in hundredths
-    of a degree (int16; MISSING_CDEG where NaN); dist[node] = the horizon's log-quantised range."""
-    rows, cols = tan.shape
-    scale = 100.0 * 180.0 / math.pi
-    inv_log = 1.0 / DISTANCE_LOG_STEP
-    for r in range(rows):
-        line = tan[r]
-        fline = far[r]
-        base = r * cols
-        for c in range(cols):
-            t = line[c]
-            if t != t:
-                out[base + c] = MISSING_CDEG
-                dist[base + c] = MISSING_CODE
-            else:
-                out[base + c] = np.int16(round(_atan(t) * scale))
-                f = fline[c]
-                if f != f:
-                    dist[base + c] = MISSING_CODE
-                else:
-                    code = round(math.log(max(f, DISTANCE_MIN_M) / DISTANCE_MIN_M) * inv_log)
-                    dist[base + c] = min(max(code, 0), MISSING_CODE - 1)
-
-
-@numba.njit(cache=True)
-def _quantize_row(row: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: np.ndarray, i: int) -> None:
-    """Offset, step and uint8 codes of one skyline (deg, NaN = missing) into row i."""
-    lo = np.inf
-    hi = -np.inf
-    for e in row:
-        if not math.isnan(e):
-            lo = min(lo, e)
-            hi = max(hi, e)
-    if lo > hi:
-        offs[i] = np.nan
-        steps[i] = BASE_STEP_DEG
-        codes[i, :] = MISSING_CODE
-        return
-    o = np.float32(lo)
-    st = np.float32(max(BASE_STEP_DEG, (hi - lo) / (MISSING_CODE - 1)))
-    offs[i] = o
-    steps[i] = st
-    for j in range(row.size):
-        e = row[j]
-        if math.isnan(e):
-            codes[i, j] = MISSING_CODE
-        else:
-            codes[i, j] = min(max(round((e - o) / st), 0), MISSING_CODE - 1)
-
-
-@numba.njit(cache=True, nogil=True)
-def _turn_and_quantize(cdeg: np.ndarray, dgrid: np.ndarray, shift: np.ndarray, codes: np.ndarray,
-                       dist: np.ndarray, offs: np.ndarray, steps: np.ndarray, lo: int, hi: int) -> None:
-    """Nodes lo..hi-1: resample each node's skyline (cdeg[azimuth, node], azimuth-major) from grid
-    to true azimuths (true = grid + shift steps, linear on the circle; ranges from the nearer
-    azimuth), then quantise it into codes[node]."""
-    n_az = cdeg.shape[0]
-    block = 256
-    src = np.empty((block, n_az), dtype=np.int16)
-    dsrc = np.empty((block, n_az), dtype=np.uint8)
-    row = np.empty(n_az)
-    for b0 in range(lo, hi, block):
-        b1 = min(b0 + block, hi)
-        for j in range(n_az):  # a block of nodes gathered azimuth by azimuth: contiguous reads
-            for i in range(b0, b1):
-                src[i - b0, j] = cdeg[j, i]
-                dsrc[i - b0, j] = dgrid[j, i]
-        for i in range(b0, b1):
-            s = src[i - b0]
-            ds = dsrc[i - b0]
-            sh = shift[i]
-            whole = int(math.floor(sh))
-            w = sh - whole
-            if w == 0.0 and whole == 0:
-                for j in range(n_az):
-                    c = s[j]
-                    row[j] = np.nan if c == MISSING_CDEG else c / 100.0
-                    dist[i, j] = ds[j]
-            else:
-                # value at grid azimuth j - shift: between j - whole - 1 (weight w) and j - whole (1 - w)
-                for j in range(n_az):
-                    i1 = (j - whole) % n_az
-                    i0 = (i1 - 1) % n_az
-                    a = s[i0]
-                    bb = s[i1]
-                    if a == MISSING_CDEG or bb == MISSING_CDEG:
-                        row[j] = np.nan
-                        dist[i, j] = MISSING_CODE
-                    else:
-                        row[j] = (a * w + bb * (1.0 - w)) / 100.0
-                        dist[i, j] = ds[i0] if w >= 0.5 else ds[i1]
-            _quantize_row(row, codes, offs, steps, i)
-
-
-@numba.njit(cache=True, parallel=True)
-def _quantize_rows(elev: np.ndarray, codes: np.ndarray, offs: np.ndarray, steps: np.ndarray) -> None:
-    for i in numba.prange(elev.shape[0]):
-        _quantize_row(elev[i], codes, offs, steps, i)
-
-
-def quantize(elev_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-node offset and step, and uint8 codes, of skylines ``elev_deg[n, n_az]`` (NaN = missing).
-
-    The step is 0.1 degree (error at most 0.05) unless the skyline spans more than 25.4 degrees."""
-    e = np.ascontiguousarray(elev_deg, dtype=np.float64)
-    codes = np.empty(e.shape, dtype=np.uint8)
-    offs = np.empty(e.shape[0], dtype=np.float32)
-    steps = np.empty(e.shape[0], dtype=np.float32)
-    _quantize_rows(e, codes, offs, steps)
-    return codes, offs, steps
 
 
 def build_database(
@@ -552,7 +168,7 @@ def build_database(
 
     def one_azimuth(j: int) -> None:
         tan, far = sweeper.horizons(j * step_az)
-        _store_centidegrees(tan, far, cdeg[j], dgrid[j])
+        store_centidegrees(tan, far, cdeg[j], dgrid[j])
 
     done = 0
     for _ in run_threads(one_azimuth, range(n_azimuths), workers):
@@ -616,7 +232,7 @@ def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarr
         chunk = 4096
 
         def quantize_chunk(lo: int) -> None:
-            _turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps, lo, min(lo + chunk, n))
+            turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps, lo, min(lo + chunk, n))
 
         for _ in run_threads(quantize_chunk, range(0, n, chunk), workers):
             pass
