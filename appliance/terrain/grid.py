@@ -109,14 +109,44 @@ def _tmerc(dem: Dem, lon_c: float, lat_c: float) -> CRS:
     return CRS.from_proj4(proj + " +no_defs")
 
 
+Bounds = tuple[float, float, float, float]
+
+
 def plan_grids(
     dem: Dem,
-    search_bounds: tuple[float, float, float, float] | None,
+    search_bounds: Bounds | None,
     spacing_m: float | None,
     max_range_m: float,
 ) -> tuple[NodeGrid, NodeGrid, tuple[int, int]]:
     """Candidate grid, terrain grid (candidates plus the horizon's reach) and the candidates' offset
     (row, col) inside the terrain grid."""
+    sw, ss, se, sn = _search_area(dem, search_bounds)
+    lon_c, lat_c = (sw + se) / 2.0, (ss + sn) / 2.0
+    lattice = _lattice(dem, lon_c, lat_c, spacing_m)
+    reach = max_range_m if not lattice.crs.is_geographic else max_range_m / min(
+        lattice.dx_m / lattice.dx, lattice.dy_m / lattice.dy)
+    to_grid = Transformer.from_crs(dem.crs.geodetic_crs, lattice.crs, always_xy=True)
+    cx0, cy0, cx1, cy1 = _box_in_grid(to_grid, (sw, ss, se, sn))
+    tx0, ty0, tx1, ty1 = _box_in_grid(to_grid, dem.bounds_lonlat())
+    if not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
+        tx0, ty0, tx1, ty1 = -np.inf, -np.inf, np.inf, np.inf
+    # the terrain grid holds the candidates and the horizon's reach around them, within the map
+    tx0, ty0 = min(max(tx0, cx0 - reach), cx0), min(max(ty0, cy0 - reach), cy0)
+    tx1, ty1 = max(min(tx1, cx1 + reach), cx1), max(min(ty1, cy1 + reach), cy1)
+    c0, c1 = lattice.indices(cx0, cx1, 0)
+    r0, r1 = lattice.indices(cy0, cy1, 1)
+    tc0, tc1 = lattice.indices(tx0, tx1, 0)
+    tr0, tr1 = lattice.indices(ty0, ty1, 1)
+    if c1 < c0 or r1 < r0:
+        raise InputError(f"search bounds {search_bounds} contain no grid node at {lattice.dx:.1f} x "
+                         f"{lattice.dy:.1f} m")
+    cand = lattice.window(r0, r1, c0, c1)
+    terr = lattice.window(tr0, tr1, tc0, tc1)
+    return cand, terr, (tr1 - r1, c0 - tc0)
+
+
+def _search_area(dem: Dem, search_bounds: Bounds | None) -> Bounds:
+    """The search bounds (W, S, E, N degrees; default the whole map), checked and clipped to the map."""
     west, south, east, north = dem.bounds_lonlat()
     if search_bounds is None:
         search_bounds = (west, south, east, north)
@@ -134,63 +164,68 @@ def plan_grids(
             f"search area {se - sw:.1f} x {sn - ss:.1f} degrees is too large for one metric grid: "
             "give --search-bounds W,S,E,N spanning at most 30 degrees"
         )
-    lon_c, lat_c = (sw + se) / 2.0, (ss + sn) / 2.0
+    return sw, ss, se, sn
+
+
+@dataclass(frozen=True)
+class _Lattice:
+    """The infinite lattice the grids' nodes lie on: node (i, j) at (x0 + j * dx, y0 + i * dy)."""
+
+    crs: CRS
+    x0: float
+    y0: float
+    dx: float
+    dy: float
+    dx_m: float
+    dy_m: float
+
+    def indices(self, lo: float, hi: float, axis: int) -> tuple[int, int]:
+        """First and last lattice index with its coordinate inside [lo, hi] (x for axis 0, y for 1)."""
+        o, d = (self.x0, self.dx) if axis == 0 else (self.y0, self.dy)
+        return math.ceil((lo - o) / d - 1e-9), math.floor((hi - o) / d + 1e-9)
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> NodeGrid:
+        """The grid of lattice nodes x index c0..c1, y index r0..r1 (its first row is the northmost)."""
+        return NodeGrid(self.crs.to_wkt(), self.x0 + c0 * self.dx, self.y0 + r1 * self.dy, self.dx, self.dy,
+                        r1 - r0 + 1, c1 - c0 + 1, self.dx_m, self.dy_m)
+
+
+def _lattice(dem: Dem, lon_c: float, lat_c: float, spacing_m: float | None) -> _Lattice:
+    """The lattice of a search area centred at (lon_c, lat_c): the DEM's own pixels when its CRS is
+    metric enough and no spacing is asked for, else a transverse Mercator at ``spacing_m`` (default:
+    the DEM's resolution)."""
     crs, native = _metric_grid_crs(dem, lon_c, lat_c)
-    to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
     if native and spacing_m is None:
         dx, dy = abs(dem.transform.a), abs(dem.transform.e)
         ox, oy = dem.pixel_to_xy(np.array(0.0), np.array(0.0))
-        origin = (float(ox), float(oy))
         if crs.is_geographic:
             geod = dem.geod
             _, _, dx_m = geod.inv(lon_c, lat_c, lon_c + dx, lat_c)
             _, _, dy_m = geod.inv(lon_c, lat_c - dy / 2, lon_c, lat_c + dy / 2)
         else:
             dx_m, dy_m = dx, dy
+        lattice = _Lattice(crs, float(ox), float(oy), dx, dy, dx_m, dy_m)
     else:
         if crs.is_geographic:
-            crs, native = _tmerc(dem, lon_c, lat_c), False
-            to_grid = Transformer.from_crs(dem.crs.geodetic_crs, crs, always_xy=True)
+            crs = _tmerc(dem, lon_c, lat_c)
         rx, ry = dem.resolution_m()
         dx, dy = (rx, ry) if spacing_m is None else (float(spacing_m), float(spacing_m))
-        origin = (0.0, 0.0)
-        dx_m, dy_m = dx, dy
-    reach = max_range_m if not crs.is_geographic else max_range_m / min(dx_m / dx, dy_m / dy)
-    if not (dx > 0 and dy > 0):
-        raise InputError(f"grid spacing must be positive, got {dx} x {dy} m")
+        lattice = _Lattice(crs, 0.0, 0.0, dx, dy, dx, dy)
+    if not (lattice.dx > 0 and lattice.dy > 0):
+        raise InputError(f"grid spacing must be positive, got {lattice.dx} x {lattice.dy} m")
+    return lattice
 
-    def box(lo_lon: float, lo_lat: float, hi_lon: float, hi_lat: float) -> tuple[float, ...]:
-        t = np.linspace(0, 1, 41)
-        lons = np.concatenate([lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, hi_lon),
-                               lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, lo_lon)])
-        lats = np.concatenate([np.full_like(t, lo_lat), lo_lat + (hi_lat - lo_lat) * t,
-                               np.full_like(t, hi_lat), lo_lat + (hi_lat - lo_lat) * t])
-        x, y = to_grid.transform(lons, lats)
-        return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
 
-    cx0, cy0, cx1, cy1 = box(sw, ss, se, sn)
-    tx0, ty0, tx1, ty1 = box(west, south, east, north)
-    if not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
-        tx0, ty0, tx1, ty1 = -np.inf, -np.inf, np.inf, np.inf
-    # the terrain grid holds the candidates and the horizon's reach around them, within the map
-    tx0, ty0 = min(max(tx0, cx0 - reach), cx0), min(max(ty0, cy0 - reach), cy0)
-    tx1, ty1 = max(min(tx1, cx1 + reach), cx1), max(min(ty1, cy1 + reach), cy1)
-
-    def cols(lo: float, hi: float, o: float, d: float) -> tuple[int, int]:
-        return math.ceil((lo - o) / d - 1e-9), math.floor((hi - o) / d + 1e-9)
-
-    c0, c1 = cols(cx0, cx1, origin[0], dx)
-    r0, r1 = cols(cy0, cy1, origin[1], dy)
-    tc0, tc1 = cols(tx0, tx1, origin[0], dx)
-    tr0, tr1 = cols(ty0, ty1, origin[1], dy)
-    if c1 < c0 or r1 < r0:
-        raise InputError(f"search bounds {search_bounds} contain no grid node at {dx:.1f} x {dy:.1f} m")
-    wkt = crs.to_wkt()
-    cand = NodeGrid(wkt, origin[0] + c0 * dx, origin[1] + r1 * dy, dx, dy, r1 - r0 + 1, c1 - c0 + 1, dx_m, dy_m)
-    terr = NodeGrid(
-        wkt, origin[0] + tc0 * dx, origin[1] + tr1 * dy, dx, dy, tr1 - tr0 + 1, tc1 - tc0 + 1, dx_m, dy_m
-    )
-    return cand, terr, (tr1 - r1, c0 - tc0)
+def _box_in_grid(to_grid: Transformer, bounds: Bounds) -> Bounds:
+    """Bounding box in the grid's CRS of a lon/lat box, from 41 points along each of its edges."""
+    lo_lon, lo_lat, hi_lon, hi_lat = bounds
+    t = np.linspace(0, 1, 41)
+    lons = np.concatenate([lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, hi_lon),
+                           lo_lon + (hi_lon - lo_lon) * t, np.full_like(t, lo_lon)])
+    lats = np.concatenate([np.full_like(t, lo_lat), lo_lat + (hi_lat - lo_lat) * t,
+                           np.full_like(t, hi_lat), lo_lat + (hi_lat - lo_lat) * t])
+    x, y = to_grid.transform(lons, lats)
+    return float(np.min(x)), float(np.min(y)), float(np.max(x)), float(np.max(y))
 
 
 def _dem_pixel_origin(dem: Dem, grid: NodeGrid) -> tuple[int, int] | None:
