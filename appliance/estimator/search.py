@@ -280,7 +280,6 @@ def ssd_for_shifts(
     measured_deg: np.ndarray,
     shifts: np.ndarray,
     rows: np.ndarray | None = None,
-    stride: int = 1,
     tau: TauModel | None = None,
     weights: np.ndarray | None = None,
     cap_deg2: float = math.inf,
@@ -289,15 +288,13 @@ def ssd_for_shifts(
     """SSD (deg^2) of nodes ``rows`` (default all) for each shift (azimuth steps).
 
     ``shifts`` is 1-D (the same for every node) or (len(rows), k) per node.  ``measured_deg`` is on
-    the database's azimuth grid with NaN where missing.  With ``stride`` > 1 only every stride-th
-    azimuth is used and the sum is scaled to the full count: a cheap first pass.  inf marks nodes
+    the database's azimuth grid with NaN where missing.  inf marks nodes
     that cannot be candidates (nodata, or too many azimuths without terrain).  ``weights`` weigh
     the measured azimuths; measurements above a node's skyline by more than ``cap_deg2`` (weighted
     square) are occluders, left out of the sum and counted in ``occluded`` (same shape as the result).
     """
     valid = np.isfinite(measured_deg)
-    used = valid & (np.arange(measured_deg.size) % stride == 0)
-    jj = np.nonzero(used)[0].astype(np.int64)
+    jj = np.nonzero(valid)[0].astype(np.int64)
     mj = np.asarray(measured_deg)[jj].astype(np.float32)
     wj = np.ones(jj.size, np.float32) if weights is None else np.asarray(weights, np.float32)[jj]
     cap = float(min(cap_deg2, 1e30))
@@ -316,8 +313,6 @@ def ssd_for_shifts(
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
                     tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2, occ)
         tau.penalty = pen
-    if stride > 1:
-        out *= float(valid.sum()) / max(float(jj.size), 1.0)
     return out
 
 
