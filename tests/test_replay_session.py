@@ -108,7 +108,9 @@ def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, wi
     assert "incomplete" in cut.notes[0]
     assert bad.failure is not None and "not a readable MCAP log" in bad.failure and "\n" not in bad.failure
     rows = list(csv.DictReader((out / "summary.csv").open()))
-    assert [r["log"] for r in rows] == [str(odd), str(truncated), str(junk)]
+    # the logs named from the table's folder, so that the folder can be moved with its logs
+    assert [r["log"] for r in rows] == ["../logs/field #1 a.mcap", "../logs/truncated.mcap", "../logs/junk.mcap"]
+    assert all((out / r["log"]).resolve() == p.resolve() for r, p in zip(rows, [odd, truncated, junk], strict=True))
     assert float(rows[0]["error_m"]) == pytest.approx(ok.error_m, abs=0.05)
     assert rows[0]["valid_azimuths"] == str(int(ok.skyline.valid.sum())) and int(rows[0]["valid_azimuths"]) > 300
     text = page.read_text()

@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -227,14 +228,15 @@ def _fmt(v: float | None, spec: str = ".1f") -> str:
     return "" if v is None or not math.isfinite(v) else format(v, spec)
 
 
-def summary_rows(results: list[ReplayResult], db: SkylineDatabase) -> list[dict[str, str]]:
+def summary_rows(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> list[dict[str, str]]:
+    """One row per log; logs are named relative to ``out_dir``, where the table is written."""
     from appliance.position import estimate_status
 
     rows = []
     for r in results:
         p = r.position
         rows.append({
-            "log": str(r.data.path),
+            "log": Path(os.path.relpath(os.path.abspath(r.data.path), os.path.abspath(out_dir))).as_posix(),
             "status": "" if p is None else estimate_status(db, p, r.data.truth),
             "frames": str(r.data.frame_count),
             "complete": "yes" if r.data.complete else "no",
@@ -268,7 +270,7 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
         pano_png = out_dir / f"{r.name}.panorama.png"
         panorama_picture(r, db, pano_png)
         r.pictures = [map_png, pano_png]
-    rows = summary_rows(results, db)
+    rows = summary_rows(results, db, out_dir)
     csv_path = out_dir / "summary.csv"
     table = io.StringIO(newline="")
     writer = csv.DictWriter(table, fieldnames=list(rows[0]) if rows else ["log"])
@@ -286,7 +288,8 @@ def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
     def shown(r: ReplayResult, text: str) -> str:
         return rp.without_folders(text, [r.data.path, db.path, *([r.results_log] if r.results_log else [])], out_dir)
 
-    shown_rows = [{k: shown(r, v) for k, v in row.items()} for row, r in zip(rows, results, strict=True)]
+    shown_rows = [{k: rp.shown_path(r.data.path, out_dir) if k == "log" else shown(r, v) for k, v in row.items()}
+                  for row, r in zip(rows, results, strict=True)]
     parts.append(rp.table(shown_rows, {i: f"#log-{i + 1}" for i in range(len(results))}))
     for i, r in enumerate(results):
         parts.append(rp.heading(r.name, anchor=f"log-{i + 1}"))
