@@ -112,8 +112,11 @@ def live_session(tmp_path_factory, dem, window_db):
         def estimate_seen() -> bool:
             return any(json.loads(p).get("procedure") == "estimate" for p in client.payloads(t.PROCEDURE))
 
-        deadline = time.monotonic() + 30.0
-        while not estimate_seen() and time.monotonic() < deadline:
+        def everything_seen() -> bool:  # a busy machine can deliver a latched topic late
+            return estimate_seen() and all(client.payloads(topic) for topic in (t.PANORAMA, t.ESTIMATE_FIX, t.REGION))
+
+        deadline = time.monotonic() + 60.0
+        while not everything_seen() and time.monotonic() < deadline:
             time.sleep(0.1)
         client.stop.set()
         client.join(10.0)
