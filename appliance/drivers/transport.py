@@ -159,6 +159,17 @@ class ReconnectingStream:
             self._lost(exc)
             return b""
 
+    def reset_input_buffer(self) -> None:
+        """Discard the bytes received and not read yet (nothing while disconnected)."""
+        s = self._stream
+        reset = getattr(s, "reset_input_buffer", None)
+        if reset is None:
+            return
+        try:
+            reset()
+        except (serial.SerialException, OSError) as exc:
+            self._lost(exc)
+
     def write(self, data: bytes) -> int | None:
         s = self._ensure_open()
         if s is None:
