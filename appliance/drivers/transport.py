@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import re
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -167,7 +168,7 @@ class ReconnectingStream:
             return
         try:
             reset()
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, OSError, termios.error) as exc:  # a pty whose other side went away
             self._lost(exc)
 
     def write(self, data: bytes) -> int | None:
