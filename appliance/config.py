@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import re
 import sys
 import types
 import typing
@@ -51,6 +52,19 @@ def _finite(key: str, value: float) -> None:
 
 def _baud(key: str, value: int) -> None:
     _require(50 <= value <= 4_000_000, key, "a baud rate in [50, 4000000]", value)
+
+
+UDP_SCHEME = "udp://"
+_UDP = re.compile(r"udp://(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]*)):(?P<port>\d{1,5})")
+
+
+def udp_address(source: str, key: str) -> tuple[str, int]:
+    """(host, port) of ``udp://HOST:PORT`` (``udp://:5600``: every IPv4 interface); raises naming ``key``."""
+    m = _UDP.fullmatch(source)
+    _require(m is not None and int(m.group("port")) <= 65535, key, "udp://HOST:PORT with a port in [0, 65535]",
+             source)
+    assert m is not None
+    return m.group("v6") or m.group("host") or "0.0.0.0", int(m.group("port"))
 
 
 def _choices(kind: type[enum.Enum]) -> str:
@@ -191,6 +205,19 @@ class SessionConfig:
 
 
 @dataclass(frozen=True)
+class TraverseConfig:
+    """Rover traverses: a session is a series of stops, each stop's estimate fused with the last one's
+    posterior moved by the rover's odometry (paper section 6.4)."""
+
+    stops: int = 0  # 0: every session is one stop on its own; N >= 1: a session is a traverse of N stops
+    odometry_timeout_s: float = 900.0  # each stop after the first waits this long for the odometry line
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.stops <= 100_000, "traverse.stops", "an integer in [0, 100000]", self.stops)
+        _positive("traverse.odometry_timeout_s", self.odometry_timeout_s)
+
+
+@dataclass(frozen=True)
 class GpsDeviceConfig:
     """The GPS receiver: ``source`` is a device path, a pyserial URL or a recorded log ("" = none)."""
 
@@ -207,6 +234,22 @@ class GpsDeviceConfig:
         _require(math.isfinite(self.reconnect_max_s) and self.reconnect_max_s >= self.reconnect_initial_s,
                  "devices.gps.reconnect_max_s", f"a number >= reconnect_initial_s ({self.reconnect_initial_s:g})",
                  self.reconnect_max_s)
+
+
+@dataclass(frozen=True)
+class OdometryDeviceConfig:
+    """The rover's odometry, one line per stop (``appliance.drivers.odometry``): a device path or
+    pyserial URL, or ``udp://HOST:PORT`` to listen on ("" = none)."""
+
+    source: str = ""
+    baudrate: int = 9600
+    read_timeout_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        _baud("devices.odometry.baudrate", self.baudrate)
+        _positive("devices.odometry.read_timeout_s", self.read_timeout_s)
+        if self.source.startswith(UDP_SCHEME):
+            udp_address(self.source, "devices.odometry.source")
 
 
 @dataclass(frozen=True)
@@ -314,6 +357,7 @@ class DevicesConfig:
     inclinometer: InclinometerConfig = field(default_factory=InclinometerConfig)
     stage: StageConfig = field(default_factory=StageConfig)
     camera: CameraDeviceConfig = field(default_factory=CameraDeviceConfig)
+    odometry: OdometryDeviceConfig = field(default_factory=OdometryDeviceConfig)
     # calibration TOML written by `viper calibrate compass|inclinometer`: its [compass] table
     # (hard_iron_offset in tesla, soft_iron_matrix) and [inclinometer] table (pitch_offset_deg,
     # roll_offset_deg) replace the same keys of [devices.compass] / [devices.inclinometer]
@@ -388,6 +432,10 @@ class SimConfig:
     gps_satellites: int = 9
     gps_rate_hz: float = 1.0
     seed: int = 0
+    # the simulated rover of a traverse: legs of a random length in this range (m), in a random direction,
+    # reported by its odometry with this 1-sigma noise per axis (m)
+    leg_length_m: tuple[float, float] = (200.0, 400.0)
+    odometry_sigma_m: float = 15.0
     faults: SimFaultsConfig = field(default_factory=SimFaultsConfig)
 
     def __post_init__(self) -> None:
@@ -410,6 +458,11 @@ class SimConfig:
         _require(0 <= self.gps_satellites <= 99, "sim.gps_satellites", "an integer in [0, 99]", self.gps_satellites)
         _require(math.isfinite(self.gps_rate_hz) and 0.0 < self.gps_rate_hz <= 100.0, "sim.gps_rate_hz",
                  "a number in (0, 100]", self.gps_rate_hz)
+        lo, hi = self.leg_length_m
+        _require(math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi <= 10_000.0, "sim.leg_length_m",
+                 "[lo, hi] metres with 0 <= lo <= hi <= 10000", [lo, hi])
+        _require(math.isfinite(self.odometry_sigma_m) and 0.0 <= self.odometry_sigma_m <= 1000.0,
+                 "sim.odometry_sigma_m", "metres in [0, 1000]", self.odometry_sigma_m)
 
 
 @dataclass(frozen=True)
@@ -418,6 +471,7 @@ class Config:
     platform: PlatformConfig = field(default_factory=PlatformConfig)
     logbook: LogbookConfig = field(default_factory=LogbookConfig)
     session: SessionConfig = field(default_factory=SessionConfig)
+    traverse: TraverseConfig = field(default_factory=TraverseConfig)
     devices: DevicesConfig = field(default_factory=DevicesConfig)
     sim: SimConfig = field(default_factory=SimConfig)
 

@@ -240,3 +240,66 @@ def estimate_figure(db: SkylineDatabase, pos: Position, skyline: Skyline,
     ax_sky.grid(alpha=0.3)
     fig.tight_layout()
     return fig
+
+
+@dataclass(frozen=True)
+class TrackStop:
+    """One stop of a traverse as the track picture draws it: (lat, lon) of its estimates and truth."""
+
+    label: str
+    position: tuple[float, float] | None  # the stop's (fused) estimate
+    alone: tuple[float, float] | None  # from its own skyline alone
+    truth: tuple[float, float] | None
+
+
+def track_figure(db: SkylineDatabase, stops: list[TrackStop], title: str = "traverse") -> Figure:
+    """The traverse on the map's hillshade in longitude and latitude with a scale bar: the line through
+    the GPS truths, the line through the stops' estimates (fused), and each stop's estimate from its
+    skyline alone; the view spans the track with a margin."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.colors import LightSource
+    from matplotlib.figure import Figure
+
+    g = db.grid
+    lon, lat = _node_lonlat(db)
+    ground = np.asarray(db.ground_m, float).reshape(g.n_rows, g.n_cols)
+    filled = np.where(np.isfinite(ground), ground, np.nanmin(ground))
+    shade = LightSource(azdeg=315, altdeg=45).hillshade(filled, vert_exag=2.0, dx=g.dx_m, dy=g.dy_m)
+    points = [p for s in stops for p in (s.position, s.alone, s.truth) if p is not None]
+    if not points:
+        points = [(float(np.mean(lat)), float(np.mean(lon)))]
+    scale = map_scale(db, float(np.mean([p[0] for p in points])), float(np.mean([p[1] for p in points])))
+    map_span_m = (float(np.ptp(lon)) * scale.m_per_deg_lon, float(np.ptp(lat)) * scale.m_per_deg_lat)
+    cell_m = math.sqrt(g.dx_m * g.dy_m)
+    (x0, x1), (y0, y1) = zoom_window(scale, points, cell_m, map_span_m)
+
+    fig = Figure(figsize=(10, 9))
+    ax = fig.add_subplot(1, 1, 1, label="track")
+    ax.pcolormesh(lon, lat, shade, cmap="gray", shading="nearest", rasterized=True)
+    truth = [s.truth for s in stops if s.truth is not None]
+    if truth:
+        ax.plot([p[1] for p in truth], [p[0] for p in truth], "-x", color="lime", lw=2, ms=10, mew=2,
+                label="GPS truth")
+    fused = [s.position for s in stops if s.position is not None]
+    if fused:
+        ax.plot([p[1] for p in fused], [p[0] for p in fused], "-+", color="blue", lw=1.5, ms=16, mew=2.5,
+                label="estimate (fused)")
+    alone = [s.alone for s in stops if s.alone is not None]
+    if alone:
+        ax.plot([p[1] for p in alone], [p[0] for p in alone], "o", mfc="none", color="orange", ms=11, mew=1.8,
+                label="estimate alone")
+    for s in stops:
+        where = s.position or s.truth
+        if where is not None:
+            ax.annotate(s.label, (where[1], where[0]), textcoords="offset points", xytext=(8, 8), color="white",
+                        fontsize=11, fontweight="bold")
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    geographic_axes(ax, scale)
+    add_scale_bar(ax, scale)
+    ax.set_title(f"{title} (nodes {cell_m:.0f} m apart)")
+    ax.legend(loc="upper right")
+    fig.tight_layout()
+    return fig

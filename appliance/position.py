@@ -29,6 +29,10 @@ class Move:
     north_m: float
     sigma_m: float
 
+    def then(self, other: Move) -> Move:
+        """This move followed by ``other``: displacements add, independent sigmas in quadrature."""
+        return Move(self.east_m + other.east_m, self.north_m + other.north_m, math.hypot(self.sigma_m, other.sigma_m))
+
 
 @dataclass(frozen=True)
 class Position:
@@ -150,6 +154,18 @@ def locate(
     return place(db, res, source)
 
 
+def transported_prior(db: SkylineDatabase, grid: SkylineGrid, pos: Position, move: Move) -> np.ndarray:
+    """The log prior per node of the next station: ``pos``'s posterior moved by ``move`` (true east and
+    north, turned onto the grid's axes by the grid convergence at ``pos``) and blurred by its sigma."""
+    gamma = math.radians(float(db.convergence_deg[pos.result.node]))
+    c, s = math.cos(gamma), math.sin(gamma)
+    # grid +x is (cos g, -sin g) and grid +y is (sin g, cos g) in (east, north)
+    x_m = move.east_m * c - move.north_m * s
+    y_m = move.east_m * s + move.north_m * c
+    return transport_prior(pos.result.posterior_map, grid.n_rows, grid.n_cols, grid.dx_m, grid.dy_m, x_m, y_m,
+                           move.sigma_m)
+
+
 def locate_sequence(
     db: SkylineDatabase,
     skylines: list[tuple[str, Skyline]],
@@ -174,7 +190,5 @@ def locate_sequence(
                      map_sigma_m)
         out.append(pos)
         if i < len(moves):
-            mv = moves[i]
-            prior = transport_prior(pos.result.posterior_map, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
-                                    mv.east_m, mv.north_m, mv.sigma_m)
+            prior = transported_prior(db, g, pos, moves[i])
     return out

@@ -51,15 +51,17 @@ def load_session_database(cfg: SessionConfig, dem: Dem | None = None) -> Skyline
     return load_database(cfg.database, dem)
 
 
-def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, source: str = "") -> Position:
-    """The position of ``skyline`` in ``db``; refuses a skyline with too few valid azimuths."""
+def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, source: str = "",
+                   log_prior: np.ndarray | None = None) -> Position:
+    """The position of ``skyline`` in ``db`` (under ``log_prior``, per node, when given: a traverse's
+    transported posterior); refuses a skyline with too few valid azimuths."""
     from appliance.position import locate
 
     if skyline.valid_fraction < cfg.min_valid_fraction:
         raise EstimationError(
             f"skyline has {skyline.valid_fraction:.0%} valid azimuths, below {cfg.min_valid_fraction:.0%}"
         )
-    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, source=source,
+    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, log_prior, source=source,
                   occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m)
 
 

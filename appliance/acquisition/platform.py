@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from appliance.drivers.gps import GpsFix
+from appliance.drivers.odometry import OdometryReport
 from appliance.vision.intrinsics import CameraIntrinsics
 
 if TYPE_CHECKING:
@@ -103,6 +104,16 @@ class GpsSource(Protocol):
         """Fixes completed since the last call (may be empty)."""
         ...
 
+    def discard_pending(self) -> None:
+        """Drop the input received and not read yet (a measurement starts now)."""
+        ...
+
+
+class OdometrySource(Protocol):
+    def poll(self) -> list[OdometryReport]:
+        """Odometry lines completed since the last call (may be empty; waits at most a read timeout)."""
+        ...
+
 
 class Leveller(Protocol):
     """Whoever adjusts the tripod: a person reading the guidance, or a motorised leveller."""
@@ -121,6 +132,7 @@ class Platform:
     camera: Camera | None
     gps: GpsSource | None
     leveller: Leveller | None
+    odometry: OdometrySource | None = None
 
 
 def platform_of(devices: Devices) -> Platform:
@@ -133,4 +145,5 @@ def platform_of(devices: Devices) -> Platform:
         camera=devices.camera,
         gps=devices.gps,
         leveller=devices.leveller,
+        odometry=devices.odometry,
     )

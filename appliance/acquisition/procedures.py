@@ -237,8 +237,10 @@ def average_fixes(fixes: Sequence[GpsFix], max_hdop: float, min_fixes: int) -> T
 def ground_truth(
     gps: GpsSource, clock: Clock, cfg: SessionConfig, on_fix: Callable[[GpsFix], None] = lambda f: None
 ) -> TruthResult:
-    """Collect fixes for ``truth_duration_s`` and average them with quality gating."""
+    """Collect fixes for ``truth_duration_s`` from now (what the receiver sent before is discarded) and
+    average them with quality gating."""
     fixes: list[GpsFix] = []
+    gps.discard_pending()
     start = clock.monotonic_s()
     while clock.monotonic_s() - start < cfg.truth_duration_s:
         for fix in gps.poll():

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
+import numpy as np
 
 from appliance.acquisition import onboard, procedures
 from appliance.acquisition.platform import Platform, platform_of
@@ -53,6 +54,10 @@ class SessionResult:
     disk_full: bool = False
     panorama: Any = None
     skyline: Skyline | None = None
+    # with a prior (a traverse's stop after the first): the estimate from this skyline alone, and its error;
+    # ``estimate`` is then the fused one
+    estimate_alone: Position | None = None
+    error_alone_m: float | None = None
 
 
 def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:
@@ -80,11 +85,13 @@ class Session:
         should_stop: Callable[[], bool] = lambda: False,
         on_status: Callable[[str], None] = lambda s: None,
         approx_position: tuple[float, float] | None = None,
+        log_prior: np.ndarray | None = None,
     ) -> None:
         self.p, self.log, self.cfg = platform, logbook, config
         self.db, self.result = db, result
         self.should_stop, self.on_status = should_stop, on_status
         self.approx = approx_position
+        self.log_prior = log_prior
 
     # -------------------------------------------------------------------------------- helpers
     def now(self) -> int:
@@ -116,30 +123,47 @@ class Session:
     def run(self) -> SessionResult:
         r = self.result
         try:
-            self.log.write_json(t.SESSION, "viper.Session", {"session_id": r.session_id}, self.now())
-            if self.p.camera is not None:
-                intr = self.p.camera.intrinsics
-                self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
-                self.log.write_proto(t.TF, m.optical_transform(self.now()), self.now())
-            self.say("info", f"session {r.session_id} started")
-            self.log.flush()
-            self.step("level", self.do_level)
-            compass = self.step("compass", self.do_compass)
-            truth = self.step("truth", self.do_truth)
-            frames = self.step("capture", lambda: self.do_capture(compass, truth)) or []
-            self.step("estimate", lambda: self.do_estimate(frames, truth))
-            self.say("info", f"session {r.session_id} finished: {r.status.value}")
+            self.write_header()
+            self.run_procedures()
         except StopRequestedError:
-            r.stopped = True
-            r.status = Status.DEGRADED
-            self.say("warning", "session stopped on request; log closed with everything captured so far")
+            self.stopped()
         except LogbookFullError as exc:
-            r.disk_full = True
-            r.status = Status.FAILED
-            r.problems.append(str(exc))
+            self.disk_full(exc)
         finally:
             self.log.close()
         return r
+
+    def write_header(self) -> None:
+        """The session's description and the camera's calibration, once at the start of the log."""
+        self.log.write_json(t.SESSION, "viper.Session", {"session_id": self.result.session_id}, self.now())
+        if self.p.camera is not None:
+            intr = self.p.camera.intrinsics
+            self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
+            self.log.write_proto(t.TF, m.optical_transform(self.now()), self.now())
+
+    def run_procedures(self) -> None:
+        """Level, compass, truth, capture, estimate into the log (left open: a traverse writes its
+        stops one after the other into one log); raises StopRequestedError and LogbookFullError."""
+        r = self.result
+        self.say("info", f"session {r.session_id} started")
+        self.log.flush()
+        self.step("level", self.do_level)
+        compass = self.step("compass", self.do_compass)
+        truth = self.step("truth", self.do_truth)
+        frames = self.step("capture", lambda: self.do_capture(compass, truth)) or []
+        self.step("estimate", lambda: self.do_estimate(frames, truth))
+        self.say("info", f"session {r.session_id} finished: {r.status.value}")
+
+    def stopped(self) -> None:
+        """A stop request ended the session: recorded in the result and the log."""
+        self.result.stopped = True
+        self.result.status = Status.DEGRADED
+        self.say("warning", "session stopped on request; log closed with everything captured so far")
+
+    def disk_full(self, exc: LogbookFullError) -> None:
+        self.result.disk_full = True
+        self.result.status = Status.FAILED
+        self.result.problems.append(str(exc))
 
     def step(self, name: str, action: Callable[[], Any]) -> Any:
         self.check_stop()
@@ -315,18 +339,30 @@ class Session:
                                         pano.elevation_to_row(sky.elevation_deg))
         self.log.write_proto(t.PANORAMA_SKYLINE, overlay, self.now())
         self.on_status("estimate: searching the skyline database")
-        pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
-        self.result.estimate = pos
         where = None
         if truth is not None and truth.lat_deg is not None and truth.lon_deg is not None:
             where = (truth.lat_deg, truth.lon_deg)
+        pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
+        if self.log_prior is not None:
+            from appliance.position import truth_error_m
+
+            self.result.estimate_alone = pos
+            self.result.error_alone_m = None if where is None else truth_error_m(self.db, pos, where)
+            self.log.write_proto(t.ESTIMATE_ALONE_FIX, m.location_fix(self.now(), pos.lat, pos.lon,
+                                                                     frame_id="estimate_alone"), self.now())
+            self.on_status("estimate: fusing with the previous stop")
+            pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id,
+                                         log_prior=self.log_prior)
+        self.result.estimate = pos
         rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
         flag = "ambiguous" if pos.result.ambiguous else "ok"
+        fused = " fused with the previous stop" if self.log_prior is not None else ""
         if rec.error_m is not None:
-            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} ({flag}): {rec.error_m:.0f} m from the GPS truth")
+            self.say("info", f"estimate{fused} {pos.lat:.6f} {pos.lon:.6f} ({flag}): {rec.error_m:.0f} m from the "
+                             "GPS truth")
         else:
-            self.say("info", f"estimate {pos.lat:.6f} {pos.lon:.6f} ({flag}; no GPS truth to compare)")
+            self.say("info", f"estimate{fused} {pos.lat:.6f} {pos.lon:.6f} ({flag}; no GPS truth to compare)")
         if pos.result.ambiguous:
             self.outcome("estimate", Status.AMBIGUOUS, "; ".join(pos.result.notes) or "region too large",
                          region_cells=int(pos.result.region_nodes.size))

@@ -95,20 +95,31 @@ def session_runner(config: Config, seed: int | None = None, publisher: Publisher
     """What one session of ``viper capture`` or the session daemon runs: on the hardware, a session
     with the ``[session] database``; in simulation, a whole field session at a random position of the
     ``[sim] dem`` map (``seed`` chooses it); every logged message also goes to ``publisher``, the
-    live view, when given."""
+    live view, when given.  With ``[traverse] stops``, a session is a rover's traverse of that many
+    stops (in simulation, the rover twin drives the platform between them)."""
 
     def run(log_dir: Path, should_stop: Callable[[], bool], on_status: Callable[[str], None]) -> SessionResult:
+        stops = config.traverse.stops
         if config.platform.kind is PlatformKind.SIM:
-            from appliance.sim.field_session import run_field_session
+            from appliance.sim.field_session import run_field_session, run_field_traverse
 
+            if stops:
+                traverse, _ = run_field_traverse(config, log_dir, stops, seed=seed, should_stop=should_stop,
+                                                 on_status=on_status, publisher=publisher)
+                return traverse
             result, _ = run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
                                          publisher=publisher)
             return result
         from appliance.acquisition.onboard import load_session_database
-        from appliance.acquisition.session import run_platform_session
 
         on_status("loading the skyline database")
         db = load_session_database(config.session)
+        if stops:
+            from appliance.acquisition.traverse import run_platform_traverse
+
+            return run_platform_traverse(open_devices, config, log_dir, db, should_stop, on_status, publisher)
+        from appliance.acquisition.session import run_platform_session
+
         return run_platform_session(open_devices, config, log_dir, db, should_stop, on_status, publisher)
 
     return run

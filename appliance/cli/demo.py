@@ -3,7 +3,10 @@
 Level, calibrate the compass, GPS ground truth, capture, estimate, on the simulated platform (the
 real drivers over the twins) at a random position; prints the estimate against the GPS truth and
 leaves the MCAP log and the report in ``--out``.  ``--skyline-only`` is the quicker synthetic-skyline
-demo (:func:`appliance.sim.demo.run_demo`).
+demo (:func:`appliance.sim.demo.run_demo`).  ``--traverse N`` is a rover's traverse: N such sessions
+at stops a few hundred metres apart along a random path, the rover twin reporting each leg over its
+odometry line, each stop's estimate fused with the previous stop's; it prints every stop's error
+alone and fused, and the report shows the track.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, help="random seed (default: a new position each run)")
     p.add_argument("--skyline-only", action="store_true",
                    help="only locate a synthetic noisy skyline (no platform, no images)")
+    p.add_argument("--traverse", type=int, metavar="N",
+                   help="a rover's traverse of N stops (legs of 200-400 m), each fused with the last")
     p.add_argument("--time-rate", type=float, default=20.0, help="simulated seconds per real second (default 20)")
     p.set_defaults(func=run)
 
@@ -39,6 +44,12 @@ def demo_config(out: Path, time_rate: float) -> Config:
 def run(args: argparse.Namespace) -> int:
     if not args.time_rate > 0:
         raise InputError(f"--time-rate {args.time_rate}: must be a positive number")
+    if args.traverse is not None:
+        if args.skyline_only:
+            raise InputError("--traverse runs whole sessions; it cannot be combined with --skyline-only")
+        if not 1 <= args.traverse <= 1000:
+            raise InputError(f"--traverse {args.traverse}: expected a number of stops in 1..1000")
+        return run_traverse(args)
     if args.skyline_only:
         return run_skyline_only(args)
     from appliance.acquisition.replay import session_report
@@ -108,3 +119,58 @@ def run_skyline_only(args: argparse.Namespace) -> int:
         print(f"  note       {note}")
     print(f"  picture    {r.picture_path}")
     return 0
+
+
+def run_traverse(args: argparse.Namespace) -> int:
+    from appliance.acquisition.traverse_report import write_traverse_report
+    from appliance.position import truth_error_m
+    from appliance.sim.demo import DEMO_DEM, demo_database
+    from appliance.sim.field_session import run_field_traverse
+    from appliance.terrain.dem import load_dem
+
+    out = check_output_folder(args.out)
+    print(f"Viper demo: a rover's traverse of {args.traverse} stops on the jacksboro DEM "
+          "(Cumberland Mountains, Tennessee)")
+    t0 = time.monotonic()
+    dem = load_dem(DEMO_DEM)
+    db = demo_database(dem, out)
+    print(f"  setup      skyline database {db.path} ready in {time.monotonic() - t0:.0f} s")
+    t1 = time.monotonic()
+
+    def status(text: str) -> None:
+        if not text.startswith("capture "):
+            print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
+
+    config = demo_config(out, args.time_rate)
+    r, truths = run_field_traverse(config, out, args.traverse, seed=args.seed, dem=dem, db=db, on_status=status)
+    print(f"  traverse   {r.status.value}: {len(r.stops)} of {args.traverse} stops")
+    for problem in r.problems:
+        print(f"  problem    {problem}")
+    print("  stop  odometry E, N +- sigma (m)   alone: error (m)  status     fused: error (m)  status     "
+          "true error fused (m)")
+    for s, tr in zip(r.stops, truths, strict=True):
+        odo = "start" if s.odometry is None else \
+            f"{s.odometry.east_m:7.0f}, {s.odometry.north_m:7.0f} +- {s.odometry.sigma_m:.0f}"
+        alone = s.alone
+        a_err = "-" if s.error_alone_m is None else f"{s.error_alone_m:.1f}"
+        a_flag = "-" if alone is None else _flag(db, alone, s.truth)
+        if s.fused and s.position is not None:
+            f_err = "-" if s.error_m is None else f"{s.error_m:.1f}"
+            f_flag = _flag(db, s.position, s.truth)
+        else:
+            f_err, f_flag = "-", f"({s.fusion_note})"
+        true_err = "-" if s.position is None else f"{truth_error_m(db, s.position, (tr.lat_deg, tr.lon_deg)):.1f}"
+        print(f"  {s.stop:4d}  {odo:>28}   {a_err:>16}  {a_flag:<9}  {f_err:>16}  {f_flag:<9}  {true_err:>10}")
+    page = write_traverse_report(r, db, out, f"Viper demo: a rover's traverse of {len(r.stops)} stops on the "
+                                             "jacksboro map")
+    print(f"  report     {page}")
+    print(f"  log        {r.log_path}  (open in Foxglove: /traverse/track, /estimate/fix, /gps/truth)")
+    print(f"  time       {time.monotonic() - t1:.0f} s for the traverse after setup")
+    return 0 if r.stops and all(s.position is not None for s in r.stops) else 1
+
+
+def _flag(db: object, pos: object, truth: tuple[float, float] | None) -> str:
+    """AMBIGUOUS (the region is large, or the GPS truth lies outside it) or ok, as every output says."""
+    from appliance.acquisition.traverse import estimate_flag
+
+    return "AMBIGUOUS" if estimate_flag(db, pos, truth) == "ambiguous" else "ok"  # type: ignore[arg-type]

@@ -5,7 +5,7 @@ The simulated twins (:func:`appliance.sim.platform.open_sim_platform`) speak the
 protocols and call :func:`build_devices` too, so the same drivers run in both cases; the caller
 (the command line, :mod:`appliance.cli._platform`) chooses between them.  The returned
 :class:`Devices` has the attributes the acquisition layer's ``Platform`` has (``clock``, ``tilt``,
-``compass``, ``stage``, ``camera``, ``gps``, ``leveller``) plus ``heading``; see
+``compass``, ``stage``, ``camera``, ``gps``, ``leveller``, ``odometry``) plus ``heading``; see
 :mod:`appliance.drivers.devices` for each device's methods.  A device not configured (empty
 ``source``) is ``None``.  Always ``close()`` it (or use it as a context manager): that stops the
 twins and closes the ports.  Calibrations arrive as objects (:class:`DeviceCalibration`); the
@@ -32,6 +32,7 @@ from appliance.drivers.devices import AccelTilt, MagnetometerCompass, NmeaCompas
 from appliance.drivers.gps_reader import GpsReader, GpsSourceOptions, open_gps
 from appliance.drivers.i2c import I2cBus, open_smbus
 from appliance.drivers.magnetometer import HardSoftIron, Hmc5883l
+from appliance.drivers.odometry_reader import OdometryReader, open_odometry
 from appliance.drivers.ptu import PanTiltUnit
 from appliance.drivers.transport import Backoff, ReconnectingStream, open_serial
 from appliance.errors import DeviceError
@@ -68,6 +69,7 @@ class Devices:
     stage: PtuStage | None
     camera: V4l2Camera | None
     leveller: Leveller | None = None
+    odometry: OdometryReader | None = None
     _closers: list[Callable[[], None]] = field(default_factory=list)
 
     def close(self) -> None:
@@ -102,6 +104,7 @@ def build_devices(
     camera: V4l2Camera | None,
     clock: Clock,
     calibration: DeviceCalibration,
+    odometry_source: str = "",
 ) -> Devices:
     """Wire the drivers to the given sources (shared by the hardware and the simulated platform)."""
     d = config.devices
@@ -151,11 +154,17 @@ def build_devices(
             stage = PtuStage(unit)
         if camera is not None and hasattr(camera, "close"):
             closers.append(camera.close)
+        odometry = None
+        if odometry_source:
+            o = d.odometry
+            odometry = open_odometry(odometry_source, o.baudrate, o.read_timeout_s, backoff=backoff,
+                                     clock_ns=clock_ns)
+            closers.append(odometry.close)
     except BaseException:
         for c in reversed(closers):
             c()
         raise
-    return Devices(clock, gps, tilt, compass, heading, stage, camera, _closers=closers)
+    return Devices(clock, gps, tilt, compass, heading, stage, camera, odometry=odometry, _closers=closers)
 
 
 def uses_nmea_compass(config: Config) -> bool:
@@ -183,4 +192,5 @@ def open_hardware_platform(config: Config, calibration: DeviceCalibration) -> De
         except DeviceError as exc:
             log.warning("camera absent: %s", exc)
     compass_src = d.compass.nmea_source if uses_nmea_compass(config) else ""
-    return build_devices(config, d.gps.source, d.stage.source, compass_src, bus, camera, SystemClock(), calibration)
+    return build_devices(config, d.gps.source, d.stage.source, compass_src, bus, camera, SystemClock(), calibration,
+                         d.odometry.source)

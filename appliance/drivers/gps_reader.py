@@ -45,6 +45,7 @@ class GpsReader:
     ) -> None:
         self.stream = stream
         self.framer = NmeaFramer(strip_chars=delay_cookie)
+        self._delay_cookie = delay_cookie
         self.decoder = GpsDecoder(policy, error_by_quality_m or dict(DEFAULT_ERROR_BY_QUALITY_M))
         self._clock_ns = clock_ns
         self._ended = False
@@ -66,6 +67,17 @@ class GpsReader:
                 return self.decoder.feed(self.framer.flush(now)) + self.decoder.flush()
             return []
         return self.decoder.feed(self.framer.feed(data, now))
+
+    def discard_pending(self) -> None:
+        """Drop what the port buffered while nobody read it, and any partial line, so that a measurement
+        starting now takes only the fixes that follow (after a long capture the buffer holds fixes of
+        minutes ago: of the previous stop, on a rover).  A replayed log keeps everything."""
+        reset = getattr(self.stream, "reset_input_buffer", None)
+        if reset is None:
+            return
+        reset()
+        self.framer = NmeaFramer(strip_chars=self._delay_cookie)
+        self.decoder.flush()  # the epoch in progress is of the discarded past too
 
     def fixes(self) -> Iterator[GpsFix]:
         while not self._ended:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import re
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -158,6 +159,17 @@ class ReconnectingStream:
         except (serial.SerialException, OSError) as exc:
             self._lost(exc)
             return b""
+
+    def reset_input_buffer(self) -> None:
+        """Discard the bytes received and not read yet (nothing while disconnected)."""
+        s = self._stream
+        reset = getattr(s, "reset_input_buffer", None)
+        if reset is None:
+            return
+        try:
+            reset()
+        except (serial.SerialException, OSError, termios.error) as exc:  # a pty whose other side went away
+            self._lost(exc)
 
     def write(self, data: bytes) -> int | None:
         s = self._ensure_open()

@@ -18,7 +18,15 @@ topic                         schema                      content
 ``/region``                   foxglove.GeoJSON            the estimate's region (cells) and the estimate;
                                                           strict properties (``GEOJSON_FEATURE_PROPERTIES``)
 ``/estimate/posterior``       foxglove.Grid               log10 lower posterior, frame ``skyline-grid``
+``/estimate/alone/fix``       foxglove.LocationFix        a traverse's stop: the estimate from its own
+                                                          skyline alone (``/estimate/fix`` is the fused)
+``/traverse/track``           foxglove.GeoJSON            the track so far: LineStrings of the stops'
+                                                          estimates and of their GPS truths
 ============================  ==========================  ===========================================
+
+A traverse (a rover's series of stops, :mod:`appliance.acquisition.traverse`) writes every stop's
+session records into one log, one after the other, and per stop ``/traverse/odometry`` (the line
+received) and ``/traverse/stop`` (the stop's estimates alone and fused, their errors and statuses).
 
 JSON-schema messages (schema names ``viper.*``): raw heading, tilt and stage readings, the tag of
 every capture, the result of each procedure and the estimate's full record.  Their schemas are
@@ -52,6 +60,10 @@ SESSION = "/session/info"
 ESTIMATE_RECORD = "/estimate/record"
 SKYLINE_DETECTED = "/skyline/detected"
 SKYLINE_RENDERED = "/skyline/rendered"
+ESTIMATE_ALONE_FIX = "/estimate/alone/fix"
+TRAVERSE_TRACK = "/traverse/track"
+TRAVERSE_STOP = "/traverse/stop"
+ODOMETRY = "/traverse/odometry"
 
 _NUM = {"type": ["number", "null"]}
 _INT = {"type": "integer"}
@@ -183,6 +195,41 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     ),
 }
 
+_ESTIMATE_SUMMARY = _nested(
+    {
+        "lat": _NUM,
+        "lon": _NUM,
+        "status": {"enum": ["ok", "ambiguous"]},
+        "region_cells": _INT,
+        "region_area_m2": _NUM,
+        "error_m": _NUM,
+    },
+    ("lat", "lon", "status", "region_cells", "region_area_m2", "error_m"),
+)
+
+_ODOMETRY_FIELDS = {"stop_id": _INT, "east_m": _NUM, "north_m": _NUM, "sigma_m": _NUM, "receive_time_ns": _INT}
+JSON_SCHEMAS["viper.Odometry"] = _object(
+    "The rover's odometry line of one stop: displacement from the previous stop (m, true east and north) "
+    "and its 1-sigma per axis (m)", _ODOMETRY_FIELDS, tuple(_ODOMETRY_FIELDS))
+JSON_SCHEMAS["viper.TraverseStop"] = _object(
+    "One stop of a traverse: its estimate from its own skyline alone and fused with the previous stop's "
+    "posterior moved by the odometry (the stop's position), against the GPS truth",
+    {
+        "stop": _INT,
+        "session_id": _STR,
+        "status": {"enum": ["ok", "ambiguous", "degraded", "failed"]},
+        "odometry": {"anyOf": [{"type": "null"}, _nested(_ODOMETRY_FIELDS, tuple(_ODOMETRY_FIELDS))]},
+        "fused": _BOOL,
+        "fusion_note": _STR,
+        "prior_peak": {"anyOf": [{"type": "null"}, _nested({"lat": _NUM, "lon": _NUM}, ("lat", "lon"))]},
+        "alone": {"anyOf": [{"type": "null"}, _ESTIMATE_SUMMARY]},
+        "position": {"anyOf": [{"type": "null"}, _ESTIMATE_SUMMARY]},
+        "truth": {"anyOf": [{"type": "null"}, _nested({"lat": _NUM, "lon": _NUM}, ("lat", "lon"))]},
+    },
+    ("stop", "session_id", "status", "odometry", "fused", "fusion_note", "prior_peak", "alone", "position",
+     "truth"),
+)
+
 JSON_TOPIC_SCHEMAS: dict[str, str] = {
     HEADING_RAW: "viper.HeadingRaw",
     TILT_RAW: "viper.TiltRaw",
@@ -193,6 +240,8 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     ESTIMATE_RECORD: "viper.Estimate",
     SKYLINE_DETECTED: "viper.Skyline",
     SKYLINE_RENDERED: "viper.Skyline",
+    ODOMETRY: "viper.Odometry",
+    TRAVERSE_STOP: "viper.TraverseStop",
 }
 
 #: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the
@@ -208,7 +257,11 @@ GEOJSON_FEATURE_PROPERTIES: dict[str, dict[str, Any]] = {
         ("name", "kind", "lower", "upper", "heading_correction_deg"),
     ),
     "truth": _nested({"name": _STR, "kind": {"const": "truth"}}, ("name", "kind")),
+    # ``/traverse/track``: one line through the stops' estimates, one through their GPS truths
+    "track": _nested({"name": {"enum": ["estimates", "truth"]}, "kind": {"const": "track"}, "stops": _INT},
+                     ("name", "kind", "stops")),
 }
 
 #: the geometry of each kind of feature
-GEOJSON_FEATURE_GEOMETRY: dict[str, str] = {"region": "MultiPolygon", "estimate": "Point", "truth": "Point"}
+GEOJSON_FEATURE_GEOMETRY: dict[str, str] = {"region": "MultiPolygon", "estimate": "Point", "truth": "Point",
+                                            "track": "LineString"}

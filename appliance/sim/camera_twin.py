@@ -1,7 +1,8 @@
 """Simulated camera: an object with ``cv2.VideoCapture``'s methods that renders the DEM's scene.
 
 Frames are rendered by :func:`appliance.vision.synth.render_photo_from` from the world's true
-position and the head's pose (stage heading, tilt).  Properties behave as a V4L2 driver's: width
+position (followed when the platform moves, as a rover does between stops) and the head's pose
+(stage heading, tilt).  Properties behave as a V4L2 driver's: width
 and height must equal the intrinsics' (other sizes are refused), exposure scales the brightness.
 Faults: ``unplug()`` makes ``grab``/``read`` fail; ``refuse`` lists properties whose ``set`` fails;
 ``unplug_after`` unplugs after that many frames read; ``black_frames`` lists read numbers (from 0)
@@ -35,11 +36,12 @@ class SimVideoCapture:
         unplug_after: int | None = None,
         black_frames: frozenset[int] = frozenset(),
     ) -> None:
-        if skyline_fn is None:
-            if dem is None:
-                raise ValueError("SimVideoCapture needs a DEM or a skyline function")
-            skyline_fn = dem_skyline_fn(dem, world.lat_deg, world.lon_deg, world.mast_height_m)
-        self.world, self.intrinsics, self.skyline_fn = world, intrinsics, skyline_fn
+        if skyline_fn is None and dem is None:
+            raise ValueError("SimVideoCapture needs a DEM or a skyline function")
+        self.world, self.intrinsics, self.dem = world, intrinsics, dem
+        self._fixed_skyline_fn = skyline_fn
+        self._where: tuple[float, float, float] | None = None
+        self._dem_skyline_fn: SkylineFn | None = None
         self.rng = np.random.default_rng(seed)
         self.seed = seed
         self.refuse = set(refuse)
@@ -54,6 +56,18 @@ class SimVideoCapture:
             cv2.CAP_PROP_GAIN: 0.0,
             cv2.CAP_PROP_BUFFERSIZE: 4.0,
         }
+
+    @property
+    def skyline_fn(self) -> SkylineFn:
+        """The skyline function given, else the DEM's skyline seen from where the world is now."""
+        if self._fixed_skyline_fn is not None:
+            return self._fixed_skyline_fn
+        w = self.world
+        where = (w.lat_deg, w.lon_deg, w.mast_height_m)
+        if self._dem_skyline_fn is None or where != self._where:
+            self._dem_skyline_fn = dem_skyline_fn(self.dem, *where)
+            self._where = where
+        return self._dem_skyline_fn
 
     def isOpened(self) -> bool:  # noqa: N802 - cv2.VideoCapture's name
         return self.opened

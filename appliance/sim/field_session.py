@@ -3,6 +3,8 @@ there, the real drivers on them, and the session of :mod:`appliance.acquisition.
 
 The simulated truth comes back beside the session's result as a :class:`SimTruth`, so that the
 demo and the tests measure the estimate against where the platform really stood.
+:func:`run_field_traverse` is a rover's traverse: the same platform driven by the rover twin from
+stop to stop, with the true place of every stop.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from appliance.sim.demo import DEMO_DEM
 from appliance.sim.platform import open_sim_platform
 
 if TYPE_CHECKING:
+    from appliance.acquisition.traverse import TraverseResult
     from appliance.logbook.live import Publisher
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
@@ -127,3 +130,69 @@ def run_field_session(
     result = run_platform_session(open_sim_platform, sim_config, out, db, should_stop, on_status,
                                   publisher)
     return result, truth_of(sim_config)
+
+
+def on_map_fn(dem: Dem, db: SkylineDatabase | None, margin_nodes: float = 10.0) -> Callable[[float, float], bool]:
+    """Whether (lat, lon) is on the DEM's terrain and inside the database's grid, ``margin_nodes`` from its
+    edges (a rover's stop should not leave the map it is located on)."""
+
+    def on_map(lat: float, lon: float) -> bool:
+        if not math.isfinite(float(dem.sample_lonlat(np.atleast_1d(lon), np.atleast_1d(lat))[0])):
+            return False
+        if db is None:
+            return True
+        g = db.grid
+        r, c = (float(v) for v in g.xy_to_rc(*g.lonlat_to_xy(lon, lat)))
+        margin = min(margin_nodes, g.n_rows / 4, g.n_cols / 4)
+        return margin <= r <= g.n_rows - 1 - margin and margin <= c <= g.n_cols - 1 - margin
+
+    return on_map
+
+
+def run_field_traverse(
+    config: Config,
+    out_dir: str | Path,
+    n_stops: int,
+    seed: int | None = None,
+    dem: Dem | None = None,
+    db: SkylineDatabase | None = None,
+    should_stop: Callable[[], bool] = lambda: False,
+    on_status: Callable[[str], None] = lambda s: None,
+    publisher: Publisher | None = None,
+) -> tuple[TraverseResult, list[SimTruth]]:
+    """A simulated traverse of ``n_stops`` stops from a random start on the ``[sim] dem`` map: the rover
+    twin drives legs of ``[sim] leg_length_m`` in random directions between stops and reports them with
+    ``[sim] odometry_sigma_m`` of noise.  Returns the traverse and the true place of every stop."""
+    from appliance.acquisition.platform import platform_of
+    from appliance.acquisition.traverse import run_traverse
+    from appliance.sim.platform import open_sim_platform
+    from appliance.terrain.dem import load_dem
+
+    if n_stops < 1:
+        raise InputError(f"a traverse needs at least one stop, got {n_stops}")
+    rng = np.random.default_rng(seed)
+    dem = dem if dem is not None else load_dem(config.sim.dem)
+    out = Path(out_dir)
+    if db is None:
+        on_status("loading the skyline database")
+        db = sim_database(config, dem, out)
+    sim_config = simulated_config(config, dem, db, rng)
+    sim_config = dataclasses.replace(sim_config, traverse=dataclasses.replace(sim_config.traverse, stops=n_stops))
+    truths: list[SimTruth] = []
+    on_status("opening the devices")
+    with open_sim_platform(sim_config, on_map=on_map_fn(dem, db)) as devices:
+        world, rover = devices.world, devices.rover  # type: ignore[attr-defined]
+
+        def record_truth() -> None:
+            truths.append(SimTruth(world.lat_deg, world.lon_deg, world.heading_deg, world.tilt_north_deg,
+                                   world.tilt_east_deg, world.mast_height_m))
+
+        def drive_on(stop: int) -> None:
+            on_status(f"stop {stop} done: the rover drives on")
+            rover.drive()
+            record_truth()
+
+        record_truth()
+        result = run_traverse(platform_of(devices), sim_config, out, db, n_stops, should_stop, on_status, publisher,
+                              on_stop_done=drive_on)
+    return result, truths[: len(result.stops)]

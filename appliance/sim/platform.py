@@ -4,7 +4,8 @@ Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary f
 (:class:`appliance.sim.scratch.SimFolder`, removed on close and after a kill); the I2C
 twins (HMC5883L, ADXL345) sit on one :class:`FakeI2cBus`; the camera is a :class:`SimVideoCapture`
 driven by the real :class:`V4l2Camera` driver; the leveller is the person at the tripod
-(:class:`SimLeveller`).  Faults come from ``[sim.faults]``.
+(:class:`SimLeveller`).  For a traverse (``[traverse] stops``), the rover (:class:`RoverTwin`) sends its
+odometry over a pty too and drives the world between stops.  Faults come from ``[sim.faults]``.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
+from collections.abc import Callable
 
 from appliance.config import Config, SimConfig
 from appliance.drivers.accelerometer import TiltOffset
@@ -25,6 +27,7 @@ from appliance.sim.leveller import SimLeveller
 from appliance.sim.nmea_twins import GpsTwin, NmeaCompassTwin
 from appliance.sim.ptu_twin import PtuTwin
 from appliance.sim.pty_port import PtyPort
+from appliance.sim.rover_twin import RoverTwin
 from appliance.sim.scratch import SimFolder
 from appliance.sim.world import SimClock, SimWorld
 
@@ -49,9 +52,12 @@ def make_world(sim: SimConfig, dem: object | None = None) -> SimWorld:
 
 
 def open_sim_platform(config: Config, with_camera: bool = True,
-                      calibration: DeviceCalibration | None = None) -> Devices:
+                      calibration: DeviceCalibration | None = None,
+                      on_map: Callable[[float, float], bool] | None = None) -> Devices:
     """The twins of ``[sim]`` started and the real drivers on them; ``calibration`` defaults to the
-    inline values of ``[devices.compass]`` and ``[devices.inclinometer]``."""
+    inline values of ``[devices.compass]`` and ``[devices.inclinometer]``.  With ``[traverse] stops``,
+    the rover twin too (``devices.rover``), whose legs end where ``on_map(lat, lon)`` (default: on
+    the DEM's terrain)."""
     sim = config.sim
     if calibration is None:
         c, i = config.devices.compass, config.devices.inclinometer
@@ -66,7 +72,7 @@ def open_sim_platform(config: Config, with_camera: bool = True,
     scratch = SimFolder()
     stops: list = []
     try:
-        return _start_twins(config, world, dem, stops, scratch, with_camera, calibration)
+        return _start_twins(config, world, dem, stops, scratch, with_camera, calibration, on_map)
     except BaseException:
         for s in reversed(stops):
             s()
@@ -75,7 +81,8 @@ def open_sim_platform(config: Config, with_camera: bool = True,
 
 
 def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: list, scratch: SimFolder,
-                 with_camera: bool, calibration: DeviceCalibration) -> Devices:
+                 with_camera: bool, calibration: DeviceCalibration,
+                 on_map: Callable[[float, float], bool] | None) -> Devices:
     sim, faults, folder = config.sim, config.sim.faults, scratch.path
     gps_port = PtyPort(folder / "gps")
     gps_twin = GpsTwin(world, gps_port, sim, faults)
@@ -115,9 +122,24 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
                                    black_frames=black)
 
         camera = V4l2Camera(cam_cfg, intr, video_capture, world.clock.now_ns)
+    rover, odometry_src = None, ""
+    if config.traverse.stops:
+        if dem is None:
+            from appliance.terrain.dem import load_dem
+
+            dem = load_dem(sim.dem)
+        odo_port = PtyPort(folder / "odometry")
+        stops.append(odo_port.close)
+
+        def ground_m(lat: float, lon: float) -> float:
+            return float(dem.sample_lonlat(lon, lat))  # type: ignore[attr-defined]
+
+        rover = RoverTwin(world, odo_port, sim, ground_m, on_map or (lambda lat, lon: True), sim.seed + 1)
+        odometry_src = str(odo_port.path)
     devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
-                            world.clock, calibration)
+                            world.clock, calibration, odometry_src)
     devices.leveller = SimLeveller(world)
     devices._closers[:0] = [scratch.remove, *stops]
     devices.world = world  # type: ignore[attr-defined]
+    devices.rover = rover  # type: ignore[attr-defined]
     return devices

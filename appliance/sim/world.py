@@ -114,6 +114,15 @@ class SimWorld:
         s = matvec(self.soft_iron, b)
         return (s[0] + self.hard_iron_t[0], s[1] + self.hard_iron_t[1], s[2] + self.hard_iron_t[2])
 
+    def move_to(self, lat_deg: float, lon_deg: float, ground_elevation_m: float, heading_deg: float,
+                tilt_north_deg: float, tilt_east_deg: float) -> None:
+        """The platform driven to a new place (a rover's stop): position, ground, heading and the slope
+        it stands on.  The magnetic field keeps the start's (a few hundred metres change it by less
+        than the magnetometer resolves)."""
+        with self.lock:
+            self.lat_deg, self.lon_deg, self.ground_elevation_m = lat_deg, lon_deg, ground_elevation_m
+            self.heading_deg, self.tilt_north_deg, self.tilt_east_deg = heading_deg, tilt_north_deg, tilt_east_deg
+
     def offset_position(self, north_m: float, east_m: float) -> tuple[float, float]:
         """(lat, lon) of a point ``north_m``, ``east_m`` from the true position."""
         lat = self.lat_deg + math.degrees(north_m / EARTH_RADIUS_M)
