@@ -375,6 +375,18 @@ def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:
     return Path(log_dir) / f"viper-{stamp}-{session_id}.mcap"
 
 
+def open_session_log(config: Config, log_dir: Path, now_ns: int,
+                     publisher: Publisher | None = None) -> tuple[str, Path, Logbook]:
+    """A new log in ``log_dir`` for a session (or a traverse) starting at ``now_ns``, written as
+    ``[logbook]`` says and also sent to ``publisher`` when given; returns its id, its path and the logbook."""
+    session_id = uuid.uuid4().hex[:8]
+    lc = config.logbook
+    path = session_log_path(log_dir, now_ns, session_id)
+    logbook = Logbook.create(path, fsync_interval_s=lc.fsync_interval_s, chunk_size_bytes=lc.chunk_size_bytes,
+                             compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher)
+    return session_id, path, logbook
+
+
 def run_session(
     platform: Platform,
     config: Config,
@@ -387,17 +399,7 @@ def run_session(
 ) -> SessionResult:
     """Run one session on ``platform``; the log goes to a new file in ``log_dir`` (and every message
     also to ``publisher``, the live view, when given)."""
-    session_id = uuid.uuid4().hex[:8]
-    path = session_log_path(log_dir, platform.clock.now_ns(), session_id)
-    lc = config.logbook
-    logbook = Logbook.create(
-        path,
-        fsync_interval_s=lc.fsync_interval_s,
-        chunk_size_bytes=lc.chunk_size_bytes,
-        compression=lc.compression,
-        reserve_bytes=lc.reserve_bytes,
-        publisher=publisher,
-    )
+    session_id, path, logbook = open_session_log(config, log_dir, platform.clock.now_ns(), publisher)
     result = SessionResult(path, session_id)
     return Session(platform, logbook, config, db, result, should_stop, on_status, approx_position).run()
 

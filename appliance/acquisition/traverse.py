@@ -18,7 +18,6 @@ log sealed; an odometry line that does not come within ``[traverse] odometry_tim
 
 from __future__ import annotations
 
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +31,7 @@ from appliance.acquisition.session import (
     Session,
     SessionResult,
     StopRequestedError,
-    session_log_path,
+    open_session_log,
 )
 from appliance.config import Config
 from appliance.drivers.factory import Devices
@@ -327,11 +326,7 @@ def run_traverse(
     """A traverse of ``n_stops`` stops on ``platform`` into a new log in ``log_dir`` (every message also
     to ``publisher``, the live view, when given).  ``on_stop_done(i)`` is called when stop ``i`` is over
     and the rover may drive on (the simulated rover drives then)."""
-    traverse_id = uuid.uuid4().hex[:8]
-    path = session_log_path(log_dir, platform.clock.now_ns(), traverse_id)
-    lc = config.logbook
-    logbook = Logbook.create(path, fsync_interval_s=lc.fsync_interval_s, chunk_size_bytes=lc.chunk_size_bytes,
-                             compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher)
+    traverse_id, path, logbook = open_session_log(config, log_dir, platform.clock.now_ns(), publisher)
     result = TraverseResult(path, traverse_id)
     return Traverse(platform, logbook, config, db, result, n_stops, should_stop, on_status, on_stop_done).run()
 

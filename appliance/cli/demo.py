@@ -14,10 +14,15 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from appliance.atomic import check_output_folder
 from appliance.config import CameraDeviceConfig, Config, DevicesConfig, LogbookConfig, SessionConfig, SimConfig
 from appliance.errors import InputError
+
+if TYPE_CHECKING:
+    from appliance.terrain.database import SkylineDatabase
+    from appliance.terrain.dem import Dem
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,6 +46,18 @@ def demo_config(out: Path, time_rate: float) -> Config:
     )
 
 
+def demo_map(out: Path) -> tuple[Dem, SkylineDatabase]:
+    """The embedded jacksboro map and its skyline database in ``out`` (built there the first time)."""
+    from appliance.sim.demo import DEMO_DEM, demo_database
+    from appliance.terrain.dem import load_dem
+
+    t0 = time.monotonic()
+    dem = load_dem(DEMO_DEM)
+    db = demo_database(dem, out)
+    print(f"  setup      skyline database {db.path} ready in {time.monotonic() - t0:.0f} s")
+    return dem, db
+
+
 def run(args: argparse.Namespace) -> int:
     if not args.time_rate > 0:
         raise InputError(f"--time-rate {args.time_rate}: must be a positive number")
@@ -54,16 +71,11 @@ def run(args: argparse.Namespace) -> int:
         return run_skyline_only(args)
     from appliance.acquisition.replay import session_report
     from appliance.position import truth_error_m
-    from appliance.sim.demo import DEMO_DEM, demo_database
     from appliance.sim.field_session import run_field_session
-    from appliance.terrain.dem import load_dem
 
     out = check_output_folder(args.out)
     print("Viper demo: a simulated field session on the jacksboro DEM (Cumberland Mountains, Tennessee)")
-    t0 = time.monotonic()
-    dem = load_dem(DEMO_DEM)
-    db = demo_database(dem, out)
-    print(f"  setup      skyline database {db.path} ready in {time.monotonic() - t0:.0f} s")
+    dem, db = demo_map(out)
     t1 = time.monotonic()
 
     def status(text: str) -> None:
@@ -124,17 +136,12 @@ def run_skyline_only(args: argparse.Namespace) -> int:
 def run_traverse(args: argparse.Namespace) -> int:
     from appliance.acquisition.traverse_report import write_traverse_report
     from appliance.position import truth_error_m
-    from appliance.sim.demo import DEMO_DEM, demo_database
     from appliance.sim.field_session import run_field_traverse
-    from appliance.terrain.dem import load_dem
 
     out = check_output_folder(args.out)
     print(f"Viper demo: a rover's traverse of {args.traverse} stops on the jacksboro DEM "
           "(Cumberland Mountains, Tennessee)")
-    t0 = time.monotonic()
-    dem = load_dem(DEMO_DEM)
-    db = demo_database(dem, out)
-    print(f"  setup      skyline database {db.path} ready in {time.monotonic() - t0:.0f} s")
+    dem, db = demo_map(out)
     t1 = time.monotonic()
 
     def status(text: str) -> None:

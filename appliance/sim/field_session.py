@@ -99,6 +99,18 @@ def sim_database(config: Config, dem: Dem, cache_dir: Path) -> SkylineDatabase |
     return db
 
 
+def _sim_map(config: Config, out: Path, dem: Dem | None, db: SkylineDatabase | None,
+             on_status: Callable[[str], None]) -> tuple[Dem, SkylineDatabase | None]:
+    """The ``[sim] dem`` map and its database, unless the caller gave them."""
+    from appliance.terrain.dem import load_dem
+
+    dem = dem if dem is not None else load_dem(config.sim.dem)
+    if db is None:
+        on_status("loading the skyline database")
+        db = sim_database(config, dem, out)
+    return dem, db
+
+
 def run_field_session(
     config: Config,
     out_dir: str | Path,
@@ -118,14 +130,9 @@ def run_field_session(
     ``[sim.faults]``).  The skyline database is ``db``, else :func:`sim_database`.  Every logged
     message also goes to ``publisher`` (the live view), when given.
     """
-    from appliance.terrain.dem import load_dem
-
     rng = np.random.default_rng(seed)
-    dem = dem if dem is not None else load_dem(config.sim.dem)
     out = Path(out_dir)
-    if db is None:
-        on_status("loading the skyline database")
-        db = sim_database(config, dem, out)
+    dem, db = _sim_map(config, out, dem, db, on_status)
     sim_config = simulated_config(config, dem, db, rng, faults)
     result = run_platform_session(open_sim_platform, sim_config, out, db, should_stop, on_status,
                                   publisher)
@@ -166,16 +173,11 @@ def run_field_traverse(
     from appliance.acquisition.platform import platform_of
     from appliance.acquisition.traverse import run_traverse
     from appliance.sim.platform import open_sim_platform
-    from appliance.terrain.dem import load_dem
-
     if n_stops < 1:
         raise InputError(f"a traverse needs at least one stop, got {n_stops}")
     rng = np.random.default_rng(seed)
-    dem = dem if dem is not None else load_dem(config.sim.dem)
     out = Path(out_dir)
-    if db is None:
-        on_status("loading the skyline database")
-        db = sim_database(config, dem, out)
+    dem, db = _sim_map(config, out, dem, db, on_status)
     sim_config = simulated_config(config, dem, db, rng)
     sim_config = dataclasses.replace(sim_config, traverse=dataclasses.replace(sim_config.traverse, stops=n_stops))
     truths: list[SimTruth] = []
