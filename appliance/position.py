@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
-from appliance.estimator import EstimateResult, SkylineGrid, estimate, transport_prior
+from appliance.estimator import EstimateResult, PositionPrior, SkylineGrid, estimate, transport_fix, transport_prior
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -142,28 +142,45 @@ def locate(
     height_m: float | None = None,
     occlusion_weight: float = 0.0,
     map_sigma_m: float = 0.0,
+    position_prior: PositionPrior | None = None,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
-    its azimuths; ``occlusion_weight`` and ``map_sigma_m`` are those of
+    its azimuths; ``occlusion_weight``, ``map_sigma_m`` and ``position_prior`` are those of
     :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
-                   map_sigma_m=map_sigma_m)
+                   map_sigma_m=map_sigma_m, position_prior=position_prior)
     return place(db, res, source)
+
+
+def _move_on_grid(db: SkylineDatabase, pos: Position, move: Move) -> tuple[float, float]:
+    """``move`` (true east and north) along the grid's axes (x, y in metres), turned by the grid
+    convergence at ``pos``."""
+    gamma = math.radians(float(db.convergence_deg[pos.result.node]))
+    c, s = math.cos(gamma), math.sin(gamma)
+    # grid +x is (cos g, -sin g) and grid +y is (sin g, cos g) in (east, north)
+    return move.east_m * c - move.north_m * s, move.east_m * s + move.north_m * c
 
 
 def transported_prior(db: SkylineDatabase, grid: SkylineGrid, pos: Position, move: Move) -> np.ndarray:
     """The log prior per node of the next station: ``pos``'s posterior moved by ``move`` (true east and
     north, turned onto the grid's axes by the grid convergence at ``pos``) and blurred by its sigma."""
-    gamma = math.radians(float(db.convergence_deg[pos.result.node]))
-    c, s = math.cos(gamma), math.sin(gamma)
-    # grid +x is (cos g, -sin g) and grid +y is (sin g, cos g) in (east, north)
-    x_m = move.east_m * c - move.north_m * s
-    y_m = move.east_m * s + move.north_m * c
+    x_m, y_m = _move_on_grid(db, pos, move)
     return transport_prior(pos.result.posterior_map, grid.n_rows, grid.n_cols, grid.dx_m, grid.dy_m, x_m, y_m,
                            move.sigma_m)
+
+
+def transported_fix(db: SkylineDatabase, grid: SkylineGrid, pos: Position, move: Move) -> PositionPrior | None:
+    """The same belief in continuous form, for the exact fit between nodes: ``pos``'s fix and its
+    covariance moved by ``move``.  None when ``pos`` is ambiguous (its posterior has more than one
+    place, which one Gaussian would misstate) or has no exact fit's covariance."""
+    cov = pos.result.covariance_cells
+    if pos.result.ambiguous or cov is None:
+        return None
+    x_m, y_m = _move_on_grid(db, pos, move)
+    return transport_fix(pos.result.row, pos.result.col, cov, grid.dx_m, grid.dy_m, x_m, y_m, move.sigma_m)
 
 
 def locate_sequence(
@@ -184,11 +201,11 @@ def locate_sequence(
         raise ValueError(f"{len(skylines)} skylines need {len(skylines) - 1} moves, got {len(moves)}")
     g = skyline_grid(db)
     out: list[Position] = []
-    prior = None
+    prior, fix = None, None
     for i, (name, sky) in enumerate(skylines):
         pos = locate(db, sky, sigma_deg, heading_tolerance_deg, prior, name, g, height_m, occlusion_weight,
-                     map_sigma_m)
+                     map_sigma_m, fix)
         out.append(pos)
         if i < len(moves):
-            prior = transported_prior(db, g, pos, moves[i])
+            prior, fix = transported_prior(db, g, pos, moves[i]), transported_fix(db, g, pos, moves[i])
     return out

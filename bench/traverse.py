@@ -33,7 +33,15 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.config import EstimatorConfig, SimConfig  # noqa: E402
-from appliance.position import Move, estimate_status, locate, skyline_grid, transported_prior, truth_error_m  # noqa: E402
+from appliance.position import (  # noqa: E402
+    Move,
+    estimate_status,
+    locate,
+    skyline_grid,
+    transported_fix,
+    transported_prior,
+    truth_error_m,
+)
 from appliance.sim.demo import demo_database, sensor_reading  # noqa: E402
 from appliance.sim.field_session import on_map_fn, random_position  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
@@ -111,8 +119,8 @@ def skyline_traverse(seed: int, n_stops: int) -> list[dict]:
         alone = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, **kw)
         fused = None
         if belief is not None and moved is not None:
-            prior = transported_prior(db, grid, belief, moved)
-            fused = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, prior, **kw)
+            prior, fix = transported_prior(db, grid, belief, moved), transported_fix(db, grid, belief, moved)
+            fused = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, prior, position_prior=fix, **kw)
         belief, moved = (fused or alone), Move(0.0, 0.0, 0.0)
         rows.append(_stop_row(db, stop, alone, fused, (lat, lon)))
     return rows

@@ -23,6 +23,7 @@ from appliance.vision.panorama import Panorama
 from appliance.vision.posed_stitch import PosedImage, stitch_posed
 
 if TYPE_CHECKING:
+    from appliance.estimator.exact import PositionPrior
     from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
@@ -52,9 +53,10 @@ def load_session_database(cfg: SessionConfig, dem: Dem | None = None) -> Skyline
 
 
 def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, source: str = "",
-                   log_prior: np.ndarray | None = None) -> Position:
-    """The position of ``skyline`` in ``db`` (under ``log_prior``, per node, when given: a traverse's
-    transported posterior); refuses a skyline with too few valid azimuths."""
+                   log_prior: np.ndarray | None = None, position_prior: PositionPrior | None = None) -> Position:
+    """The position of ``skyline`` in ``db`` (under ``log_prior``, per node, and ``position_prior``,
+    its continuous form, when given: a traverse's transported posterior); refuses a skyline with too
+    few valid azimuths."""
     from appliance.position import locate
 
     if skyline.valid_fraction < cfg.min_valid_fraction:
@@ -62,7 +64,8 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
             f"skyline has {skyline.valid_fraction:.0%} valid azimuths, below {cfg.min_valid_fraction:.0%}"
         )
     return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, log_prior, source=source,
-                  occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m)
+                  occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m,
+                  position_prior=position_prior)
 
 
 def mask_stage_angles(skyline: Skyline, platform_heading_deg: float,

@@ -30,6 +30,7 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 from appliance.skyline import Skyline
 
 if TYPE_CHECKING:
+    from appliance.estimator.exact import PositionPrior
     from appliance.logbook.live import Publisher
     from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
@@ -86,12 +87,13 @@ class Session:
         on_status: Callable[[str], None] = lambda s: None,
         approx_position: tuple[float, float] | None = None,
         log_prior: np.ndarray | None = None,
+        position_prior: PositionPrior | None = None,
     ) -> None:
         self.p, self.log, self.cfg = platform, logbook, config
         self.db, self.result = db, result
         self.should_stop, self.on_status = should_stop, on_status
         self.approx = approx_position
-        self.log_prior = log_prior
+        self.log_prior, self.position_prior = log_prior, position_prior
 
     # -------------------------------------------------------------------------------- helpers
     def now(self) -> int:
@@ -352,7 +354,7 @@ class Session:
                                                                      frame_id="estimate_alone"), self.now())
             self.on_status("estimate: fusing with the previous stop")
             pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id,
-                                         log_prior=self.log_prior)
+                                         log_prior=self.log_prior, position_prior=self.position_prior)
         self.result.estimate = pos
         rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m

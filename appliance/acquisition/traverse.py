@@ -42,6 +42,7 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 
 if TYPE_CHECKING:
     from appliance.estimator import SkylineGrid
+    from appliance.estimator.exact import PositionPrior
     from appliance.logbook.live import Publisher
     from appliance.position import Move, Position
     from appliance.terrain.database import SkylineDatabase
@@ -55,6 +56,7 @@ class StopResult:
     session: SessionResult
     odometry: OdometryReport | None
     log_prior: np.ndarray | None  # the transported posterior of the last estimate (log, per node), or None
+    position_prior: PositionPrior | None  # the last fix moved, for the fit between nodes (None: not unique)
     prior_peak: tuple[float, float] | None  # (lat, lon) of the prior's most probable node
     fusion_note: str  # why the stop was not fused ("" when it was)
 
@@ -171,9 +173,10 @@ class Traverse:
         self.note = ""
         self._queued: list[OdometryReport] = []
 
-    def session(self, result: SessionResult, log_prior: np.ndarray | None = None) -> Session:
+    def session(self, result: SessionResult, log_prior: np.ndarray | None = None,
+                position_prior: PositionPrior | None = None) -> Session:
         return Session(self.p, self.log, self.cfg, self.db, result, self.should_stop, self.on_status,
-                       log_prior=log_prior)
+                       log_prior=log_prior, position_prior=position_prior)
 
     def run(self) -> TraverseResult:
         r = self.result
@@ -190,7 +193,7 @@ class Traverse:
                     if odometry is None:
                         break
                 stop = self.prepare_stop(i, odometry)
-                current = self.session(stop.session, stop.log_prior)
+                current = self.session(stop.session, stop.log_prior, stop.position_prior)
                 r.stops.append(stop)
                 current.run_procedures()
                 current = None
@@ -254,22 +257,23 @@ class Traverse:
     # ---------------------------------------------------------------------------------- stops
     def prepare_stop(self, i: int, odometry: OdometryReport | None) -> StopResult:
         result = SessionResult(self.result.log_path, f"{self.result.session_id}-{i}")
-        prior, peak, note = None, None, self.note
+        prior, fix, peak, note = None, None, None, self.note
         if i == 0:
             note = "first stop"
         elif self.db is not None and self.belief is not None and self.moved is not None:
-            from appliance.position import skyline_grid, transported_prior
+            from appliance.position import skyline_grid, transported_fix, transported_prior
 
             if self.grid is None:
                 self.grid = skyline_grid(self.db)
             prior = transported_prior(self.db, self.grid, self.belief, self.moved)
+            fix = transported_fix(self.db, self.grid, self.belief, self.moved)
             g = self.db.grid
             lon, lat = g.xy_to_lonlat(*g.rc_to_xy(*divmod(int(np.argmax(prior)), g.n_cols)))
             peak, note = (float(lat), float(lon)), ""
         elif not note:
             note = "no earlier estimate to fuse with"
         self.note = ""
-        return StopResult(i, result, odometry, prior, peak, note)
+        return StopResult(i, result, odometry, prior, fix, peak, note)
 
     def finish_stop(self, head: Session, stop: StopResult) -> None:
         """The stop's records; its position becomes the belief the next stop's prior moves."""

@@ -28,7 +28,7 @@ import numpy as np
 
 from appliance.errors import EstimationError, InputError
 from appliance.estimator import parallax
-from appliance.estimator.exact import Fit, Model, Terrain
+from appliance.estimator.exact import Fit, Model, PositionPrior, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import (
@@ -189,6 +189,7 @@ class EstimateResult:
     candidates: int
     elapsed_s: float
     notes: list[str] = field(default_factory=list)
+    covariance_cells: np.ndarray | None = None  # (row, col) covariance of an exact fit (cells^2)
 
 
 class _RefineContext:
@@ -197,10 +198,11 @@ class _RefineContext:
 
     def __init__(self, grid: SkylineGrid, m: np.ndarray, rescore: np.ndarray, shifts_r: np.ndarray,
                  ssd_r: np.ndarray, moves_r: np.ndarray, bounds: tuple[float, float], height_m: float | None,
-                 sigma: float, model: Model) -> None:
+                 sigma: float, model: Model, position_prior: PositionPrior | None) -> None:
         self.grid, self.m, self.rescore, self.shifts_r, self.ssd_r, self.moves_r = grid, m, rescore, shifts_r, ssd_r, \
             moves_r
         self.bounds, self.height_m, self.sigma, self.model = bounds, height_m, sigma, model
+        self.position_prior = position_prior
 
     def _start(self, cand: int) -> tuple[tuple[float, float], tuple[float, float], float, float]:
         """The node, where its linearised fit moved it, and the headings of both (deg)."""
@@ -220,7 +222,7 @@ class _RefineContext:
         _, moved, _, phi = self._start(cand)
         c_row, c_col = divmod(cand, g.n_cols)
         return refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, moved,
-                            self.sigma, self.bounds, self.model)
+                            self.sigma, self.bounds, self.model, self.position_prior)
 
     def look_at(self, fit: Fit) -> float:
         """The cost of a look from where a fit ended (what other looks must come near to rival it)."""
@@ -258,7 +260,7 @@ class _RefineContext:
             refined.append(cand)
             c_row, c_col = divmod(cand, g.n_cols)
             fit = refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, start,
-                               self.sigma, self.bounds, self.model)
+                               self.sigma, self.bounds, self.model, self.position_prior)
             if fit is not None:
                 fits.append(fit)
         return fits
@@ -424,6 +426,7 @@ def estimate(
     occlusion_weight: float = 0.0,
     weights: np.ndarray | None = None,
     map_sigma_m: float = 0.0,
+    position_prior: PositionPrior | None = None,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -434,7 +437,9 @@ def estimate(
     does not hold (trees, buildings): measurements above the prediction then cost at most
     :func:`occlusion_cap_deg2`.  ``weights`` (0..1 per input azimuth: the detector's confidence, a
     mask) weigh the measurements.  ``map_sigma_m`` is the map's vertical error (1 sigma, metres):
-    it adds (sigma_v / d)^2 to each azimuth's variance.
+    it adds (sigma_v / d)^2 to each azimuth's variance.  ``position_prior`` is the same belief as
+    ``log_prior`` held in continuous form (a Gaussian in grid cells, e.g. a traverse's transported
+    estimate): the exact fit between nodes weighs it, where the per-node prior cannot reach.
     """
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
@@ -453,7 +458,7 @@ def estimate(
     notes: list[str] = []
     if refine:
         answer, region, rival, notes = _refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
-                                                height_m)
+                                                height_m, position_prior)
     cell_area = grid.dx_m * grid.dy_m
     area = region.size * cell_area
     notes += _quality_notes(region.size, area, rival, answer.rms_deg, meas.sigma_hi_deg)
@@ -465,7 +470,7 @@ def estimate(
         posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
         sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
         candidates=plausible.scored_nodes * first.node_shifts.shape[1],
-        elapsed_s=time.perf_counter() - t0, notes=notes,
+        elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
     )
 
 
@@ -681,12 +686,14 @@ def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, resco
 
 @dataclass(frozen=True)
 class _Answer:
-    """A position in fractional grid (row, col), the heading correction (deg) and the RMS residual (deg)."""
+    """A position in fractional grid (row, col), the heading correction (deg), the RMS residual (deg)
+    and, for an exact fit, the covariance of (row, col) (cells^2)."""
 
     row: float
     col: float
     heading_deg: float
     rms_deg: float
+    covariance_cells: np.ndarray | None = None
 
 
 def _grid_answer(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post: _Posteriors) -> _Answer:
@@ -708,8 +715,8 @@ def _nearest_node(grid: SkylineGrid, row: float, col: float) -> int:
 
 
 def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,
-             answer: _Answer, heading_tolerance_deg: float | None,
-             height_m: float | None) -> tuple[_Answer, np.ndarray, bool, list[str]]:
+             answer: _Answer, heading_tolerance_deg: float | None, height_m: float | None,
+             position_prior: PositionPrior | None) -> tuple[_Answer, np.ndarray, bool, list[str]]:
     """Step 5: the answer refined between nodes, the region (node indices) with the cells of the
     exact fit and of its rivals, whether a rival fits as well at another place, and the notes."""
     in_rescore = np.zeros(post.node_lower.size, dtype=bool)
@@ -717,7 +724,7 @@ def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _R
     scored = post.region[in_rescore[post.region]]
     if grid.terrain is None:
         return _subcell_answer(grid, meas, lp, rescored, post, scored, answer), post.region, False, []
-    fits = _exact_fits(grid, meas, rescored, post, scored, heading_tolerance_deg, height_m)
+    fits = _exact_fits(grid, meas, rescored, post, scored, heading_tolerance_deg, height_m, position_prior)
     if not fits:
         return answer, post.region, False, []
     best_fit, rivals = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
@@ -729,12 +736,14 @@ def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _R
     # the cells of the exact fit and of its rivals belong to the region
     cells = [_nearest_node(grid, best_fit.row, best_fit.col)] + [_nearest_node(grid, f.row, f.col) for f in rivals]
     rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
-    return (_Answer(best_fit.row, best_fit.col, best_fit.heading_deg, rms), np.union1d(post.region, cells),
+    return (_Answer(best_fit.row, best_fit.col, best_fit.heading_deg, rms, best_fit.covariance_cells),
+            np.union1d(post.region, cells),
             bool(rivals), notes)
 
 
 def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post: _Posteriors, scored: np.ndarray,
-                heading_tolerance_deg: float | None, height_m: float | None) -> list[Fit]:
+                heading_tolerance_deg: float | None, height_m: float | None,
+                position_prior: PositionPrior | None) -> list[Fit]:
     """Step 5 on a map's terrain: every distinct mode of the region (``scored``: its rescored nodes)
     gets one exact render, heading scanned along it; the best few of those are fitted in full
     (position in grid cells, heading in deg, eye height in m)."""
@@ -742,7 +751,7 @@ def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post
     bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
     exact_model = Model(meas.weight, occlusion_cap_deg2(meas.occlusion_weight, sig_lo), meas.map_sigma_m)
     ctx = _RefineContext(grid, meas.elevation_deg, rescored.nodes, rescored.shifts, rescored.ssd, rescored.moves,
-                         bounds, height_m, sig_lo, exact_model)
+                         bounds, height_m, sig_lo, exact_model, position_prior)
     # the modes worth a look: those whose upper posterior comes within SCREEN_MARGIN_NATS of the
     # best's (the region itself is wider by the whole of sigma's interval)
     top_up = float(np.max(post.node_upper[scored]))

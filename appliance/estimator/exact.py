@@ -119,8 +119,25 @@ class Model:
 
 
 @dataclass(frozen=True)
+class PositionPrior:
+    """A Gaussian belief about the position in fractional grid cells (row, col): the last estimate
+    of a traverse moved by the odometry (``fusion.transport_fix``).  ``information`` is the inverse
+    of its 2 x 2 covariance (cells^-2)."""
+
+    row: float
+    col: float
+    information: np.ndarray
+
+    def cost(self, p: np.ndarray) -> float:
+        """Its share of a fit's cost (chi-square units): the squared Mahalanobis distance."""
+        d = np.array([p[0] - self.row, p[1] - self.col])
+        return float(d @ self.information @ d)
+
+
+@dataclass(frozen=True)
 class Fit:
-    """A refined candidate: fractional node (row, col), heading correction, residual sum over n."""
+    """A refined candidate: fractional node (row, col), heading correction, residual sum over n;
+    ``covariance_cells`` is the 2 x 2 covariance of (row, col) (cells^2) from the fit's curvature."""
 
     row: float
     col: float
@@ -130,6 +147,7 @@ class Fit:
     iterations: int
     eye_offset_m: float = 0.0
     occluded: float = 0.0  # weight of the measurements taken for occluders (not in ssd)
+    covariance_cells: np.ndarray | None = None
 
     @property
     def rms_deg(self) -> float:
@@ -257,13 +275,16 @@ def refine(
     sigma_deg: float = 0.3,
     heading_bounds_deg: tuple[float, float] = (-180.0, 180.0),
     model: Model | None = None,
+    position_prior: PositionPrior | None = None,
 ) -> Fit | None:
     """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
     NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
     node.  The eye's height above the map's surface is ``height_m`` plus an offset with a
     Gaussian prior (``Model.eye_sigma_m``): the map's own height error under the camera.  ``model`` holds
     the measurement weights, the occlusion cap and the map's vertical error; the fit's ``ssd`` is
-    its cost (:meth:`Model.cost`)."""
+    its cost (:meth:`Model.cost`).  A ``position_prior`` (a traverse's transported belief) adds its
+    Mahalanobis term to what the fit minimises, so the answer between nodes weighs the odometry as
+    the grid's posterior does; ``ssd`` stays the measurements' own cost."""
     mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
@@ -303,7 +324,18 @@ def refine(
     # another one near the eye from pulling the fit.
     eye2 = mdl.eye_sigma_m**2
     spread = np.array([START_SPREAD_CELLS**2, START_SPREAD_CELLS**2, (0.5 * step) ** 2, eye2])
-    prior = np.array([0.0, 0.0, 0.0, sig2 / eye2])
+    P = np.zeros((4, 4))
+    P[3, 3] = 1.0 / eye2
+    mu = np.zeros(4)
+    if position_prior is not None:
+        P[:2, :2] = position_prior.information
+        mu[:2] = position_prior.row, position_prior.col
+
+    def belief(q: np.ndarray) -> float:
+        dq = q - mu
+        dq[2] = 0.0
+        return float(dq @ P @ dq)
+
     lam = 1e-3
     iterations = 0
     while iterations < MAX_ITERATIONS:
@@ -317,9 +349,11 @@ def refine(
         # an occluded azimuth does not pull at all
         w_all = np.where(ok, u / (var * (1.0 + r * r / (ROBUST_SCALE**2 * var))), 0.0)
         w_all = np.where((r > 0) & (u * r * r > mdl.cap_deg2), 0.0, w_all)
-        A = J_all.T @ (J_all * w_all[:, None]) + np.diag(prior / sig2)
-        g = J_all.T @ (w_all * r) - prior / sig2 * np.array([0.0, 0.0, 0.0, p[3]])
-        here = float(np.sum(w_all * r * r)) + prior[3] / sig2 * p[3] ** 2
+        A = J_all.T @ (J_all * w_all[:, None]) + P
+        dp = p - mu
+        dp[2] = 0.0
+        g = J_all.T @ (w_all * r) - P @ dp
+        here = float(np.sum(w_all * r * r)) + belief(p)
         improved = False
         for _ in range(MAX_REJECTIONS):
             try:
@@ -332,7 +366,7 @@ def refine(
                 break
             q = clamp(p + delta)
             c2, r2, s2, d2, ok2 = evaluate(q)
-            there = float(np.sum(w_all * r2 * r2)) + prior[3] / sig2 * q[3] ** 2
+            there = float(np.sum(w_all * r2 * r2)) + belief(q)
             if math.isfinite(c2) and there < here:
                 gain = here - there
                 p, cost, r, s, d, ok = q, c2, r2, s2, d2, ok2
@@ -346,8 +380,32 @@ def refine(
         if not improved and (not annealing or cost <= (CONVERGED_NOISE * sigma_deg) ** 2 * n_valid):
             break
     # the eye's departure from the map's surface is paid for under its prior
-    ssd_u, occ_u = mdl.split(r, mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg))
+    u = mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg)
+    ssd_u, occ_u = mdl.split(r, u)
     k = n_valid / max(int(ok.sum()), 1)
     ssd, occ = float(ssd_u) * k, float(occ_u) * k
+    cov = _position_covariance(terrain, dx_m, dy_m, p, az - gamma, s, d, ok, u, r, mdl, sig2, P, ssd, n_valid)
     return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2, n_valid, iterations,
-               float(p[3]), occ)
+               float(p[3]), occ, cov)
+
+
+def _position_covariance(terrain: Terrain, dx_m: float, dy_m: float, p: np.ndarray, grid_azimuth_deg: np.ndarray,
+                         s: np.ndarray, d: np.ndarray, ok: np.ndarray, u: np.ndarray, r: np.ndarray, mdl: Model,
+                         sig2: float, P: np.ndarray, ssd: float, n_valid: int) -> np.ndarray | None:
+    """The (row, col) covariance (cells^2) of a fit: the inverse of the Gauss-Newton curvature of
+    its cost at sigma, over the measurements the terrain explains (occluders left out), heading
+    and eye height marginalised.  Residuals above the noise widen it by the reduced chi-square,
+    so a fit that explains the skyline poorly does not claim the precision of one that does."""
+    okd = ok & np.isfinite(d)
+    dd = np.where(okd, d, 1.0)
+    J = np.where(okd[:, None], jacobian(terrain, dx_m, dy_m, p[0], p[1], grid_azimuth_deg + p[2], s, dd), 0.0)
+    w = np.where(okd & ~((r > 0) & (u * r * r > mdl.cap_deg2)), u, 0.0) / sig2
+    inflation = max(1.0, ssd / max(n_valid * sig2, 1e-300))
+    try:
+        cov = np.linalg.inv(J.T @ (J * w[:, None]) / inflation + P)
+    except np.linalg.LinAlgError:
+        return None
+    c = cov[:2, :2]
+    if not (np.all(np.isfinite(c)) and c[0, 0] > 0 and c[1, 1] > 0):
+        return None
+    return 0.5 * (c + c.T)

@@ -2,11 +2,15 @@
 
 The posterior after one panorama, moved by the dead-reckoned displacement between the two
 stations and blurred by its uncertainty, is the prior of the next: p'(x) = (p * N(0, s^2))(x - d).
+Per node for the grid search; and, for the exact fit between nodes, the last fix with its
+covariance moved the same way (a Gaussian: the grid's cells are too coarse to carry it).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from appliance.estimator.exact import PositionPrior
 
 #: Probability floor of a transported prior, relative to its peak: only there to keep the logarithm
 #: finite where the blurred posterior underflowed; it does not weaken the prior where it has mass.
@@ -40,3 +44,20 @@ def transport_prior(
     moved = np.maximum(moved, peak * PRIOR_FLOOR)
     moved /= moved.sum()
     return np.log(moved).ravel()
+
+
+def transport_fix(
+    row: float,
+    col: float,
+    covariance_cells: np.ndarray,
+    dx_m: float,
+    dy_m: float,
+    east_m: float,
+    north_m: float,
+    sigma_m: float,
+) -> PositionPrior:
+    """The continuous twin of :func:`transport_prior`: a fix at fractional grid (row, col) with its
+    (row, col) covariance (cells^2), moved by ``(east_m, north_m)`` along the grid's axes and widened
+    by the move's ``sigma_m`` per axis.  The exact fit between nodes weighs it."""
+    cov = np.asarray(covariance_cells, dtype=float) + np.diag([(sigma_m / dy_m) ** 2, (sigma_m / dx_m) ** 2])
+    return PositionPrior(row - north_m / dy_m, col + east_m / dx_m, np.linalg.inv(cov))
