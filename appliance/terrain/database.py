@@ -147,7 +147,9 @@ def build_database(
 
     Azimuths are swept in parallel on ``workers`` threads (default: one per core), each running
     single-threaded kernels that release the GIL: a busy machine slows the build in proportion,
-    with no threads spinning at barriers."""
+    with no threads spinning at barriers.  A node's horizon comes from the terrain within
+    ``max_range_m`` of it and nothing beyond (an exact cut-off, see HorizonSweeper), so a build in
+    tiles, each with a halo of that range, equals a build of the whole map node for node."""
     if not 8 <= n_azimuths <= 3600:
         raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
     if not 0.0 <= height_m < 1000.0:
@@ -164,7 +166,7 @@ def build_database(
     dgrid = np.empty((n_azimuths, n), dtype=np.uint8)  # ranges at grid azimuths
     origin, shape = lattice_of(dem, terr)
     sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff, (ro, co, cand.n_rows, cand.n_cols),
-                             origin, shape)
+                             origin, shape, max_range_m)
 
     def one_azimuth(j: int) -> None:
         tan, far = sweeper.horizons(j * step_az)

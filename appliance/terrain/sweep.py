@@ -13,6 +13,11 @@ line and Z = z - s^2 / (2 R_eff), the tangent of the elevation from an observer 
 A node takes the horizon of the nearest line through its column, at most a quarter row away from
 it, with its own ground height as the eye's base.  Terrain is interpolated linearly between the two
 rows that a line crosses in each column (bilinear along the line).
+
+With a maximum range the horizon of a node comes from exactly the points of its line at most
+``range_columns(max_range_m, step_m)`` columns ahead, so it depends on the terrain within range
+only, not on how far the grid extends: a map built in tiles, each with a halo of the maximum range,
+equals a build of the whole map node for node (see :func:`_sweep_canonical_cut`).
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ import threading
 
 import numba
 import numpy as np
+
+from appliance.errors import InputError
 
 
 @numba.njit(cache=True, inline="always")
@@ -138,6 +145,195 @@ def _sweep_canonical(
             far[rn - v0, u - u0] = hs[t] - s
 
 
+@numba.njit(cache=True, inline="always")
+def _tangent_ahead(hs: np.ndarray, hz: np.ndarray, n: int, s: float, zo: float) -> int:
+    """Index of the hull vertex of steepest slope from (s, zo) on a hull whose vertex 0 is the
+    nearest (a hull grown at its far end); the mirror of :func:`_tangent`.
+
+    Slopes rise from the near end to the tangent, then fall: gallop up from vertex 0, then bisect.
+    Among equal slopes the farthest vertex is taken, as :func:`_tangent` does.
+    """
+    lo = 0
+    gap = 1
+    hi = lo
+    while True:
+        cand = lo + gap
+        if cand > n - 1:
+            hi = n - 1
+            break
+        # slope to cand at least that to cand-1 (distances are positive)
+        if (hz[cand] - zo) * (hs[cand - 1] - s) >= (hz[cand - 1] - zo) * (hs[cand] - s):
+            lo = cand
+            gap *= 2
+        else:
+            hi = cand
+            break
+    # the peak lies in [lo, hi]; slopes rise with increasing index up to it
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if (hz[mid] - zo) * (hs[mid - 1] - s) >= (hz[mid - 1] - zo) * (hs[mid] - s):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+@numba.njit(cache=True, inline="always")
+def _line_height(W: np.ndarray, vg: float, ui: int, voff: int) -> float:
+    """Terrain of column ``ui`` on the line at lattice row ``vg``, linear between the two rows it
+    crosses; NaN outside the grid's rows (as :func:`_sweep_canonical` reads it)."""
+    nv = W.shape[0]
+    if not voff <= vg <= voff + nv - 1:
+        return math.nan
+    ag = int(math.floor(vg))
+    a = ag - voff
+    if a >= nv - 1:
+        return W[nv - 1, ui]
+    f = vg - ag
+    return W[a, ui] * (1.0 - f) + W[a + 1, ui] * f
+
+
+@numba.njit(cache=True, nogil=True)
+def _sweep_canonical_cut(
+    W: np.ndarray,
+    out: np.ndarray,
+    far: np.ndarray,
+    tau: float,
+    step_m: float,
+    height_m: float,
+    r_eff: float,
+    delay: int,
+    range_cols: int,
+    spacing: float,
+    hs: np.ndarray,
+    hz: np.ndarray,
+    v0: int,
+    u0: int,
+    voff: int,
+    uoff: int,
+) -> None:
+    """:func:`_sweep_canonical` with a cut-off: a node at column u sees exactly the line's points
+    at columns u + delay ... u + range_cols, whatever lies beyond them in the grid.
+
+    Each line is cut into blocks of B = range_cols - delay + 1 columns (the length of a node's
+    window), aligned on the lattice's columns.  The window [e, e + B - 1] of a node whose first
+    point is e is the suffix of e's block from e plus a prefix of the next block.  The suffix comes
+    from the plain sweep from the far end with the hull emptied at each block's end; the prefix from
+    a sweep of the nodes towards the far end that pushes the next block's points, in increasing
+    distance, onto a second hull (an upper hull grown at its far end is a stack too).  The horizon
+    is the steeper of the two tangents, with the distance of its point.  Each point is pushed at
+    most twice, so a line costs O(N log B).
+
+    Distances are taken from the lattice's column 0 and the blocks are the lattice's, so a node's
+    arithmetic is the same whichever window of the lattice W is: its horizon is bit-identical as
+    long as W holds the terrain within range of it.
+    """
+    nv, nu = W.shape
+    wv, wu = out.shape
+    v1 = v0 + wv
+    u1 = u0 + wu
+    blk = range_cols - delay + 1
+    kmin = int(math.floor((v0 + voff - 1 - (u1 - 1 + uoff) * tau) / spacing)) - 2
+    kmax = int(math.ceil((v1 + voff - (u0 + uoff) * tau) / spacing)) + 2
+    inv2r = 0.5 / r_eff
+    for k in range(kmin, kmax + 1):
+        # the columns where line k may serve a node of the window (a column of margin for rounding)
+        lo_f = float(u0)
+        hi_f = float(u1 - 1)
+        if tau > 0.0:
+            # clamped before rounding: a line nearly along the rows gives huge quotients
+            x = min(max((v0 + voff - 0.5 - spacing * k) / tau - uoff, u0 - 2.0), u1 + 2.0)
+            lo_f = max(lo_f, math.floor(x) - 1.0)
+            x = min(max((v1 + voff - 0.5 - spacing * k) / tau - uoff, u0 - 2.0), u1 + 2.0)
+            hi_f = min(hi_f, math.ceil(x) + 1.0)
+        if lo_f > hi_f:
+            continue
+        ufirst = int(lo_f)
+        ulast = int(hi_f)
+
+        # suffix: from the end of the block holding ulast's first point towards the near end
+        e_last = ulast + delay + uoff
+        n = 0
+        jcur = e_last // blk
+        for u in range(min(nu - 1, ulast + blk - 1 - e_last % blk), ufirst - 1, -1):
+            ui = u + delay
+            j = (ui + uoff) // blk
+            if j != jcur:
+                n = 0
+                jcur = j
+            if ui <= nu - 1:
+                z = _line_height(W, spacing * k + (ui + uoff) * tau, ui, voff)
+                if not math.isnan(z):
+                    si = (ui + uoff) * step_m
+                    zp = z - si * si * inv2r
+                    while n >= 2:
+                        # drop the top vertex if on or under the segment from the new point to the next
+                        if (hz[n - 1] - zp) * (hs[n - 2] - si) <= (hz[n - 2] - zp) * (hs[n - 1] - si):
+                            n -= 1
+                        else:
+                            break
+                    hs[n] = si
+                    hz[n] = zp
+                    n += 1
+            if u > ulast:
+                continue
+            vg = spacing * k + (u + uoff) * tau
+            rg = int(math.floor(vg + 0.5))
+            rn = rg - voff
+            if rn < v0 or rn >= v1 or int(math.floor((rg - (u + uoff) * tau) / spacing + 0.5)) != k:
+                continue
+            zn = W[rn, u]
+            if n == 0 or math.isnan(zn):
+                continue
+            s = (u + uoff) * step_m
+            zo = zn + height_m - s * s * inv2r
+            t = _tangent(hs, hz, n, s, zo)
+            out[rn - v0, u - u0] = (hz[t] - zo) / (hs[t] - s) + s / r_eff
+            far[rn - v0, u - u0] = hs[t] - s
+
+        # prefix: from the start of the block holding ufirst's first point towards the far end
+        n = 0
+        for u in range(ufirst - (ufirst + delay + uoff) % blk, ulast + 1):
+            r = (u + delay + uoff) % blk
+            if r == 0:
+                n = 0
+            else:
+                # the next block's point that comes into range of the node at u
+                ui = u + delay + blk - 1
+                if 0 <= ui <= nu - 1:
+                    z = _line_height(W, spacing * k + (ui + uoff) * tau, ui, voff)
+                    if not math.isnan(z):
+                        si = (ui + uoff) * step_m
+                        zp = z - si * si * inv2r
+                        while n >= 2:
+                            # drop the top vertex if on or under the segment from the previous one to the new point
+                            if (hz[n - 1] - zp) * (hs[n - 2] - si) >= (hz[n - 2] - zp) * (hs[n - 1] - si):
+                                n -= 1
+                            else:
+                                break
+                        hs[n] = si
+                        hz[n] = zp
+                        n += 1
+            if u < ufirst or n == 0:
+                continue
+            vg = spacing * k + (u + uoff) * tau
+            rg = int(math.floor(vg + 0.5))
+            rn = rg - voff
+            if rn < v0 or rn >= v1 or int(math.floor((rg - (u + uoff) * tau) / spacing + 0.5)) != k:
+                continue
+            zn = W[rn, u]
+            if math.isnan(zn):
+                continue
+            s = (u + uoff) * step_m
+            zo = zn + height_m - s * s * inv2r
+            t = _tangent_ahead(hs, hz, n, s, zo)
+            tan = (hz[t] - zo) / (hs[t] - s) + s / r_eff
+            b = out[rn - v0, u - u0]
+            if tan >= b or math.isnan(b):
+                out[rn - v0, u - u0] = tan
+                far[rn - v0, u - u0] = hs[t] - s
+
+
 @numba.njit(cache=True, nogil=True)
 def _near_field(
     W: np.ndarray, out: np.ndarray, far: np.ndarray, tau: float, step_m: float, height_m: float, r_eff: float,
@@ -190,6 +386,23 @@ NEAR_FIELD_FRACTIONS = np.concatenate([np.arange(1, 11) * 0.1, [1.25, 1.5, 1.75,
 NEAR_FIELD_COLUMNS = 2
 #: Rows between neighbouring sweep lines: a node is at most half of it beside its line.
 LINE_SPACING_ROWS = 0.5
+#: The shortest maximum range, in grid diagonals (the longest step between columns of a line):
+#: the near field's samples and at least one swept column beyond them lie within range along
+#: every azimuth.
+MIN_RANGE_CELLS = NEAR_FIELD_COLUMNS + 1
+
+
+def range_columns(max_range_m: float, step_m: float) -> int:
+    """Columns of a sweep line within ``max_range_m``: floor(max_range_m / step_m), with
+    ``step_m`` the distance along the line between neighbouring columns.
+
+    A node sees the line's points at most this many columns ahead.  The step depends only on the
+    grid's spacing and the azimuth, so every window of a lattice (every tile of a map) computes the
+    same count; -1 for an infinite range (no cut-off)."""
+    q = max_range_m / step_m
+    if math.isinf(q):
+        return -1
+    return int(math.floor(q))
 
 
 def _orient(a: np.ndarray, transpose: bool, flip_u: bool, flip_v: bool) -> np.ndarray:
@@ -222,11 +435,18 @@ class HorizonSweeper:
     the lattice the grid is, as long as it holds the terrain the horizon sees.  The kernels march
     along rows of a canonical view of the grid (the azimuth turned into increasing columns, rows
     rising by at most one per column); the canonical copies are made once each.
+
+    ``max_range_m`` cuts the horizon off: a node sees the points of its line at most
+    :func:`range_columns` columns ahead (at most ``max_range_m`` away) and nothing beyond, so its
+    horizon depends only on the terrain within range.  Where no two nodes of the lattice on a line
+    are farther apart than that (always with the default infinite range), nothing is cut and the
+    plain sweep runs, with results bit-identical to a sweep without a cut-off.
     """
 
     def __init__(self, elevation_m: np.ndarray, dx_m: float, dy_m: float, height_m: float, r_eff_m: float,
                  window: tuple[int, int, int, int] | None = None,
-                 lattice_origin: tuple[int, int] = (0, 0), lattice_shape: tuple[int, int] | None = None):
+                 lattice_origin: tuple[int, int] = (0, 0), lattice_shape: tuple[int, int] | None = None,
+                 max_range_m: float = math.inf):
         self.Z = np.ascontiguousarray(elevation_m, dtype=np.float64)
         self.dx_m, self.dy_m = float(dx_m), float(dy_m)
         self.height_m, self.r_eff_m = float(height_m), float(r_eff_m)
@@ -237,6 +457,13 @@ class HorizonSweeper:
             raise ValueError(f"window {self.window} outside the grid {self.Z.shape}")
         self.lattice_origin = (int(lattice_origin[0]), int(lattice_origin[1]))
         self.lattice_shape = (nr, nc) if lattice_shape is None else (int(lattice_shape[0]), int(lattice_shape[1]))
+        self.max_range_m = float(max_range_m)
+        # the step along a line is at most the grid's diagonal, so this bounds every azimuth's columns
+        shortest = MIN_RANGE_CELLS * math.hypot(self.dx_m, self.dy_m)
+        if not self.max_range_m >= shortest:
+            raise InputError(f"maximum range {max_range_m} m below {MIN_RANGE_CELLS} grid diagonals "
+                             f"({shortest:.1f} m): the horizon's near field ({NEAR_FIELD_COLUMNS} cells) "
+                             f"would reach beyond it; use a longer range or a finer grid")
         self._canonical: dict[tuple[bool, bool, bool], np.ndarray] = {}
         self._lock = threading.Lock()
         self._local = threading.local()
@@ -301,8 +528,15 @@ class HorizonSweeper:
         far.fill(np.nan)
         tau = abs(dv / du)
         step = math.hypot(du_m, tau * dv_m)
-        _sweep_canonical(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
-                         LINE_SPACING_ROWS, hs, hz, v0, u0, voff, uoff)
+        range_cols = range_columns(self.max_range_m, step)
+        # the lattice's extent along the line: a cut-off at least that long cuts nothing
+        lattice_cols = self.lattice_shape[0] if transpose else self.lattice_shape[1]
+        if range_cols < 0 or range_cols >= lattice_cols - 1:
+            _sweep_canonical(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
+                             LINE_SPACING_ROWS, hs, hz, v0, u0, voff, uoff)
+        else:
+            _sweep_canonical_cut(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_COLUMNS,
+                                 range_cols, LINE_SPACING_ROWS, hs, hz, v0, u0, voff, uoff)
         _near_field(W, out, far, tau, step, self.height_m, self.r_eff_m, NEAR_FIELD_FRACTIONS, v0, u0)
         return _unorient(out, *key), _unorient(far, *key)
 
