@@ -139,9 +139,14 @@ def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):
                      "--heading-tolerance", "4", "--scheduler", cluster.scheduler_address]) == 0
         parallel = json.loads(capsys.readouterr().out.strip())
     in_process = locate_tiled(open_tiled(folder), _skyline(lat, lon), PARAMS).to_json(open_tiled(folder))
-    for rec in (serial, parallel, direct, in_process):
+    # a local cluster the command makes itself
+    assert main(["estimate", str(folder), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                 "--heading-tolerance", "4", "--workers", "2"]) == 0
+    local = json.loads(capsys.readouterr().out.strip())
+    for rec in (serial, parallel, direct, in_process, local):
         rec.pop("elapsed_ms")
     assert parallel == serial
+    assert local == serial
     assert direct == in_process
     assert serial["tile"] == direct["tile"]
 
@@ -173,6 +178,20 @@ def test_a_search_box_opens_only_the_tiles_it_meets(built, monkeypatch):
     s = min(u.bounds_lonlat[1] for u in north)
     locate_tiled(index, sky, PARAMS, box=(AREA[0], s + 1e-4, AREA[2], AREA[3]))
     assert sorted(opened) == sorted(u.file for u in north)
+
+
+def test_near_searches_only_the_tiles_within_the_radius(built, tmp_path, capsys):
+    folder, _ = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    sky_path = tmp_path / "s.csv"
+    write_skyline_csv(_skyline(lat, lon), sky_path)
+    assert main(["estimate", str(folder), str(sky_path), "--json", "--near", f"{lat},{lon},200",
+                 "--truth", f"{lat},{lon}"]) == 0
+    rec = json.loads(capsys.readouterr().out.strip())
+    assert rec["tiles_searched"] == [_tile_holding(index, lat, lon)]
+    assert rec["tile"] == _tile_holding(index, lat, lon)
+    assert rec["status"] == "ok" and rec["truth"]["error_m"] <= 2 * rec["region"]["cell_size_m"][1]
 
 
 def test_global_upper_bound_is_exact_for_one_heading_and_never_below():
