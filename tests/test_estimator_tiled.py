@@ -12,7 +12,7 @@ import pytest
 from appliance import tiled_search
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
-from appliance.errors import DatabaseError
+from appliance.errors import DatabaseError, EstimationError
 from appliance.position import locate
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import load_database
@@ -252,3 +252,33 @@ def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
     assert code != 0 and len(err.splitlines()) == 1
     code, err = _cli_error(["estimate", str(folder), str(sky), "--search-bounds", "10,10,11,11"], capsys)
     assert code != 0 and len(err.splitlines()) == 1 and "no tile" in err
+
+
+def _made_up_tile(name: str, lon: float, lo: float, up: float) -> tiled_search.TileOutcome:
+    """A tile of one candidate at (lon, 0) with unnormalised log lower and upper posterior lo, up."""
+    return tiled_search.TileOutcome(
+        name, None, {"notes": [], "heading_correction_deg": 0.0}, 0, 0.0, lon, 0.0, 0.0, lo, up, lo, up, lo,
+        math.log(100.0 * 100.0), (100.0, 100.0), False, np.array([0]), np.array([[lon, 0.0]]), np.array([0]),
+        np.array([0.0]), np.array([up]), np.array([[lon, 0.0]]))
+
+
+def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
+    """A second tile's mode far away whose upper bound reaches the best's lower one: ambiguous, never ok;
+    the same mode far less likely: ok."""
+    best = _made_up_tile("a.viperdb", 0.0, -10.0, -8.0)
+    rival = _made_up_tile("b.viperdb", 0.01, -11.0, -9.0)
+    res = tiled_search.combine([best, rival], "earth")
+    assert res.tile == "a.viperdb" and res.ambiguous and res.status() == "ambiguous"
+    assert {c.tile for c in res.region} == {"a.viperdb", "b.viperdb"}
+    # the best's bounds over both tiles: lower lo / (lo + the rival's up), upper up / (up + the rival's lo)
+    assert res.log_lower == pytest.approx(-10.0 - np.logaddexp(-10.0, -9.0))
+    assert res.log_upper == pytest.approx(-8.0 - np.logaddexp(-8.0, -11.0))
+    assert sum(res.tile_share.values()) == pytest.approx(1.0)
+    weak = _made_up_tile("b.viperdb", 0.01, -40.0, -38.0)
+    res = tiled_search.combine([weak, best], "earth")
+    assert res.tile == "a.viperdb" and not res.ambiguous and res.status() == "ok"
+    assert [c.tile for c in res.region] == ["a.viperdb"]
+    failed = tiled_search.TileOutcome("c.viperdb", "no candidate node has terrain along the measured azimuths")
+    assert tiled_search.combine([best, failed], "earth").tiles_failed == ("c.viperdb",)
+    with pytest.raises(EstimationError):
+        tiled_search.combine([failed], "earth")
