@@ -142,15 +142,16 @@ def locate(
     height_m: float | None = None,
     occlusion_weight: float = 0.0,
     map_sigma_m: float = 0.0,
+    refine: bool = True,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
-    its azimuths; ``occlusion_weight`` and ``map_sigma_m`` are those of
+    its azimuths; ``occlusion_weight``, ``map_sigma_m`` and ``refine`` are those of
     :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
-                   map_sigma_m=map_sigma_m)
+                   map_sigma_m=map_sigma_m, refine=refine)
     return place(db, res, source)
 
 

@@ -234,16 +234,17 @@ class TileOutcome:
 
 
 def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
-                source: str = "") -> TileOutcome:
+                source: str = "", refine: bool = True) -> TileOutcome:
     """The ordinary estimate on one tile (loaded here, memory-mapped: on a Dask worker the worker
-    maps its own tile).  A tile where the skyline cannot be placed at all (no terrain along its
-    azimuths) is reported as such; the other tiles may still place it."""
+    maps its own tile), with the exact refinement or without (``refine``).  A tile where the
+    skyline cannot be placed at all (no terrain along its azimuths) is reported as such; the other
+    tiles may still place it."""
     t0 = time.perf_counter()
     db = load_database(Path(folder) / tile.file)
     try:
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
-                     map_sigma_m=params.map_sigma_m)
+                     map_sigma_m=params.map_sigma_m, refine=refine)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result
@@ -321,6 +322,7 @@ class TiledEstimate:
     region_area_m2: float
     ambiguous: bool
     tile_share: dict[str, float]  # each tile's share of the midpoint posterior
+    overflowed: tuple[str, ...]  # tiles whose nodes left behind could still join the region
     notes: list[str]
     body: str
     elapsed_s: float
@@ -436,7 +438,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
     region: list[RegionCell] = []
     notes: list[str] = []
     rival = False
-    overflow = False
+    overflowed: list[str] = []
     reach_m = SAME_ANSWER_CELLS * max(best.cell_size_m)
     b_body = body_named(body)
     for i, o in enumerate(ok):
@@ -453,7 +455,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                                       np.array([o.left_max_log_upper_unnormalised + o.log_cell_area]),
                                       others(ev_lo, i))[0]
         if o.left_max_log_upper > -math.inf and left >= best_lower:
-            overflow = True
+            overflowed.append(o.file)
         for v in sorted(nodes):
             lon, lat = lonlat[v]
             region.append(RegionCell(o.file, v, lon, lat))
@@ -463,8 +465,8 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
     notes += [n for n in best.record.get("notes", []) if not n.startswith("ambiguous")]
     if best.ambiguous:
         notes += [n for n in best.record.get("notes", []) if n.startswith("ambiguous")]
-    if len(region) > AMBIGUOUS_CELLS or overflow:
-        notes.append(f"ambiguous: {len(region)}{'+' if overflow else ''} cells across "
+    if len(region) > AMBIGUOUS_CELLS or overflowed:
+        notes.append(f"ambiguous: {len(region)}{'+' if overflowed else ''} cells across "
                      f"{len({c.tile for c in region})} tiles are as likely as the best; the skyline does not "
                      "single out one position")
     if rival:
@@ -473,24 +475,39 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                      f"from the best (in {best.file}) whose upper posterior reaches the best's lower one")
     if failed:
         notes.append(f"{len(failed)} tile(s) could not place the skyline at all: {', '.join(failed)}")
-    ambiguous = bool(best.ambiguous or rival or overflow or len(region) > AMBIGUOUS_CELLS)
+    ambiguous = bool(best.ambiguous or rival or overflowed or len(region) > AMBIGUOUS_CELLS)
     return TiledEstimate(best, tuple(o.file for o in outcomes), failed, best_lower, g_upper[b], tuple(region),
-                         area, ambiguous, share, notes, body, elapsed_s, sum(o.candidates for o in ok))
+                         area, ambiguous, share, tuple(overflowed), notes, body, elapsed_s,
+                         sum(o.candidates for o in ok))
 
 
 def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box: Box | None = None,
                  client: Any = None, source: str = "") -> TiledEstimate:
     """Search the tiles that ``box`` meets (every tile with None) and combine them.
 
-    With a ``distributed.Client`` every tile is one task on its cluster, each worker mapping its
-    own tile; without one the tiles are searched here, one after the other.  The combination is
-    the same either way, so the answer is too."""
+    Two rounds: every tile on its grid alone, combined; then the exact refinement, only on the
+    tiles holding a node of the combined region.  The refinement moves a tile's answer between its
+    nodes and adds the cells of its fits, but changes none of the posteriors the combination
+    weighs, so a tile no node of which reaches the best's lower posterior cannot change the answer;
+    skipping its refinement (most of a hopeless tile's time: it finds no fit to stop at) costs
+    nothing.  With a ``distributed.Client`` every tile is one task of each round on its cluster,
+    each worker mapping its own tile; without one the tiles are searched here, one after the other.
+    The combination is the same either way, so the answer is too."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
+    first = _search(index, tiles, skyline, params, client, source, refine=False)
+    grid_only = combine(first, index.body)
+    contenders = {c.tile for c in grid_only.region} | {grid_only.tile} | set(grid_only.overflowed)
+    refined = _search(index, [t for t in tiles if t.file in contenders], skyline, params, client, source,
+                      refine=True)
+    outcomes = refined + [o for o in first if o.file not in contenders]
+    return combine(outcomes, index.body, time.perf_counter() - t0)
+
+
+def _search(index: TiledIndex, tiles: Sequence[TileEntry], skyline: Skyline, params: SearchParams, client: Any,
+            source: str, refine: bool) -> list[TileOutcome]:
     folder = str(index.folder)
     if client is None:
-        outcomes = [search_tile(folder, t, skyline, params, source) for t in tiles]
-    else:
-        futures = [client.submit(search_tile, folder, t, skyline, params, source, pure=False) for t in tiles]
-        outcomes = client.gather(futures)
-    return combine(outcomes, index.body, time.perf_counter() - t0)
+        return [search_tile(folder, t, skyline, params, source, refine) for t in tiles]
+    futures = [client.submit(search_tile, folder, t, skyline, params, source, refine, pure=False) for t in tiles]
+    return list(client.gather(futures))

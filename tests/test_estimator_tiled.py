@@ -171,13 +171,13 @@ def test_a_search_box_opens_only_the_tiles_it_meets(built, monkeypatch):
     assert t.bounds_lonlat[0] < box[0] and box[2] < t.bounds_lonlat[2]
     assert t.bounds_lonlat[1] < box[1] and box[3] < t.bounds_lonlat[3]
     res = locate_tiled(index, sky, PARAMS, box=box)
-    assert opened == [holding] and res.tiles_searched == (holding,)
+    assert set(opened) == {holding} and res.tiles_searched == (holding,)
     # a box across the northern tiles only
     opened.clear()
     north = [t for t in index.tiles if t.bounds_lonlat[1] > min(u.bounds_lonlat[1] for u in index.tiles)]
     s = min(u.bounds_lonlat[1] for u in north)
     locate_tiled(index, sky, PARAMS, box=(AREA[0], s + 1e-4, AREA[2], AREA[3]))
-    assert sorted(opened) == sorted(u.file for u in north)
+    assert set(opened) == {u.file for u in north}
 
 
 def test_near_searches_only_the_tiles_within_the_radius(built, tmp_path, capsys):
