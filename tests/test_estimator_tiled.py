@@ -282,3 +282,18 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
     assert tiled_search.combine([best, failed], "earth").tiles_failed == ("c.viperdb",)
     with pytest.raises(EstimationError):
         tiled_search.combine([failed], "earth")
+
+
+def test_refining_only_the_contending_tiles_gives_the_answer_of_refining_all(built):
+    """The second round refines only the tiles holding a node of the region; refining every tile
+    must not change the combined answer."""
+    folder, _ = built
+    index = open_tiled(folder)
+    for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
+        sky = _skyline(lat, lon, seed=k)
+        every = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=True) for t in index.tiles]
+        all_refined = tiled_search.combine(every, index.body).to_json(index, (lat, lon))
+        two_rounds = locate_tiled(index, sky, PARAMS).to_json(index, (lat, lon))
+        all_refined.pop("elapsed_ms")
+        two_rounds.pop("elapsed_ms")
+        assert two_rounds == all_refined
