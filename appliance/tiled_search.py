@@ -234,13 +234,17 @@ class TileOutcome:
 
 
 def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
-                source: str = "", refine: bool = True) -> TileOutcome:
+                source: str = "", refine: bool = True, expect: tuple[int, float] | None = None) -> TileOutcome:
     """The ordinary estimate on one tile (loaded here, memory-mapped: on a Dask worker the worker
     maps its own tile), with the exact refinement or without (``refine``).  A tile where the
     skyline cannot be placed at all (no terrain along its azimuths) is reported as such; the other
-    tiles may still place it."""
+    tiles may still place it.  ``expect`` (the index's azimuth count and camera height) refuses a
+    tile built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
     t0 = time.perf_counter()
     db = load_database(Path(folder) / tile.file)
+    if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):
+        raise DatabaseError(f"{Path(folder) / tile.file}: {db.n_azimuths} azimuths at {db.height_m} m, but "
+                            f"the tiled index says {expect[0]} at {expect[1]} m; rebuild the tile")
     try:
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
@@ -507,7 +511,9 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
 def _search(index: TiledIndex, tiles: Sequence[TileEntry], skyline: Skyline, params: SearchParams, client: Any,
             source: str, refine: bool) -> list[TileOutcome]:
     folder = str(index.folder)
+    expect = (index.n_azimuths, index.height_m)
     if client is None:
-        return [search_tile(folder, t, skyline, params, source, refine) for t in tiles]
-    futures = [client.submit(search_tile, folder, t, skyline, params, source, refine, pure=False) for t in tiles]
+        return [search_tile(folder, t, skyline, params, source, refine, expect) for t in tiles]
+    futures = [client.submit(search_tile, folder, t, skyline, params, source, refine, expect, pure=False)
+               for t in tiles]
     return list(client.gather(futures))

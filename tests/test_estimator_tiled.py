@@ -246,6 +246,12 @@ def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
             open_tiled(path)
         code, err = _cli_error(["estimate", str(path), str(sky)], capsys)
         assert code != 0 and len(err.splitlines()) == 1 and word in err, err
+    # an index whose tiles were built otherwise: found when the tile is opened
+    other = tmp_path / "other"
+    shutil.copytree(folder, other)
+    (other / "index.json").write_text(json.dumps({**idx, "n_azimuths": idx["n_azimuths"] // 2}))
+    code, err = _cli_error(["estimate", str(other), str(sky)], capsys)
+    assert code != 0 and len(err.splitlines()) == 1 and "azimuths" in err, err
     code, err = _cli_error(["estimate", str(whole), str(sky), "--workers", "2"], capsys)
     assert code != 0 and len(err.splitlines()) == 1 and "tiled" in err
     code, err = _cli_error(["estimate", str(folder), str(sky), "--search-bounds", "1,2,3"], capsys)
