@@ -24,6 +24,7 @@ QUICK: dict[str, list[str]] = {
     "estimator_speed": [],
     "estimator_accuracy": ["--trials", "20"],
     "estimator_fusion": ["--trials", "10"],
+    "estimator_tiled": ["--repeats", "2"],
     "vision_skyline": [],
     "drivers_gps": [],
     "logbook_write": [],

@@ -6,7 +6,10 @@ import argparse
 import json
 import logging
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
@@ -14,6 +17,7 @@ from appliance.errors import InputError
 from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
+from appliance.tiled_search import is_tiled
 
 LOG = logging.getLogger(__name__)
 
@@ -36,9 +40,15 @@ def _pair(text: str, what: str) -> tuple[float, float]:
     return a, b
 
 
+def _checked_height(height: float | None) -> float | None:
+    if height is not None and not (math.isfinite(height) and -100.0 < height < 1000.0):
+        raise InputError(f"--height {height}: expected a height in metres above the map's surface, -100..1000")
+    return height
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("estimate", help="estimate the position from skyline CSVs and a skyline database")
-    p.add_argument("db", help="skyline database from viper precompute")
+    p.add_argument("db", help="skyline database from viper precompute, or a tiled database's folder")
     p.add_argument("skylines", nargs="+", help="skyline CSVs (azimuth_deg,elevation_deg)")
     head = p.add_mutually_exclusive_group()
     head.add_argument("--heading-tolerance", type=float, help="compass error bound beta (deg; default from config)")
@@ -64,6 +74,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write per skyline a PNG, the posteriors as GeoTIFF and the region as GeoJSON, "
                         "and report.html showing them all")
     p.add_argument("--force", action="store_true", help="replace report files that exist")
+    tiled = p.add_argument_group("tiled database (DB is a folder with index.json)")
+    where = tiled.add_mutually_exclusive_group()
+    where.add_argument("--search-bounds", metavar="W,S,E,N",
+                       help="search only the tiles meeting this lon/lat box (degrees)")
+    where.add_argument("--near", metavar="LAT,LON,RADIUS_M",
+                       help="search only the tiles within RADIUS_M metres of LAT,LON")
+    run_on = tiled.add_mutually_exclusive_group()
+    run_on.add_argument("--scheduler", metavar="ADDRESS",
+                        help="search the tiles as tasks on this Dask scheduler (tcp://host:8786)")
+    run_on.add_argument("--workers", type=int, metavar="N",
+                        help="search the tiles as tasks on a local Dask cluster of N worker processes")
     p.set_defaults(func=run)
 
 
@@ -92,10 +113,14 @@ def run(args: argparse.Namespace) -> int:
         if sky.valid_fraction < cfg.min_valid_fraction:
             raise InputError(f"{name}: {int(sky.valid.sum())} valid azimuths ({sky.valid_fraction:.0%}), below "
                              f"[estimator] min_valid_fraction {cfg.min_valid_fraction:.0%}")
+    tiled_only = [o for o, v in (("--search-bounds", args.search_bounds), ("--near", args.near),
+                                 ("--scheduler", args.scheduler), ("--workers", args.workers)) if v is not None]
+    if is_tiled(args.db):
+        return _run_tiled(args, cfg, skylines, truths, tolerance)
+    if tiled_only:
+        raise InputError(f"{tiled_only[0]} needs a tiled database (a folder with index.json), not {args.db}")
     db = load_database(args.db)
-    height = args.height
-    if height is not None and not (math.isfinite(height) and -100.0 < height < 1000.0):
-        raise InputError(f"--height {height}: expected a height in metres above the map's surface, -100..1000")
+    height = _checked_height(args.height)
     occ, map_sigma = cfg.occlusion_weight, cfg.map_vertical_sigma_m
     if args.fuse:
         positions = locate_sequence(db, skylines, moves, sigma, tolerance, height, occ, map_sigma)
@@ -141,3 +166,67 @@ def run(args: argparse.Namespace) -> int:
 
         write_report_page(db, entries, report)
     return 0
+
+
+def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[tuple[float, float]],
+               tolerance: float | None) -> int:
+    """``viper estimate`` on a tiled database: every skyline searched over the tiles its search area
+    meets (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
+    from appliance.tiled_search import SearchParams, box_around, locate_tiled, open_tiled
+
+    if args.fuse or args.report:
+        raise InputError(f"{'--fuse' if args.fuse else '--report'} is not available with a tiled database; "
+                         "give one tile's file instead")
+    index = open_tiled(args.db)
+    box: tuple[float, float, float, float] | None = None
+    if args.search_bounds is not None:
+        west, south, east, north = _numbers(args.search_bounds, "--search-bounds", 4)
+        box = (west, south, east, north)
+    elif args.near is not None:
+        lat, lon, radius_m = _numbers(args.near, "--near", 3)
+        box = box_around(lat, lon, radius_m, index.body)
+    params = SearchParams(cfg.sigma_deg, tolerance, _checked_height(args.height), cfg.occlusion_weight,
+                          cfg.map_vertical_sigma_m)
+    with _dask_client(args.scheduler, args.workers) as client:
+        results = [locate_tiled(index, sky, params, box, client, name) for name, sky in skylines]
+    for i, (res, (name, _)) in enumerate(zip(results, skylines)):
+        truth = truths[i] if truths else None
+        record = res.to_json(index, truth)
+        if args.json:
+            print(json.dumps(record), flush=True)
+        else:
+            err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
+            print(f"{name}: {res.lat:.6f}, {res.lon:.6f}  {record['status']}  tile {res.tile}"
+                  f"  heading correction {res.heading_correction_deg:+.1f} deg"
+                  f"  region {res.region_area_m2 / 1e6:.3f} km^2 ({len(res.region)} cells)"
+                  f"  residual {record['rms_residual_deg']:.2f} deg{err}")
+            for note in res.notes:
+                LOG.info("  %s", note)
+    return 0
+
+
+@contextmanager
+def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
+    """A Dask client on the given scheduler, or on a local cluster of ``workers`` processes (one
+    thread each: the estimator's kernels are single-threaded per task); None for in-process."""
+    if scheduler is None and workers is None:
+        yield None
+        return
+    if workers is not None and not 1 <= workers <= 256:
+        raise InputError(f"--workers {workers}: expected 1..256")
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--scheduler and --workers need dask.distributed, which is not installed") from None
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout="20s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise InputError(f"--scheduler {scheduler}: cannot connect ({first})") from None
+        with client:
+            yield client
+        return
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as client:
+        yield client

@@ -190,6 +190,19 @@ class EstimateResult:
     elapsed_s: float
     notes: list[str] = field(default_factory=list)
     covariance_cells: np.ndarray | None = None  # (row, col) covariance of an exact fit (cells^2)
+    #: The normalisers behind the maps above, in nats: log of the sum over every rescored candidate
+    #: of its unnormalised lower and upper posterior (likelihood bound times prior), and of the
+    #: midpoint posterior summed over heading.  The maps are normalised within this grid; searches
+    #: over several grids (a tiled database) need these to normalise across them.
+    log_evidence_lower: float = math.nan
+    log_evidence_upper: float = math.nan
+    log_evidence_mid: float = math.nan
+    #: The best candidate's unnormalised log lower and upper posterior (nats), on the same scale.
+    log_lower_unnormalised: float = math.nan
+    log_upper_unnormalised: float = math.nan
+    #: (n_nodes,) each node's unnormalised log upper posterior (its best heading), on the same scale;
+    #: None when not made
+    log_upper_unnormalised_map: np.ndarray | None = None
 
 
 class _RefineContext:
@@ -471,6 +484,9 @@ def estimate(
         sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
         candidates=plausible.scored_nodes * first.node_shifts.shape[1],
         elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
+        log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
+        log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
+        log_upper_unnormalised_map=post.node_upper_unnormalised,
     )
 
 
@@ -652,6 +668,12 @@ class _Posteriors:
     node_upper: np.ndarray  # (n_nodes,)
     region: np.ndarray  # nodes whose upper posterior reaches the best's lower one
     posterior_mid: np.ndarray  # (n_nodes,) posterior at sigma's midpoint, marginal over heading
+    log_sum_lo: float  # log of the sum of every rescored candidate's unnormalised lower posterior
+    log_sum_up: float  # and of its upper one
+    log_sum_mid: float  # log of the sum of the unnormalised midpoint posterior over the rescored nodes
+    best_lo_unnormalised: float  # the best candidate's unnormalised log lower posterior
+    best_up_unnormalised: float
+    node_upper_unnormalised: np.ndarray  # (n_nodes,) unnormalised log upper posterior of each node's best heading
 
 
 def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, rescored: _Rescored) -> _Posteriors:
@@ -673,15 +695,20 @@ def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, resco
     node_lower[rescore] = np.max(post.log_lower, axis=1)
     node_upper[rescore] = np.max(post.log_upper, axis=1)
     region = np.nonzero(node_upper >= best_lower_log)[0]
+    node_up_unnormalised = plausible.log_upper.copy()
+    node_up_unnormalised[rescore] = np.max(up_r + lp_r, axis=1)
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     mid = 0.5 * (sig_lo + sig_hi)
     node_mid = np.full(node_lower.size, -np.inf)
     ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
-    node_mid -= np.logaddexp.reduce(node_mid[rescore])
+    log_sum_mid = float(np.logaddexp.reduce(node_mid[rescore]))
+    node_mid -= log_sum_mid
     return _Posteriors(best_r, best_k, int(rescore[best_r]), best_lower_log,
-                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, np.exp(node_mid))
+                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, np.exp(node_mid),
+                       log_sum_lo, log_sum_up, log_sum_mid, float((lo_r + lp_r)[best_r, best_k]),
+                       float((up_r + lp_r)[best_r, best_k]), node_up_unnormalised)
 
 
 @dataclass(frozen=True)

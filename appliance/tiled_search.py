@@ -1,0 +1,519 @@
+"""Position from a skyline against a tiled skyline database: a folder of ordinary databases.
+
+A tiled database is a folder holding ``index.json`` and one format-3 database per tile, each a
+window of one mosaic-wide candidate lattice.  A search runs the ordinary estimator on every tile
+that the search area touches (in process, or one Dask task per tile on a cluster) and then combines
+the tiles as one grid would have been combined.
+
+Why the combination needs more than each tile's answer: every tile's posteriors are normalised
+within the tile, so each tile, even one the skyline was never seen from, holds some node of
+posterior near one.  Each tile therefore also reports its normalisers (the log of the summed
+unnormalised lower, upper and midpoint posteriors, :class:`~appliance.estimator.EstimateResult`)
+and its best candidate's unnormalised bounds; with them the best candidate's lower and upper
+posterior are recomputed over all tiles exactly, and every other node's upper posterior is bounded
+from above (:func:`global_log_upper_bound`).  The region is then every node, in any tile, whose
+bound reaches the best's lower posterior; a node of it in another tile, away from the best, is a
+rival the skyline does not rule out, and the answer is ambiguous.
+
+The prior is uniform per unit area: a tile's evidence is weighed by its cell area, which is the
+same in every tile of one lattice.  A search box or a position and radius choose the tiles; within
+them the prior stays uniform.
+
+Nothing here touches devices or logs: the module maps a folder and skylines to numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from appliance.bodies import body_named, geodesic_distance_m
+from appliance.errors import DatabaseError, EstimationError, InputError
+from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS
+from appliance.position import MAX_REGION_CELLS_IN_JSON, locate
+from appliance.skyline import Skyline
+from appliance.terrain.database import load_database
+
+INDEX_NAME = "index.json"
+INDEX_FORMAT = "viper-tiled-db"
+INDEX_VERSION = 1
+#: How many of a tile's nodes (highest upper posterior first) travel back from its search: enough
+#: that, when a node left behind could still join the region, the region is already wider than
+#: AMBIGUOUS_CELLS and the answer ambiguous whatever the rest holds.
+TOP_NODES = 4096
+
+Box = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class TileEntry:
+    """One tile of the index: its file, its window of the mosaic lattice (bookkeeping only: the
+    tile's own header grid is authoritative) and its candidate area in lon/lat (W, S, E, N)."""
+
+    file: str
+    row0: int
+    col0: int
+    n_rows: int
+    n_cols: int
+    bounds_lonlat: Box
+
+
+@dataclass(frozen=True)
+class TiledIndex:
+    """A checked ``index.json`` and the folder it lies in."""
+
+    folder: Path
+    tiles: tuple[TileEntry, ...]
+    n_azimuths: int
+    height_m: float
+    max_range_m: float
+    body: str
+    raw: dict
+
+    def path(self, tile: TileEntry) -> Path:
+        return self.folder / tile.file
+
+
+def is_tiled(path: str | Path) -> bool:
+    """Whether ``path`` names a tiled database (a folder) rather than a single database file."""
+    return Path(path).is_dir()
+
+
+def _bad(folder: Path, why: str) -> DatabaseError:
+    return DatabaseError(f"{folder}: not a usable tiled skyline database: {why}")
+
+
+def _number(d: dict, key: str, folder: Path, kind: Callable[[Any], Any] = float) -> Any:
+    try:
+        v = d[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise TypeError
+        out = kind(v)
+    except (KeyError, TypeError, ValueError):
+        raise _bad(folder, f"{INDEX_NAME} lacks a numeric {key!r}") from None
+    if isinstance(out, float) and not math.isfinite(out):
+        raise _bad(folder, f"{INDEX_NAME} has a non-finite {key!r}")
+    return out
+
+
+def _tile_entry(t: Any, folder: Path, k: int) -> TileEntry:
+    if not isinstance(t, dict):
+        raise _bad(folder, f"tile {k} of {INDEX_NAME} is not an object")
+    name = t.get("file")
+    if not isinstance(name, str) or not name or Path(name).name != name:
+        raise _bad(folder, f"tile {k} of {INDEX_NAME} has no plain file name")
+    b = t.get("bounds_lonlat")
+    if not (isinstance(b, list) and len(b) == 4 and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                        for v in b)):
+        raise _bad(folder, f"tile {name}: bounds_lonlat must be [W, S, E, N]")
+    w, s, e, n = (float(v) for v in b)
+    if not (w < e and s < n):
+        raise _bad(folder, f"tile {name}: bounds_lonlat {b} must have W < E and S < N")
+    dims = [_number(t, key, folder, int) for key in ("row0", "col0", "n_rows", "n_cols")]
+    if dims[0] < 0 or dims[1] < 0 or dims[2] < 1 or dims[3] < 1:
+        raise _bad(folder, f"tile {name}: row0, col0 must be >= 0 and n_rows, n_cols >= 1")
+    return TileEntry(name, dims[0], dims[1], dims[2], dims[3], (w, s, e, n))
+
+
+def open_tiled(folder: str | Path) -> TiledIndex:
+    """Read and check a tiled database's index: its format and version, each tile's entry, and that
+    every tile's file is present.  No tile is opened here: a search maps only the tiles it touches."""
+    p = Path(folder)
+    if not p.is_dir():
+        raise DatabaseError(f"{p}: no such tiled database folder")
+    try:
+        index = json.loads((p / INDEX_NAME).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise _bad(p, f"no {INDEX_NAME}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _bad(p, f"unreadable {INDEX_NAME} ({first})") from None
+    if not isinstance(index, dict) or index.get("format") != INDEX_FORMAT:
+        raise _bad(p, f"{INDEX_NAME} is not of format {INDEX_FORMAT!r}")
+    if index.get("format_version") != INDEX_VERSION:
+        raise _bad(p, f"{INDEX_NAME} format version {index.get('format_version')}, this viper reads "
+                      f"version {INDEX_VERSION}")
+    tiles_raw = index.get("tiles")
+    if not isinstance(tiles_raw, list) or not tiles_raw:
+        raise _bad(p, f"{INDEX_NAME} lists no tiles")
+    tiles = tuple(_tile_entry(t, p, k) for k, t in enumerate(tiles_raw))
+    names = [t.file for t in tiles]
+    if len(set(names)) != len(names):
+        raise _bad(p, f"{INDEX_NAME} lists a tile twice")
+    missing = [n for n in names if not (p / n).is_file()]
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise _bad(p, f"tile {missing[0]}{more} listed in {INDEX_NAME} is missing")
+    body = index.get("body")
+    if not isinstance(body, str):
+        raise _bad(p, f"{INDEX_NAME} lacks the body")
+    try:
+        body_named(body)
+    except (KeyError, ValueError):
+        raise _bad(p, f"{INDEX_NAME} names an unknown body {body!r}") from None
+    return TiledIndex(p, tiles, _number(index, "n_azimuths", p, int), _number(index, "height_m", p),
+                      _number(index, "max_range_m", p), body, index)
+
+
+def box_around(lat: float, lon: float, radius_m: float, body: str) -> Box:
+    """The lon/lat box (W, S, E, N) holding every point within ``radius_m`` of (lat, lon)."""
+    if not (math.isfinite(radius_m) and radius_m > 0.0):
+        raise InputError(f"search radius {radius_m} m: expected > 0")
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0):
+        raise InputError(f"position {lat}, {lon}: expected a latitude and longitude in degrees")
+    dlat = math.degrees(radius_m / body_named(body).radius_m)
+    cos_lat = math.cos(math.radians(min(abs(lat) + dlat, 90.0)))
+    dlon = 180.0 if cos_lat < 1e-9 else min(math.degrees(radius_m / (body_named(body).radius_m * cos_lat)), 180.0)
+    return lon - dlon, max(lat - dlat, -90.0), lon + dlon, min(lat + dlat, 90.0)
+
+
+def select_tiles(index: TiledIndex, box: Box | None = None) -> list[TileEntry]:
+    """The tiles whose candidate area meets ``box`` (W, S, E, N; None: every tile)."""
+    if box is None:
+        return list(index.tiles)
+    w, s, e, n = box
+    if not (w < e and s < n):
+        raise InputError(f"search bounds {box}: expected W,S,E,N with W < E and S < N")
+    out = [t for t in index.tiles
+           if t.bounds_lonlat[0] <= e and w <= t.bounds_lonlat[2] and t.bounds_lonlat[1] <= n
+           and s <= t.bounds_lonlat[3]]
+    if not out:
+        raise InputError(f"search bounds {tuple(round(v, 6) for v in box)} meet no tile of {index.folder}")
+    return out
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """What every tile's search shares (the arguments of :func:`appliance.position.locate`)."""
+
+    sigma_deg: tuple[float, float]
+    heading_tolerance_deg: float | None
+    height_m: float | None = None
+    occlusion_weight: float = 0.0
+    map_sigma_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class TileOutcome:
+    """One tile's search, reduced to what the combination and the outputs need (small enough to
+    travel back from a Dask worker: no per-node maps, only the TOP_NODES most likely nodes)."""
+
+    file: str
+    error: str | None
+    record: dict = field(default_factory=dict)  # the tile's own JSON record (appliance.position)
+    node: int = -1
+    lat: float = math.nan
+    lon: float = math.nan
+    log_lower: float = -math.inf  # the best candidate's lower and upper posterior within the tile
+    log_upper: float = -math.inf
+    lo_unnormalised: float = -math.inf  # and unnormalised
+    up_unnormalised: float = -math.inf
+    log_evidence_lower: float = -math.inf
+    log_evidence_upper: float = -math.inf
+    log_evidence_mid: float = -math.inf
+    log_cell_area: float = 0.0  # log of a cell's area (m^2): the uniform prior per unit area
+    cell_size_m: tuple[float, float] = (math.nan, math.nan)
+    ambiguous: bool = False
+    region_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    region_lonlat: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    top_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    top_log_upper: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    top_log_upper_unnormalised: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    top_lonlat: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    left_max_log_upper: float = -math.inf  # the highest upper posterior of the nodes not sent
+    left_max_log_upper_unnormalised: float = -math.inf  # and the highest unnormalised one
+    candidates: int = 0
+    elapsed_s: float = 0.0
+
+
+def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
+                source: str = "", refine: bool = True, expect: tuple[int, float] | None = None) -> TileOutcome:
+    """The ordinary estimate on one tile (loaded here, memory-mapped: on a Dask worker the worker
+    maps its own tile), with the exact refinement or without (``refine``).  A tile where the
+    skyline cannot be placed at all (no terrain along its azimuths) is reported as such; the other
+    tiles may still place it.  ``expect`` (the index's azimuth count and camera height) refuses a
+    tile built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
+    t0 = time.perf_counter()
+    db = load_database(Path(folder) / tile.file)
+    if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):
+        raise DatabaseError(f"{Path(folder) / tile.file}: {db.n_azimuths} azimuths at {db.height_m} m, but "
+                            f"the tiled index says {expect[0]} at {expect[1]} m; rebuild the tile")
+    try:
+        pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source,
+                     height_m=params.height_m, occlusion_weight=params.occlusion_weight,
+                     map_sigma_m=params.map_sigma_m, refine=refine)
+    except EstimationError as exc:
+        return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
+    r = pos.result
+    up = np.asarray(r.log_upper_map, dtype=np.float64)
+    assert r.log_upper_unnormalised_map is not None
+    up_un = np.asarray(r.log_upper_unnormalised_map, dtype=np.float64)
+    # ranked by the unnormalised upper posterior: the order every tile's nodes keep over all tiles
+    k = min(TOP_NODES, up.size)
+    top = np.argpartition(-up_un, k - 1)[:k] if k < up.size else np.arange(up.size)
+    top = top[np.argsort(-up_un[top], kind="stable")]
+    left = np.ones(up.size, dtype=bool)
+    left[top] = False
+    left_max = float(up[left].max()) if left.any() else -math.inf
+    left_max_un = float(up_un[left].max()) if left.any() else -math.inf
+
+    def lonlat(nodes: np.ndarray) -> np.ndarray:
+        if nodes.size == 0:
+            return np.zeros((0, 2))
+        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(nodes))
+        return np.column_stack([np.atleast_1d(lon), np.atleast_1d(lat)]).astype(np.float64)
+
+    region = np.asarray(r.region_nodes, dtype=np.int64)
+    g = db.grid
+    return TileOutcome(
+        tile.file, None, pos.to_json(db), r.node, pos.lat, pos.lon, r.log_lower,
+        math.log(r.upper) if r.upper > 0 else -math.inf, r.log_lower_unnormalised, r.log_upper_unnormalised,
+        r.log_evidence_lower, r.log_evidence_upper, r.log_evidence_mid, math.log(g.dx_m * g.dy_m),
+        (g.dx_m, g.dy_m), r.ambiguous, region, lonlat(region), top.astype(np.int64), up[top], up_un[top],
+        lonlat(top), left_max, left_max_un, r.candidates, time.perf_counter() - t0)
+
+
+def _log_sum(values: Sequence[float]) -> float:
+    v = [x for x in values if x > -math.inf]
+    return float(np.logaddexp.reduce(np.asarray(v))) if v else -math.inf
+
+
+def global_log_upper_bound(log_upper: np.ndarray, log_upper_unnormalised: np.ndarray,
+                           log_others_lower: float) -> np.ndarray:
+    """An upper bound on nodes' upper posterior over all tiles, from their upper posterior within
+    their own tile and their unnormalised one (nats, on the scale of ``log_others_lower``).
+
+    Within a tile a candidate's upper posterior is u = b / (b + S - a), with b and a its own
+    unnormalised upper and lower posterior and S the tile's summed lower ones; over all tiles the
+    others' summed lower posteriors O (``log_others_lower``) join the denominator, so
+    1 / g = 1 / u + O / b exactly.  A node holds the largest u and the largest b of its headings,
+    which bounds every heading's g from above; for one tile (O = 0) g is u.
+    """
+    lu = np.minimum(np.asarray(log_upper, dtype=np.float64), 0.0)
+    if log_others_lower == -math.inf:
+        return lu
+    lb = np.asarray(log_upper_unnormalised, dtype=np.float64)
+    return -np.logaddexp(-lu, log_others_lower - lb)
+
+
+@dataclass(frozen=True)
+class RegionCell:
+    """A node of the combined region: its tile, its node there, and where it lies."""
+
+    tile: str
+    node: int
+    lon: float
+    lat: float
+
+
+@dataclass(frozen=True)
+class TiledEstimate:
+    """The combined estimate over the searched tiles."""
+
+    best: TileOutcome
+    tiles_searched: tuple[str, ...]
+    tiles_failed: tuple[str, ...]
+    log_lower: float  # the best candidate's posterior bounds over all searched tiles
+    log_upper: float
+    region: tuple[RegionCell, ...]
+    region_area_m2: float
+    ambiguous: bool
+    tile_share: dict[str, float]  # each tile's share of the midpoint posterior
+    overflowed: tuple[str, ...]  # tiles whose nodes left behind could still join the region
+    notes: list[str]
+    body: str
+    elapsed_s: float
+    candidates: int
+
+    @property
+    def tile(self) -> str:
+        return self.best.file
+
+    @property
+    def lat(self) -> float:
+        return self.best.lat
+
+    @property
+    def lon(self) -> float:
+        return self.best.lon
+
+    @property
+    def heading_correction_deg(self) -> float:
+        return float(self.best.record["heading_correction_deg"])
+
+    def truth_error_m(self, truth: tuple[float, float]) -> float:
+        return geodesic_distance_m(self.lat, self.lon, truth[0], truth[1], body_named(self.body))
+
+    def status(self, index: TiledIndex | None = None, truth: tuple[float, float] | None = None) -> str:
+        """'ambiguous' when the combination is, or when the truth (where known) lies outside the
+        region; else 'ok'."""
+        if self.ambiguous:
+            return "ambiguous"
+        if truth is not None and (index is None or not self.truth_in_region(index, truth)):
+            return "ambiguous"
+        return "ok"
+
+    def truth_in_region(self, index: TiledIndex, truth: tuple[float, float]) -> bool:
+        """Whether the node nearest the true (lat, lon), in a searched tile holding it, belongs to the region."""
+        lat, lon = truth
+        cells = {(c.tile, c.node) for c in self.region}
+        for t in index.tiles:
+            w, s, e, n = t.bounds_lonlat
+            if t.file not in self.tiles_searched or not (w <= lon <= e and s <= lat <= n):
+                continue
+            grid = load_database(index.path(t)).grid
+            fr, fc = grid.xy_to_rc(*grid.lonlat_to_xy(lon, lat))
+            r, c = int(round(float(fr))), int(round(float(fc)))
+            if 0 <= r < grid.n_rows and 0 <= c < grid.n_cols and (t.file, r * grid.n_cols + c) in cells:
+                return True
+        return False
+
+    def to_json(self, index: TiledIndex | None = None, truth: tuple[float, float] | None = None) -> dict:
+        """The single-file record (:meth:`appliance.position.Position.to_json`) of the best tile, its
+        bounds, region and status replaced by the combined ones, and which tiles were searched."""
+        out = dict(self.best.record)
+        cells = [[round(c.lat, 7), round(c.lon, 7)] for c in self.region]
+        out.update({
+            "lower": math.exp(self.log_lower),
+            "upper": math.exp(self.log_upper),
+            "log10_lower": round(self.log_lower / math.log(10.0), 4),
+            "region": {
+                "area_m2": round(self.region_area_m2, 1),
+                "cell_size_m": [round(v, 3) for v in self.best.cell_size_m],
+                "n_cells": len(self.region),
+                "cells": cells[:MAX_REGION_CELLS_IN_JSON],
+                "cells_truncated": len(cells) > MAX_REGION_CELLS_IN_JSON,
+                "tiles": sorted({c.tile for c in self.region}),
+            },
+            "ambiguous": self.ambiguous,
+            "status": self.status(index, truth),
+            "tile": self.tile,
+            "tile_node": self.best.node,
+            "tiles_searched": list(self.tiles_searched),
+            "tile_share": {k: round(v, 6) for k, v in self.tile_share.items()},
+            "candidates": self.candidates,
+            "elapsed_ms": round(self.elapsed_s * 1e3, 2),
+            "notes": list(self.notes),
+        })
+        if truth is not None:
+            out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(self.truth_error_m(truth), 2)}
+        return out
+
+
+def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) -> TiledEstimate:
+    """Normalise the tiles' searches over all of them: the best candidate, its posterior bounds, the
+    region across tiles and whether the answer is ambiguous (module docstring)."""
+    outcomes = sorted(outcomes, key=lambda o: o.file)
+    ok = [o for o in outcomes if o.error is None]
+    failed = tuple(o.file for o in outcomes if o.error is not None)
+    if not ok:
+        raise EstimationError(f"no searched tile can place the skyline ({outcomes[0].error})" if outcomes
+                              else "no tile was searched")
+    # unnormalised sums weighed by each tile's cell area: the prior is uniform per unit area
+    ev_lo = [o.log_evidence_lower + o.log_cell_area for o in ok]
+    ev_up = [o.log_evidence_upper + o.log_cell_area for o in ok]
+    ev_mid = [o.log_evidence_mid + o.log_cell_area for o in ok]
+
+    def others(values: list[float], i: int) -> float:
+        return _log_sum([v for j, v in enumerate(values) if j != i])
+
+    g_lower, g_upper = [], []
+    for i, o in enumerate(ok):
+        # within the tile, log_lower = lo - log(a + rest of the tiles' uppers): recover that
+        # denominator, then add the other tiles' summed upper posteriors to it (and alike for upper)
+        lo, up = o.lo_unnormalised + o.log_cell_area, o.up_unnormalised + o.log_cell_area
+        den_lo = lo - o.log_lower
+        den_up = up - o.log_upper
+        g_lower.append(lo - float(np.logaddexp(den_lo, others(ev_up, i))))
+        g_upper.append(min(up - float(np.logaddexp(den_up, others(ev_lo, i))), 0.0))
+    b = int(np.argmax(g_lower))
+    best = ok[b]
+    best_lower = g_lower[b]
+    total_mid = _log_sum(ev_mid)
+    share = {o.file: math.exp(ev_mid[i] - total_mid) for i, o in enumerate(ok)}
+
+    region: list[RegionCell] = []
+    notes: list[str] = []
+    rival = False
+    overflowed: list[str] = []
+    reach_m = SAME_ANSWER_CELLS * max(best.cell_size_m)
+    b_body = body_named(body)
+    for i, o in enumerate(ok):
+        bound = global_log_upper_bound(o.top_log_upper, o.top_log_upper_unnormalised + o.log_cell_area,
+                                       others(ev_lo, i))
+        keep = bound >= best_lower
+        nodes = set(int(v) for v in o.top_nodes[keep])
+        lonlat = {int(v): (float(p[0]), float(p[1])) for v, p in zip(o.top_nodes[keep], o.top_lonlat[keep])}
+        if o is best:
+            for v, p in zip(o.region_nodes, o.region_lonlat):
+                lonlat.setdefault(int(v), (float(p[0]), float(p[1])))
+            nodes |= set(int(v) for v in o.region_nodes)
+        left = global_log_upper_bound(np.array([o.left_max_log_upper]),
+                                      np.array([o.left_max_log_upper_unnormalised + o.log_cell_area]),
+                                      others(ev_lo, i))[0]
+        if o.left_max_log_upper > -math.inf and left >= best_lower:
+            overflowed.append(o.file)
+        for v in sorted(nodes):
+            lon, lat = lonlat[v]
+            region.append(RegionCell(o.file, v, lon, lat))
+            if o is not best and geodesic_distance_m(best.lat, best.lon, lat, lon, b_body) > reach_m:
+                rival = True
+    area = sum(math.exp(o.log_cell_area) * sum(1 for c in region if c.tile == o.file) for o in ok)
+    notes += [n for n in best.record.get("notes", []) if not n.startswith("ambiguous")]
+    if best.ambiguous:
+        notes += [n for n in best.record.get("notes", []) if n.startswith("ambiguous")]
+    if len(region) > AMBIGUOUS_CELLS or overflowed:
+        notes.append(f"ambiguous: {len(region)}{'+' if overflowed else ''} cells across "
+                     f"{len({c.tile for c in region})} tiles are as likely as the best; the skyline does not "
+                     "single out one position")
+    if rival:
+        tiles = sorted({c.tile for c in region if c.tile != best.file})
+        notes.append(f"ambiguous: tile {', '.join(tiles)} holds a place more than {SAME_ANSWER_CELLS:.0f} cells "
+                     f"from the best (in {best.file}) whose upper posterior reaches the best's lower one")
+    if failed:
+        notes.append(f"{len(failed)} tile(s) could not place the skyline at all: {', '.join(failed)}")
+    ambiguous = bool(best.ambiguous or rival or overflowed or len(region) > AMBIGUOUS_CELLS)
+    return TiledEstimate(best, tuple(o.file for o in outcomes), failed, best_lower, g_upper[b], tuple(region),
+                         area, ambiguous, share, tuple(overflowed), notes, body, elapsed_s,
+                         sum(o.candidates for o in ok))
+
+
+def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box: Box | None = None,
+                 client: Any = None, source: str = "") -> TiledEstimate:
+    """Search the tiles that ``box`` meets (every tile with None) and combine them.
+
+    Two rounds: every tile on its grid alone, combined; then the exact refinement, only on the
+    tiles holding a node of the combined region.  The refinement moves a tile's answer between its
+    nodes and adds the cells of its fits, but changes none of the posteriors the combination
+    weighs, so a tile no node of which reaches the best's lower posterior cannot change the answer;
+    skipping its refinement (most of a hopeless tile's time: it finds no fit to stop at) costs
+    nothing.  With a ``distributed.Client`` every tile is one task of each round on its cluster,
+    each worker mapping its own tile; without one the tiles are searched here, one after the other.
+    The combination is the same either way, so the answer is too."""
+    t0 = time.perf_counter()
+    tiles = select_tiles(index, box)
+    first = _search(index, tiles, skyline, params, client, source, refine=False)
+    grid_only = combine(first, index.body)
+    contenders = {c.tile for c in grid_only.region} | {grid_only.tile} | set(grid_only.overflowed)
+    refined = _search(index, [t for t in tiles if t.file in contenders], skyline, params, client, source,
+                      refine=True)
+    outcomes = refined + [o for o in first if o.file not in contenders]
+    return combine(outcomes, index.body, time.perf_counter() - t0)
+
+
+def _search(index: TiledIndex, tiles: Sequence[TileEntry], skyline: Skyline, params: SearchParams, client: Any,
+            source: str, refine: bool) -> list[TileOutcome]:
+    folder = str(index.folder)
+    expect = (index.n_azimuths, index.height_m)
+    if client is None:
+        return [search_tile(folder, t, skyline, params, source, refine, expect) for t in tiles]
+    futures = [client.submit(search_tile, folder, t, skyline, params, source, refine, expect, pure=False)
+               for t in tiles]
+    return list(client.gather(futures))

@@ -1,0 +1,305 @@
+"""The estimator on a tiled skyline database: placement, the combination across tiles, Dask, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from appliance import tiled_search
+from appliance.bodies import body_named, geodesic_distance_m
+from appliance.cli.main import main
+from appliance.errors import DatabaseError, EstimationError
+from appliance.position import locate
+from appliance.skyline import Skyline, write_skyline_csv
+from appliance.terrain.database import load_database
+from appliance.terrain.dem import load_dem
+from appliance.terrain.horizon import render_skyline
+from appliance.tiled_search import SearchParams, global_log_upper_bound, locate_tiled, open_tiled
+from tests.tiled_build import build_tiled
+
+AREA = (-84.30, 36.55, -84.26, 36.58)
+MAX_RANGE_M = 10_000.0
+PARAMS = SearchParams((0.3, 1.2), 4.0)
+INTERIOR = (36.5731, -84.2887)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A 2 x 2 tiled database of AREA and the single-file database of the same area."""
+    root = tmp_path_factory.mktemp("tiled")
+    whole = root / "whole.viperdb"
+    folder = build_tiled(load_dem("jacksboro"), root / "db", AREA, (2, 2), MAX_RANGE_M, whole=whole)
+    return folder, whole
+
+
+def _skyline(lat: float, lon: float, seed: int = 0) -> Skyline:
+    el = render_skyline(load_dem("jacksboro"), lat, lon, max_range_m=MAX_RANGE_M).elevation_deg
+    return Skyline(np.arange(360.0), el + np.random.default_rng(seed).normal(0.0, 0.2, 360))
+
+
+def _cell_m(path) -> float:
+    g = load_database(path).grid
+    return math.hypot(g.dx_m, g.dy_m)
+
+
+def _tile_holding(index, lat: float, lon: float) -> str:
+    inside = [t.file for t in index.tiles if t.bounds_lonlat[0] <= lon <= t.bounds_lonlat[2]
+              and t.bounds_lonlat[1] <= lat <= t.bounds_lonlat[3]]
+    assert len(inside) == 1
+    return inside[0]
+
+
+def test_index_partitions_the_whole_area(built):
+    folder, whole = built
+    index = open_tiled(folder)
+    assert len(index.tiles) == 4
+    assert sum(t.n_rows * t.n_cols for t in index.tiles) == load_database(whole).grid.n_nodes
+
+
+def test_interior_estimate_in_the_right_tile_and_as_the_single_file(built):
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    sky = _skyline(lat, lon)
+    res = locate_tiled(index, sky, PARAMS)
+    cell = _cell_m(whole)
+    assert res.tile == _tile_holding(index, lat, lon)
+    assert res.truth_error_m((lat, lon)) <= 2 * cell
+    assert res.status(index, (lat, lon)) == "ok"
+    assert sorted(res.tiles_searched) == sorted(t.file for t in index.tiles)
+    assert math.isclose(sum(res.tile_share.values()), 1.0, rel_tol=1e-9)
+    assert res.tile_share[res.tile] > 0.99
+    assert res.log_lower <= res.log_upper <= 0.0
+    # the single-file database over the same area: the same node, the same place
+    wdb = load_database(whole)
+    single = locate(wdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    tdb = load_database(index.path(next(t for t in index.tiles if t.file == res.tile)))
+    node_tiled = tdb.grid.xy_to_lonlat(*tdb.grid.node_xy(res.best.node))
+    node_single = wdb.grid.xy_to_lonlat(*wdb.grid.node_xy(single.result.node))
+    assert np.allclose(node_tiled, node_single, atol=1e-9)
+    body = body_named(wdb.header["body"])
+    assert geodesic_distance_m(res.lat, res.lon, single.lat, single.lon, body) <= 0.1 * cell
+    assert res.ambiguous == single.result.ambiguous
+
+
+def test_one_tile_combines_to_its_own_estimate(built):
+    """Global normalisation over one tile is that tile's own: the same bounds and region."""
+    folder, _ = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    sky = _skyline(lat, lon)
+    name = _tile_holding(index, lat, lon)
+    tile = next(t for t in index.tiles if t.file == name)
+    res = locate_tiled(index, sky, PARAMS, box=(lon - 1e-4, lat - 1e-4, lon + 1e-4, lat + 1e-4))
+    assert res.tiles_searched == (name,)
+    own = locate(load_database(index.path(tile)), sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    assert res.log_lower == pytest.approx(own.result.log_lower, abs=1e-9)
+    assert res.log_upper == pytest.approx(math.log(own.result.upper), abs=1e-9)
+    assert sorted(c.node for c in res.region) == sorted(int(v) for v in own.result.region_nodes)
+    assert res.ambiguous == own.result.ambiguous
+
+
+def test_near_a_tile_border(built):
+    folder, whole = built
+    index = open_tiled(folder)
+    cell = _cell_m(whole)
+    lat, lon = 36.5652, -84.2795
+    border_lat = max(t.bounds_lonlat[1] for t in index.tiles)
+    body = body_named(load_database(whole).header["body"])
+    assert geodesic_distance_m(lat, lon, border_lat, lon, body) < cell  # within a cell of the border
+    res = locate_tiled(index, _skyline(lat, lon, seed=1), PARAMS)
+    assert res.truth_error_m((lat, lon)) <= 2 * cell
+    # never 'ok' when the truth lies outside the region
+    if res.status(index, (lat, lon)) == "ok":
+        assert res.truth_in_region(index, (lat, lon))
+    rec = res.to_json(index, (lat, lon))
+    assert rec["tile"] == res.tile and rec["status"] in ("ok", "ambiguous")
+    assert 0.0 <= rec["lower"] <= rec["upper"] <= 1.0
+
+
+def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):
+    distributed = pytest.importorskip("distributed")
+    folder, _ = built
+    lat, lon = INTERIOR
+    sky_path = tmp_path / "s.csv"
+    write_skyline_csv(_skyline(lat, lon), sky_path)
+    assert main(["estimate", str(folder), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                 "--heading-tolerance", "4"]) == 0
+    serial = json.loads(capsys.readouterr().out.strip())
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0") as cluster:
+        with distributed.Client(cluster) as client:
+            index = open_tiled(folder)
+            direct = locate_tiled(index, _skyline(lat, lon), PARAMS, client=client).to_json(index)
+        assert main(["estimate", str(folder), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                     "--heading-tolerance", "4", "--scheduler", cluster.scheduler_address]) == 0
+        parallel = json.loads(capsys.readouterr().out.strip())
+    in_process = locate_tiled(open_tiled(folder), _skyline(lat, lon), PARAMS).to_json(open_tiled(folder))
+    # a local cluster the command makes itself
+    assert main(["estimate", str(folder), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                 "--heading-tolerance", "4", "--workers", "2"]) == 0
+    local = json.loads(capsys.readouterr().out.strip())
+    for rec in (serial, parallel, direct, in_process, local):
+        rec.pop("elapsed_ms")
+    assert parallel == serial
+    assert local == serial
+    assert direct == in_process
+    assert serial["tile"] == direct["tile"]
+
+
+def test_a_search_box_opens_only_the_tiles_it_meets(built, monkeypatch):
+    folder, _ = built
+    index = open_tiled(folder)
+    opened: list[str] = []
+    real = tiled_search.load_database
+
+    def recording(path, *a, **k):
+        opened.append(path.name)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(tiled_search, "load_database", recording)
+    lat, lon = INTERIOR
+    sky = _skyline(lat, lon)
+    # a box well inside one tile
+    box = tiled_search.box_around(lat, lon, 200.0, index.body)
+    holding = _tile_holding(index, lat, lon)
+    t = next(t for t in index.tiles if t.file == holding)
+    assert t.bounds_lonlat[0] < box[0] and box[2] < t.bounds_lonlat[2]
+    assert t.bounds_lonlat[1] < box[1] and box[3] < t.bounds_lonlat[3]
+    res = locate_tiled(index, sky, PARAMS, box=box)
+    assert set(opened) == {holding} and res.tiles_searched == (holding,)
+    # a box across the northern tiles only
+    opened.clear()
+    north = [t for t in index.tiles if t.bounds_lonlat[1] > min(u.bounds_lonlat[1] for u in index.tiles)]
+    s = min(u.bounds_lonlat[1] for u in north)
+    locate_tiled(index, sky, PARAMS, box=(AREA[0], s + 1e-4, AREA[2], AREA[3]))
+    assert set(opened) == {u.file for u in north}
+
+
+def test_near_searches_only_the_tiles_within_the_radius(built, tmp_path, capsys):
+    folder, _ = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    sky_path = tmp_path / "s.csv"
+    write_skyline_csv(_skyline(lat, lon), sky_path)
+    assert main(["estimate", str(folder), str(sky_path), "--json", "--near", f"{lat},{lon},200",
+                 "--truth", f"{lat},{lon}"]) == 0
+    rec = json.loads(capsys.readouterr().out.strip())
+    assert rec["tiles_searched"] == [_tile_holding(index, lat, lon)]
+    assert rec["tile"] == _tile_holding(index, lat, lon)
+    assert rec["status"] == "ok" and rec["truth"]["error_m"] <= 2 * rec["region"]["cell_size_m"][1]
+
+
+def test_global_upper_bound_is_exact_for_one_heading_and_never_below():
+    """Against the bounds computed over the pooled candidates of two made-up tiles."""
+    rng = np.random.default_rng(3)
+    lo_a = rng.normal(-10, 3, 30)
+    up_a = lo_a + rng.uniform(0, 4, 30)
+    lo_b = rng.normal(-12, 3, 20)
+    s_lo_a = np.logaddexp.reduce(lo_a)
+    others = np.logaddexp.reduce(lo_b)
+    rest_a = np.array([np.logaddexp.reduce(np.delete(lo_a, i)) for i in range(lo_a.size)])
+    u_tile = up_a - np.logaddexp(up_a, rest_a)
+    exact = up_a - np.logaddexp(up_a, np.logaddexp(rest_a, others))
+    bound = global_log_upper_bound(u_tile, up_a, others)
+    assert np.allclose(bound, exact, atol=1e-12)
+    assert np.array_equal(global_log_upper_bound(u_tile, up_a, -math.inf), np.minimum(u_tile, 0.0))
+    assert s_lo_a > -math.inf
+    # a node of two headings holds the larger u and b of them: a bound on both
+    pair_bound = global_log_upper_bound(np.array([u_tile[:2].max()]), np.array([up_a[:2].max()]), others)[0]
+    assert pair_bound >= exact[:2].max() - 1e-12
+
+
+def _cli_error(args, capsys) -> tuple[int, str]:
+    code = main(args)
+    err = capsys.readouterr().err.strip()
+    return code, err
+
+
+def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
+    folder, whole = built
+    sky = tmp_path / "s.csv"
+    write_skyline_csv(_skyline(*INTERIOR), sky)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    missing = tmp_path / "missing"
+    shutil.copytree(folder, missing)
+    gone = open_tiled(folder).tiles[2].file
+    (missing / gone).unlink()
+    garbled = tmp_path / "garbled"
+    shutil.copytree(folder, garbled)
+    (garbled / "index.json").write_text("{not json")
+    future = tmp_path / "future"
+    shutil.copytree(folder, future)
+    idx = json.loads((folder / "index.json").read_text())
+    (future / "index.json").write_text(json.dumps({**idx, "format_version": 99}))
+    foreign = tmp_path / "foreign"
+    shutil.copytree(folder, foreign)
+    (foreign / "index.json").write_text(json.dumps({**idx, "format": "something-else"}))
+    cases = {empty: "index.json", missing: gone, garbled: "unreadable", future: "version 99", foreign: "format"}
+    for path, word in cases.items():
+        with pytest.raises(DatabaseError):
+            open_tiled(path)
+        code, err = _cli_error(["estimate", str(path), str(sky)], capsys)
+        assert code != 0 and len(err.splitlines()) == 1 and word in err, err
+    # an index whose tiles were built otherwise: found when the tile is opened
+    other = tmp_path / "other"
+    shutil.copytree(folder, other)
+    (other / "index.json").write_text(json.dumps({**idx, "n_azimuths": idx["n_azimuths"] // 2}))
+    code, err = _cli_error(["estimate", str(other), str(sky)], capsys)
+    assert code != 0 and len(err.splitlines()) == 1 and "azimuths" in err, err
+    code, err = _cli_error(["estimate", str(whole), str(sky), "--workers", "2"], capsys)
+    assert code != 0 and len(err.splitlines()) == 1 and "tiled" in err
+    code, err = _cli_error(["estimate", str(folder), str(sky), "--search-bounds", "1,2,3"], capsys)
+    assert code != 0 and len(err.splitlines()) == 1
+    code, err = _cli_error(["estimate", str(folder), str(sky), "--search-bounds", "10,10,11,11"], capsys)
+    assert code != 0 and len(err.splitlines()) == 1 and "no tile" in err
+
+
+def _made_up_tile(name: str, lon: float, lo: float, up: float) -> tiled_search.TileOutcome:
+    """A tile of one candidate at (lon, 0) with unnormalised log lower and upper posterior lo, up."""
+    return tiled_search.TileOutcome(
+        name, None, {"notes": [], "heading_correction_deg": 0.0}, 0, 0.0, lon, 0.0, 0.0, lo, up, lo, up, lo,
+        math.log(100.0 * 100.0), (100.0, 100.0), False, np.array([0]), np.array([[lon, 0.0]]), np.array([0]),
+        np.array([0.0]), np.array([up]), np.array([[lon, 0.0]]))
+
+
+def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
+    """A second tile's mode far away whose upper bound reaches the best's lower one: ambiguous, never ok;
+    the same mode far less likely: ok."""
+    best = _made_up_tile("a.viperdb", 0.0, -10.0, -8.0)
+    rival = _made_up_tile("b.viperdb", 0.01, -11.0, -9.0)
+    res = tiled_search.combine([best, rival], "earth")
+    assert res.tile == "a.viperdb" and res.ambiguous and res.status() == "ambiguous"
+    assert {c.tile for c in res.region} == {"a.viperdb", "b.viperdb"}
+    # the best's bounds over both tiles: lower lo / (lo + the rival's up), upper up / (up + the rival's lo)
+    assert res.log_lower == pytest.approx(-10.0 - np.logaddexp(-10.0, -9.0))
+    assert res.log_upper == pytest.approx(-8.0 - np.logaddexp(-8.0, -11.0))
+    assert sum(res.tile_share.values()) == pytest.approx(1.0)
+    weak = _made_up_tile("b.viperdb", 0.01, -40.0, -38.0)
+    res = tiled_search.combine([weak, best], "earth")
+    assert res.tile == "a.viperdb" and not res.ambiguous and res.status() == "ok"
+    assert [c.tile for c in res.region] == ["a.viperdb"]
+    failed = tiled_search.TileOutcome("c.viperdb", "no candidate node has terrain along the measured azimuths")
+    assert tiled_search.combine([best, failed], "earth").tiles_failed == ("c.viperdb",)
+    with pytest.raises(EstimationError):
+        tiled_search.combine([failed], "earth")
+
+
+def test_refining_only_the_contending_tiles_gives_the_answer_of_refining_all(built):
+    """The second round refines only the tiles holding a node of the region; refining every tile
+    must not change the combined answer."""
+    folder, _ = built
+    index = open_tiled(folder)
+    for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
+        sky = _skyline(lat, lon, seed=k)
+        every = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=True) for t in index.tiles]
+        all_refined = tiled_search.combine(every, index.body).to_json(index, (lat, lon))
+        two_rounds = locate_tiled(index, sky, PARAMS).to_json(index, (lat, lon))
+        all_refined.pop("elapsed_ms")
+        two_rounds.pop("elapsed_ms")
+        assert two_rounds == all_refined
