@@ -172,3 +172,26 @@ def test_interrupted_build_leaves_no_temporary_files_and_resumes(tiles, client, 
     assert result.kept and result.built
     assert not [p for p in out.iterdir() if TMP_MARK in p.name]
     _assert_tiles_equal_single(out, single)
+
+
+def test_cli_tiled_build_on_a_running_scheduler(tiles, client, single, tmp_path, capsys):
+    from appliance.cli.main import main
+
+    out = tmp_path / "cli"
+    argv = ["precompute", str(tiles[0]), str(tiles[1]), "--out", str(out), "--tiles", "--azimuths", str(N_AZ),
+            "--tile-nodes", f"{TILE_NODES[0]},{TILE_NODES[1]}", "--scheduler", client.scheduler_info()["address"]]
+    assert main(argv) == 0
+    _assert_tiles_equal_single(out, single)
+    assert "0 kept" in capsys.readouterr().out
+    assert main(argv) == 0  # a rerun keeps every tile
+    assert "(0 built" in capsys.readouterr().out
+
+
+def test_cli_refuses_different_crs_in_one_line(tiles, tmp_path, capsys):
+    from appliance.cli.main import main
+
+    other = _write_tile(tmp_path / "utm.tif", _heights(SIDE, SIDE), 500_000.0, crs="EPSG:32632")
+    code = main(["precompute", str(tiles[0]), str(other), "--out", str(tmp_path / "db.viperdb")])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1 and "different CRSs" in err
+    assert "left.tif" in err and "utm.tif" in err

@@ -25,7 +25,7 @@ from appliance.terrain.dem import load_dem
 from appliance.terrain.grid import plan_grids
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.mosaic import MOSAIC_VRT, open_map
-from appliance.terrain.tiled import DEFAULT_TILE_NODES, build_tiled, remove_tile_temporaries
+from appliance.terrain.tiled import DEFAULT_TILE_NODES, TiledPlan, build_tiled, plan_tiles, remove_tile_temporaries
 
 MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)
 MAX_DATABASE_BYTES = 16 * 2**30  # the skylines held in memory while they are built
@@ -84,6 +84,19 @@ def check_size(dem: object, args: argparse.Namespace) -> None:
         )
 
 
+def check_tile_size(plan: TiledPlan, args: argparse.Namespace) -> None:
+    """Refuse tiles too large for one task (its terrain window, its skylines), before any work."""
+    n_terrain = max(t.terrain[2] * t.terrain[3] for t in plan.tiles)
+    n_bytes = max(t.n_rows * t.n_cols for t in plan.tiles) * max(args.azimuths, 1) * 5
+    if n_terrain > MAX_TERRAIN_NODES or n_bytes > MAX_DATABASE_BYTES:
+        raise InputError(
+            f"a tile of --tile-nodes {args.tile_nodes[0]},{args.tile_nodes[1]} needs a terrain window of "
+            f"{n_terrain:,} nodes and {n_bytes / 2**30:.3g} GiB of skylines; at most {MAX_TERRAIN_NODES:,} and "
+            f"{MAX_DATABASE_BYTES / 2**30:.0f} GiB: give smaller --tile-nodes, a larger --spacing or a shorter "
+            "--max-range"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.azimuths % COARSE_STRIDE:
         raise InputError(f"--azimuths {args.azimuths}: must be a multiple of {COARSE_STRIDE} (the estimator's "
@@ -120,6 +133,8 @@ def run_tiled(args: argparse.Namespace) -> int:
         raise InputError(f"--workers {args.workers}: at least 1")
     out = check_output_folder(args.out, args.dem)
     source = open_map(args.dem, out / MOSAIC_VRT if len(args.dem) > 1 else None, args.crs)
+    check_tile_size(plan_tiles(source.header(), args.search_bounds, args.spacing, args.max_range, args.tile_nodes),
+                    args)
     t0 = time.perf_counter()
     terminal = sys.stderr.isatty()
     cluster: Any = None
