@@ -8,6 +8,10 @@ the horizon off exactly at the maximum range, a tile whose terrain window is cli
 can see a different horizon than the whole map gives, so a non-zero count is expected and reported.
 
     python bench/tiled_build.py [--tile-nodes 600,600] [--workers 2] [--azimuths 360]
+    python bench/tiled_build.py --probe-spacing 30   # one tile of the 30 m build: a worker's peak memory
+
+The 30 m build of the whole mosaic is too long for a shared two-core machine; the probe builds its
+tile with the largest terrain window in this process, the peak memory a worker needs for it.
 """
 
 from __future__ import annotations
@@ -89,6 +93,46 @@ def _differing_nodes(single_path: Path, tiled: Path) -> tuple[int, int]:
     return differ, single.grid.n_nodes
 
 
+def probe(args: argparse.Namespace) -> int:
+    """One tile (the largest terrain window) of the build at ``--probe-spacing``, in this process."""
+    from appliance.atomic import write_text_atomic
+    from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
+    from appliance.terrain.mosaic import open_map
+    from appliance.terrain.tiled import build_tile, plan_tiles
+
+    tile_nodes = tuple(int(v) for v in args.tile_nodes.split(","))
+    load_before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    with tempfile.TemporaryDirectory() as tmp:
+        source = open_map(TILES, Path(tmp) / "mosaic.vrt")
+        dem = source.header()
+        plan = plan_tiles(dem, None, args.probe_spacing, DEFAULT_MAX_RANGE_M, tile_nodes)  # type: ignore[arg-type]
+        tile = max(plan.tiles, key=lambda t: t.terrain[2] * t.terrain[3])
+        params = {"height_m": DEFAULT_HEIGHT_M, "n_azimuths": args.azimuths, "refraction": dem.body.refraction,
+                  "max_range_m": DEFAULT_MAX_RANGE_M}
+        res = build_tile(source, tmp, plan, tile, params)
+    g = plan.cand
+    lines = [
+        f"# One tile of the {args.probe_spacing:g} m tiled build: a worker's peak memory",
+        "",
+        f"{date.today().isoformat()}, {platform.machine()}, `python bench/tiled_build.py --probe-spacing "
+        f"{args.probe_spacing:g} --tile-nodes {args.tile_nodes} --azimuths {args.azimuths}`.",
+        "",
+        f"SRTM N43E006 + N43E007 on a transverse Mercator lattice of {args.probe_spacing:g} m: {g.n_rows} x "
+        f"{g.n_cols} = {g.n_nodes:,} candidates in {len(plan.tiles)} tiles of {tile_nodes[0]} x {tile_nodes[1]}. "
+        f"The tile with the largest terrain window ({tile.file}: {tile.terrain[2]} x {tile.terrain[3]} terrain "
+        f"nodes, max range {DEFAULT_MAX_RANGE_M / 1000:.0f} km) built alone in one process: "
+        f"**{res['seconds']:.0f} s, peak RSS {res['peak_rss_bytes'] / 2**20:.0f} MiB** (what one single-threaded "
+        "worker needs).  The whole build was not run.",
+        "",
+        f"Load before: `{load_before}`",
+        "",
+    ]
+    out = HERE / "results" / f"tiled_build_{args.probe_spacing:g}m.md"
+    write_text_atomic(out, "\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
 def main() -> int:
     from appliance.atomic import write_text_atomic
 
@@ -96,7 +140,10 @@ def main() -> int:
     ap.add_argument("--tile-nodes", default="600,600")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--azimuths", type=int, default=360)
+    ap.add_argument("--probe-spacing", type=float, help="build only the largest tile at this spacing (m)")
     args = ap.parse_args()
+    if args.probe_spacing:
+        return probe(args)
     tile_nodes = tuple(int(v) for v in args.tile_nodes.split(","))
     load_before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     with tempfile.TemporaryDirectory() as tmp:
@@ -169,8 +216,7 @@ def main() -> int:
         "",
         f"Load after: `{load_after}`",
         "",
-        "The 30 m spacing build (about 11.5 million candidates) was not run: the shared machine had no time "
-        "left for it.",
+        "The 30 m build's peak memory per worker: `--probe-spacing 30`, in tiled_build_30m.md.",
         "",
     ]
     res = HERE / "results" / "tiled_build.md"
