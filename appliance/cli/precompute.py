@@ -1,11 +1,22 @@
-"""``viper precompute DEM --out DB``: the skyline database of a candidate grid."""
+"""``viper precompute DEM... --out DB``: the skyline database of a candidate grid.
+
+Several DEM files (adjacent tiles) are read as one mosaic.  ``--tiles`` (or an ``--out`` that is an
+existing folder) builds a tiled database in that folder, one Dask task per tile, on a local cluster
+of ``--workers`` processes or on the cluster at ``--scheduler``; a rerun completes an interrupted
+build.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
+import sys
+import tempfile
 import time
+from pathlib import Path
+from typing import Any
 
-from appliance.atomic import check_output_path
+from appliance.atomic import check_output_folder, check_output_path
 from appliance.errors import InputError
 from appliance.estimator.estimate import COARSE_STRIDE
 from appliance.logsetup import ProgressCallback
@@ -13,6 +24,8 @@ from appliance.terrain.database import build_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.grid import plan_grids
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
+from appliance.terrain.mosaic import MOSAIC_VRT, open_map
+from appliance.terrain.tiled import DEFAULT_TILE_NODES, TiledPlan, build_tiled, plan_tiles, remove_tile_temporaries
 
 MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)
 MAX_DATABASE_BYTES = 16 * 2**30  # the skylines held in memory while they are built
@@ -26,10 +39,21 @@ def parse_bounds(text: str) -> tuple[float, float, float, float]:
     return w, s, e, n
 
 
+def parse_tile_nodes(text: str) -> tuple[int, int]:
+    try:
+        rows, cols = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--tile-nodes {text!r}: expected ROWS,COLS, e.g. 600,600") from None
+    if rows < 1 or cols < 1:
+        raise InputError(f"--tile-nodes {text!r}: both counts must be positive")
+    return rows, cols
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("precompute", help="render the skyline of every candidate node into a database")
-    p.add_argument("dem", help="DEM file or 'jacksboro'")
-    p.add_argument("--out", required=True, help="database file to write")
+    p.add_argument("dem", nargs="+", help="DEM file, several adjacent DEM files (one mosaic), a GDAL VRT, or "
+                   "'jacksboro'")
+    p.add_argument("--out", required=True, help="database file to write (a folder with --tiles)")
     p.add_argument("--search-bounds", type=parse_bounds, help="W,S,E,N (deg) of the candidates")
     p.add_argument("--spacing", type=float, help="node spacing (m); default the DEM's own grid")
     p.add_argument("--height", type=float, default=DEFAULT_HEIGHT_M, help="camera height (m)")
@@ -38,6 +62,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refraction", type=float, help="refraction coefficient (default: the body's)")
     p.add_argument("--crs", help="CRS for a DEM file that carries none")
     p.add_argument("--force", action="store_true", help="replace the database if it exists")
+    p.add_argument("--tiles", action="store_true", help="build a tiled database into the folder --out")
+    p.add_argument("--tile-nodes", type=parse_tile_nodes, default=DEFAULT_TILE_NODES,
+                   help="rows,cols of candidate nodes per tile (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="local worker processes of a tiled build (default 2)")
+    p.add_argument("--scheduler", help="address of an existing Dask scheduler for a tiled build")
     p.set_defaults(func=run)
 
 
@@ -55,16 +84,35 @@ def check_size(dem: object, args: argparse.Namespace) -> None:
         )
 
 
+def check_tile_size(plan: TiledPlan, args: argparse.Namespace) -> None:
+    """Refuse tiles too large for one task (its terrain window, its skylines), before any work."""
+    n_terrain = max(t.terrain[2] * t.terrain[3] for t in plan.tiles)
+    n_bytes = max(t.n_rows * t.n_cols for t in plan.tiles) * max(args.azimuths, 1) * 5
+    if n_terrain > MAX_TERRAIN_NODES or n_bytes > MAX_DATABASE_BYTES:
+        raise InputError(
+            f"a tile of --tile-nodes {args.tile_nodes[0]},{args.tile_nodes[1]} needs a terrain window of "
+            f"{n_terrain:,} nodes and {n_bytes / 2**30:.3g} GiB of skylines; at most {MAX_TERRAIN_NODES:,} and "
+            f"{MAX_DATABASE_BYTES / 2**30:.0f} GiB: give smaller --tile-nodes, a larger --spacing or a shorter "
+            "--max-range"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.azimuths % COARSE_STRIDE:
         raise InputError(f"--azimuths {args.azimuths}: must be a multiple of {COARSE_STRIDE} (the estimator's "
                          f"coarse pass averages runs of {COARSE_STRIDE} azimuths)")
     if args.spacing is not None and args.spacing <= 0:
         raise InputError(f"--spacing {args.spacing} m must be positive")
-    check_output_path(args.out, [args.dem], args.force)
-    dem = load_dem(args.dem, crs=args.crs)
-    check_size(dem, args)
+    if args.tiles or Path(args.out).is_dir():
+        return run_tiled(args)
+    check_output_path(args.out, args.dem, args.force)
     t0 = time.perf_counter()
+    if len(args.dem) == 1:
+        dem = load_dem(args.dem[0], crs=args.crs)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            dem = open_map(args.dem, Path(tmp) / MOSAIC_VRT, args.crs).load()
+    check_size(dem, args)
     header = build_database(
         dem, args.out, args.search_bounds, args.spacing, args.height, args.azimuths,
         args.refraction, args.max_range, progress=ProgressCallback("azimuth"),
@@ -76,4 +124,45 @@ def run(args: argparse.Namespace) -> int:
         f"{g['dx_m']:.1f} x {g['dy_m']:.1f} m) x {header['n_azimuths']} azimuths "
         f"in {time.perf_counter() - t0:.1f} s"
     )
+    return 0
+
+
+def run_tiled(args: argparse.Namespace) -> int:
+    """The tiled build: a local cluster of single-threaded worker processes unless --scheduler."""
+    if args.workers < 1:
+        raise InputError(f"--workers {args.workers}: at least 1")
+    out = check_output_folder(args.out, args.dem)
+    source = open_map(args.dem, out / MOSAIC_VRT if len(args.dem) > 1 else None, args.crs)
+    check_tile_size(plan_tiles(source.header(), args.search_bounds, args.spacing, args.max_range, args.tile_nodes),
+                    args)
+    t0 = time.perf_counter()
+    terminal = sys.stderr.isatty()
+    cluster: Any = None
+    from distributed import Client, LocalCluster
+
+    if args.scheduler:
+        try:
+            client = Client(args.scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"--scheduler {args.scheduler}: cannot connect ({exc})") from None
+    else:
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=":0" if terminal else None,
+                               silence_logs=logging.WARNING if terminal else logging.CRITICAL)
+        client = Client(cluster)
+    try:
+        if terminal and client.dashboard_link:
+            print(f"dashboard: {client.dashboard_link}", file=sys.stderr)
+        result = build_tiled(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
+                             args.refraction, args.max_range, args.tile_nodes, client, args.force,
+                             progress=ProgressCallback("tile"))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+            remove_tile_temporaries(out)  # the local workers are gone: their unfinished tiles with them
+    lat = result.index["lattice"]
+    print(f"{out}: {len(result.index['tiles'])} tiles ({len(result.built)} built, {len(result.kept)} kept) of "
+          f"{lat['n_rows']} x {lat['n_cols']} nodes ({lat['dx_m']:.1f} x {lat['dy_m']:.1f} m) x "
+          f"{result.index['n_azimuths']} azimuths in {time.perf_counter() - t0:.1f} s")
     return 0

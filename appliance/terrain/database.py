@@ -154,7 +154,39 @@ def build_database(
         raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
     if not 0.0 <= height_m < 1000.0:
         raise InputError(f"camera height {height_m} m outside [0, 1000)")
-    cand, terr, (ro, co) = plan_grids(dem, search_bounds, spacing_m, max_range_m)
+    cand, terr, offset = plan_grids(dem, search_bounds, spacing_m, max_range_m)
+    origin, shape = lattice_of(dem, terr)
+    bounds = search_bounds if search_bounds is not None else dem.bounds_lonlat()
+    return build_on_grids(dem, out_path, cand, terr, offset, origin, shape, bounds, height_m, n_azimuths,
+                          refraction, max_range_m, progress, workers)
+
+
+def build_on_grids(
+    dem: Dem,
+    out_path: str | Path,
+    cand: NodeGrid,
+    terr: NodeGrid,
+    offset: tuple[int, int],
+    lattice_origin: tuple[int, int],
+    lattice_shape: tuple[int, int],
+    search_bounds: tuple[float, float, float, float],
+    height_m: float = DEFAULT_HEIGHT_M,
+    n_azimuths: int = 360,
+    refraction: float | None = None,
+    max_range_m: float = DEFAULT_MAX_RANGE_M,
+    progress: Callable[[int, int, str], None] | None = None,
+    workers: int | None = None,
+) -> dict:
+    """The database of a candidate grid already planned: ``cand`` lies at ``offset`` (row, col) in the
+    terrain grid ``terr``, and ``terr`` at ``lattice_origin`` in a lattice of ``lattice_shape`` nodes.
+
+    A tiled build passes windows of one mosaic-wide lattice here, so that every tile's sweep lines,
+    metric spacing and node placement are those of the whole map, not re-planned from its bounds."""
+    if not 8 <= n_azimuths <= 3600:
+        raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
+    if not 0.0 <= height_m < 1000.0:
+        raise InputError(f"camera height {height_m} m outside [0, 1000)")
+    ro, co = offset
     Z = terrain_on_grid(dem, terr)
     if not np.isfinite(Z[ro : ro + cand.n_rows, co : co + cand.n_cols]).any():
         raise DemError(f"{dem.source}: every candidate node inside the search bounds is nodata")
@@ -164,9 +196,8 @@ def build_database(
     n = cand.n_nodes
     cdeg = np.empty((n_azimuths, n), dtype=np.int16)  # centidegrees at grid azimuths, one row per azimuth
     dgrid = np.empty((n_azimuths, n), dtype=np.uint8)  # ranges at grid azimuths
-    origin, shape = lattice_of(dem, terr)
     sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff, (ro, co, cand.n_rows, cand.n_cols),
-                             origin, shape, max_range_m)
+                             lattice_origin, lattice_shape, max_range_m)
 
     def one_azimuth(j: int) -> None:
         tan, far = sweeper.horizons(j * step_az)
@@ -193,7 +224,7 @@ def build_database(
             "crs_wkt": cand.crs_wkt, "x0": cand.x0, "y0": cand.y0, "dx": cand.dx, "dy": cand.dy,
             "n_rows": cand.n_rows, "n_cols": cand.n_cols, "dx_m": cand.dx_m, "dy_m": cand.dy_m,
         },
-        "search_bounds": list(search_bounds) if search_bounds else list(dem.bounds_lonlat()),
+        "search_bounds": list(search_bounds),
         "distance_code": {"min_m": DISTANCE_MIN_M, "log_step": DISTANCE_LOG_STEP},
         "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
     }

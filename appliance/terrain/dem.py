@@ -321,9 +321,14 @@ def _parse_crs(text: str, p: Path) -> CRS:
         raise DemError(f"{p}: unknown CRS {text!r}: {exc}") from None
 
 
-def _load_gdal(p: Path, crs_override: str | None) -> Dem:
+def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, int] | None = None,
+               sha256: str | None = None, shape_only: bool = False) -> Dem:
+    """Read a GDAL raster: the whole of it, or the (row0, col0, n_rows, n_cols) ``window`` (a tile's
+    share of a large map, read without the rest); ``shape_only`` reads no heights at all (a map's
+    georeferencing, to plan a grid over it) and ``sha256`` spares hashing a file already hashed."""
     import rasterio
     from rasterio.errors import RasterioError
+    from rasterio.windows import Window
 
     open_path = p
     if p.suffix.lower() == ".img":
@@ -334,11 +339,17 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
     try:
         with rasterio.open(open_path) as ds:
             _check_raw_size(p, ds)
-            band = ds.read(1, masked=True)
+            win = None if window is None else Window(window[1], window[0], window[3], window[2])
+            if shape_only:
+                band = np.ma.masked_all((1, 1))
+                shape = (int(ds.height), int(ds.width))
+            else:
+                band = ds.read(1, masked=True, window=win)
+                shape = band.shape
             scale = float(ds.scales[0] or 1.0)
             offset = float(ds.offsets[0] or 0.0)
             units = (ds.units[0] or ds.tags(1).get("UNITTYPE") or ds.tags().get("ZUNITS") or "").strip()
-            transform = ds.transform
+            transform = ds.transform if win is None else ds.window_transform(win)
             crs_wkt = ds.crs.to_wkt() if ds.crs else None
             driver = ds.driver
     except RasterioError as exc:
@@ -354,6 +365,11 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
     if transform.is_identity:
         raise DemError(f"{p}: the file carries no georeferencing")
     body = body_of_crs(crs)
+    meta = {"driver": driver, "units": units or "m"}
+    if shape_only:
+        # a read-only array of the map's shape holding no memory: the georeferencing alone
+        empty = np.broadcast_to(np.float64(np.nan), shape)
+        return Dem(empty, transform, crs, body, str(p), sha256 or "", meta)
     data = np.ma.filled(band.astype(np.float64), np.nan)
     data[np.abs(data) > 1e30] = np.nan
     # PDS planetary DEMs store radius = raw * scale + reference radius: keep height above the sphere.
@@ -362,8 +378,7 @@ def _load_gdal(p: Path, crs_override: str | None) -> Dem:
     data = data * scale + offset
     if units.lower() in FEET_UNITS:
         data *= 0.3048
-    sha = _sha256(p)
-    meta = {"driver": driver, "units": units or "m"}
+    sha = sha256 or _sha256(p)
     return Dem(data, transform, crs, body, str(p), sha, meta)
 
 
