@@ -199,18 +199,16 @@ def main() -> int:
         f"Nodes of the tiled database differing from the single build (codes, ranges, offset or step): "
         f"**{differ} of {n_nodes}**.",
         "",
-        "Each tile reads the map under it plus the horizon's reach; until the sweep cuts the horizon off at "
-        "exactly the maximum range, terrain beyond the reach can form a node's horizon in the single build but "
-        "not in a tile whose window was clipped there, so a non-zero count is expected.  A node counts as "
-        "differing when one azimuth's horizon changes, since that moves the node's offset and step and so "
-        "every code.  Each tile file also holds its terrain window (the reach included), hence the larger "
-        "output.",
+        "Each tile reads the map under it plus the horizon's reach (and two cells), and the sweep cuts every "
+        "node's horizon off at exactly the maximum range, so a tile node sees the same terrain as in the single "
+        "build.  A node counts as differing when one azimuth's horizon changes, since that moves the node's "
+        "offset and step and so every code.  Each tile file also holds its terrain window (the reach "
+        "included), hence the larger output.",
         "",
         f"Control: the window {','.join(str(v) for v in CONTROL_BOUNDS)} (W,S,E,N) of the same mosaic, "
         f"{CONTROL_AZIMUTHS} azimuths, max range {CONTROL_RANGE_M / 1000:.0f} km (longer than the map, so every "
         f"tile's terrain window is the whole map, as the single build's is), {control[2]} tiles: "
-        f"**{control[0]} of {control[1]}** nodes differ.  The differences above therefore come from the "
-        "clipped terrain windows (terrain beyond the reach), not from the tiling.",
+        f"**{control[0]} of {control[1]}** nodes differ.",
         "",
         f"Load before: `{load_before}`",
         "",

@@ -384,6 +384,8 @@ def _near_field(
 #: within a cell, so the near field is sampled at tenths of a column.
 NEAR_FIELD_FRACTIONS = np.concatenate([np.arange(1, 11) * 0.1, [1.25, 1.5, 1.75, 2.0]])
 NEAR_FIELD_COLUMNS = 2
+#: Canonical terrain copies a sweeper keeps (``HorizonSweeper._view``).
+CACHED_VIEWS = 2
 #: Rows between neighbouring sweep lines: a node is at most half of it beside its line.
 LINE_SPACING_ROWS = 0.5
 #: The shortest maximum range, in grid diagonals (the longest step between columns of a line):
@@ -469,12 +471,18 @@ class HorizonSweeper:
         self._local = threading.local()
 
     def _view(self, key: tuple[bool, bool, bool]) -> np.ndarray:
+        """The canonical copy of the terrain for one orientation.  Each orientation serves a run of 45
+        degrees of azimuth, and builds sweep azimuths in order, so only the last CACHED_VIEWS copies
+        are kept: a tile's terrain is copied a few times, not eight (a thread still sweeping an evicted
+        orientation keeps its copy until it is done)."""
         with self._lock:
             W = self._canonical.get(key)
             if W is None:
                 W = np.ascontiguousarray(_orient(self.Z, *key))
                 self._canonical[key] = W
-        return W
+                while len(self._canonical) > CACHED_VIEWS:
+                    del self._canonical[next(iter(self._canonical))]
+            return W
 
     def _placement(self, key: tuple[bool, bool, bool]) -> tuple[int, int, int, int, int, int]:
         """The window's first canonical node (v0, u0), its canonical shape, and the lattice offsets
