@@ -55,8 +55,11 @@ def test_info_render_precompute(path, tmp_path, capsys):
         half_deg *= 111_000.0 * 6.371e6 / 1.7374e6 / 111_000.0
     bounds = f"{float(lon) - half_deg},{float(lat) - half_deg},{float(lon) + half_deg},{float(lat) + half_deg}"
     db = tmp_path / "db.viperdb"
+    # the sweep's range must span a few of the grid's diagonals (it refuses less), so coarse maps
+    # (topobathy's 3.4 km cells, the Moon's 7.6 km) get a longer one than 10 km
+    max_range_m = max(10_000.0, 4.0 * float(np.hypot(*res)))
     assert main(["precompute", str(path), "--out", str(db), f"--search-bounds={bounds}",
-                 "--max-range", "10000", *extra]) == 0
+                 "--max-range", f"{max_range_m:.0f}", *extra]) == 0
     loaded = load_database(db, dem)
     assert loaded.grid.n_nodes >= 4
     assert np.isfinite(loaded.offset_deg).any()
