@@ -14,10 +14,7 @@ from appliance.position import Move, place, skyline_grid, transported_fix
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline
-
-#: A jacksboro valley whose near terrain forms most of the horizon (tests/test_estimator_exact.py).
-VALLEY = (36.52885833333333, -84.25440833333333)
-WINDOW = (-84.275, 36.51, -84.235, 36.545)
+from tests.test_estimator_exact import VALLEY, WINDOW  # a valley whose near terrain forms most of the horizon
 
 
 @pytest.fixture(scope="module")

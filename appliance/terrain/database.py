@@ -150,15 +150,20 @@ def build_database(
     with no threads spinning at barriers.  A node's horizon comes from the terrain within
     ``max_range_m`` of it and nothing beyond (an exact cut-off, see HorizonSweeper), so a build in
     tiles, each with a halo of that range, equals a build of the whole map node for node."""
-    if not 8 <= n_azimuths <= 3600:
-        raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
-    if not 0.0 <= height_m < 1000.0:
-        raise InputError(f"camera height {height_m} m outside [0, 1000)")
+    _check_sampling(n_azimuths, height_m)
     cand, terr, offset = plan_grids(dem, search_bounds, spacing_m, max_range_m)
     origin, shape = lattice_of(dem, terr)
     bounds = search_bounds if search_bounds is not None else dem.bounds_lonlat()
     return build_on_grids(dem, out_path, cand, terr, offset, origin, shape, bounds, height_m, n_azimuths,
                           refraction, max_range_m, progress, workers)
+
+
+def _check_sampling(n_azimuths: int, height_m: float) -> None:
+    """Refuse an azimuth count or camera height no database can be built with."""
+    if not 8 <= n_azimuths <= 3600:
+        raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
+    if not 0.0 <= height_m < 1000.0:
+        raise InputError(f"camera height {height_m} m outside [0, 1000)")
 
 
 def build_on_grids(
@@ -182,10 +187,7 @@ def build_on_grids(
 
     A tiled build passes windows of one mosaic-wide lattice here, so that every tile's sweep lines,
     metric spacing and node placement are those of the whole map, not re-planned from its bounds."""
-    if not 8 <= n_azimuths <= 3600:
-        raise InputError(f"azimuth count {n_azimuths} outside [8, 3600]")
-    if not 0.0 <= height_m < 1000.0:
-        raise InputError(f"camera height {height_m} m outside [0, 1000)")
+    _check_sampling(n_azimuths, height_m)
     ro, co = offset
     Z = terrain_on_grid(dem, terr)
     if not np.isfinite(Z[ro : ro + cand.n_rows, co : co + cand.n_cols]).any():
