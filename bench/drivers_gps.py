@@ -14,6 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from appliance.atomic import write_text_atomic
 from appliance.drivers.gps import GpsDecoder
 from appliance.drivers.nmea_framer import NmeaFramer
 from appliance.drivers.policy import ErrorPolicy
@@ -69,7 +70,8 @@ def main() -> int:
     print(f"PTU query round trip over a pty: {rtt * 1e3:.2f} ms")
 
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(
+    write_text_atomic(
+        OUT,
         "# Driver benchmarks\n\n"
         f"{datetime.date.today().isoformat()}, 2 cores (shared with other jobs: times vary), "
         "`bench/drivers_gps.py`.\n\n"
@@ -77,7 +79,6 @@ def main() -> int:
         f"| NMEA framing + decoding, {len(logs)} gpsd logs ({len(blob)} bytes, {fixes} fixes) | "
         f"{rate / 1e6:.2f} MB/s | >= 1.15 MB/s (100 x a 115200-baud port) |\n"
         f"| PTU position query round trip (pty twin) | {rtt * 1e3:.2f} ms | <= 20 ms |\n",
-        encoding="utf-8",
     )
     print(f"wrote {OUT}")
     return 0

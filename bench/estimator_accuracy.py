@@ -28,6 +28,7 @@ from appliance.estimator import estimate  # noqa: E402
 from appliance.position import skyline_grid  # noqa: E402
 from appliance.terrain.database import build_database, load_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
@@ -122,17 +123,17 @@ def main() -> int:
             f"({summary['median_error_cells']}) | {100 * summary['within_2_cells']:.0f}% | "
             f"{100 * summary['region_holds_truth']:.0f}% | {summary['median_region_cells']} | "
             f"{summary['median_estimate_ms']} ms | {platform.machine()} |\n")
-    if not out.exists():
-        out.write_text(
-            "# Estimator accuracy (bench/estimator_accuracy.py)\n\n"
-            "Truth from the dense reference ray march at random points between nodes, camera 1.5 m.\n"
-            "Targets: with compass, median <= 1 cell, >= 90% within 2 cells, region holds truth >= 90%;\n"
-            "no compass: median <= 2 cells, >= 80% within 2 cells.\n\n"
-            "| date | map | compass | noise (deg) | missing | sigma (deg) | trials | median error (cells) | "
-            "within 2 cells | region holds truth | median region (cells) | median time | machine |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write(line)
+    append_result(
+        out,
+        "# Estimator accuracy (bench/estimator_accuracy.py)\n\n"
+        "Truth from the dense reference ray march at random points between nodes, camera 1.5 m.\n"
+        "Targets: with compass, median <= 1 cell, >= 90% within 2 cells, region holds truth >= 90%;\n"
+        "no compass: median <= 2 cells, >= 80% within 2 cells.\n\n"
+        "| date | map | compass | noise (deg) | missing | sigma (deg) | trials | median error (cells) | "
+        "within 2 cells | region holds truth | median region (cells) | median time | machine |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        line,
+    )
     return 0
 
 

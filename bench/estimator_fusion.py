@@ -24,6 +24,7 @@ from appliance.estimator import estimate, transport_prior  # noqa: E402
 from appliance.position import skyline_grid  # noqa: E402
 from appliance.terrain.database import build_database, load_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
 
@@ -80,15 +81,14 @@ def main() -> int:
                for k, v in (("first", first), ("second_alone", alone), ("second_fused", fused))}
     print(json.dumps(summary))
     out = HERE / "results" / "estimator_fusion.md"
-    if not out.exists():
-        out.write_text("# Fusion of two panoramas (bench/estimator_fusion.py)\n\n"
-                       "jacksboro; noise 0.5 deg, 40% missing in two sectors, compass +-4 deg; move 200-400 m "
-                       "reported with 30 m noise (sigma 30 m).\nPaper: 327 m and 564 m alone, 194 m combined.\n\n"
-                       "| date | trials | sigma (deg) | first alone: median / mean / p90 (m) | second alone | "
-                       "second fused |\n|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write(f"| {date.today()} | {args.trials} | {sigma[0]}–{sigma[1]} | "
-                 + " | ".join(f"{s['median_m']} / {s['mean_m']} / {s['p90_m']}" for s in summary.values()) + " |\n")
+    append_result(out,
+                  "# Fusion of two panoramas (bench/estimator_fusion.py)\n\n"
+                  "jacksboro; noise 0.5 deg, 40% missing in two sectors, compass +-4 deg; move 200-400 m "
+                  "reported with 30 m noise (sigma 30 m).\nPaper: 327 m and 564 m alone, 194 m combined.\n\n"
+                  "| date | trials | sigma (deg) | first alone: median / mean / p90 (m) | second alone | "
+                  "second fused |\n|---|---|---|---|---|---|\n",
+                  f"| {date.today()} | {args.trials} | {sigma[0]}–{sigma[1]} | "
+                  + " | ".join(f"{s['median_m']} / {s['mean_m']} / {s['p90_m']}" for s in summary.values()) + " |\n")
     return 0
 
 

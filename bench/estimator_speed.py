@@ -33,6 +33,7 @@ from appliance.estimator import SkylineGrid, estimate  # noqa: E402
 from appliance.position import skyline_grid  # noqa: E402
 from appliance.terrain.database import build_database, load_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 
 TILE = HERE.parent.parent / "shared" / "data" / "dem_srtm_hgt" / "N44W072.hgt"
 
@@ -109,11 +110,8 @@ def run(args: argparse.Namespace) -> int:
     rows.append(f"| {date.today()} | peak memory | {peak:.0f} MB | | database {db_mb:.0f} MB |"
                 f" {platform.machine()} |\n")
     res = HERE / "results" / "estimator_speed.md"
-    if not res.exists():
-        res.write_text("# Estimator speed (bench/estimator_speed.py)\n\n"
-                       "| date | case | median | best | target | machine |\n|---|---|---|---|---|---|\n")
-    with res.open("a") as fh:
-        fh.writelines(rows)
+    append_result(res, "# Estimator speed (bench/estimator_speed.py)\n\n"
+                  "| date | case | median | best | target | machine |\n|---|---|---|---|---|---|\n", "".join(rows))
     return 0
 
 

@@ -28,6 +28,7 @@ from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.tiled_search import SearchParams, locate_tiled, open_tiled  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 from tests.tiled_build import build_tiled  # noqa: E402
 
 AREA = (-84.30, 36.55, -84.24, 36.60)
@@ -78,10 +79,6 @@ def main() -> int:
     same = all({k: v for k, v in a.items() if k != "elapsed_ms"} == {k: v for k, v in b.items() if k != "elapsed_ms"}
                for a, b in zip(serial[2], parallel[2]))
     res = HERE / "results" / "estimator_tiled.md"
-    if not res.exists():
-        res.write_text("# Estimates on a tiled database (bench/estimator_tiled.py)\n\n"
-                       "| date | case | tiles | nodes | median | best | same answer | load (uptime) |\n"
-                       "|---|---|---|---|---|---|---|---|\n")
     nodes = sum(t.n_rows * t.n_cols for t in index.tiles)
     n = len(index.tiles)
     rows = [
@@ -90,8 +87,9 @@ def main() -> int:
         f"| {date.today()} | LocalCluster 2 workers x 1 thread | {n} | {nodes} | {parallel[0] * 1e3:.0f} ms "
         f"| {parallel[1] * 1e3:.0f} ms | {'yes' if same else 'NO'} | {load1} -> {load2} |\n",
     ]
-    with res.open("a") as fh:
-        fh.writelines(rows)
+    append_result(res, "# Estimates on a tiled database (bench/estimator_tiled.py)\n\n"
+                  "| date | case | tiles | nodes | median | best | same answer | load (uptime) |\n"
+                  "|---|---|---|---|---|---|---|---|\n", "".join(rows))
     sys.stdout.writelines(rows)
     print(f"cores {len(os.sched_getaffinity(0))}, {len(skies)} skylines x {args.repeats} repeats, compass +-4 deg")
     return 0 if same else 1

@@ -32,6 +32,7 @@ from appliance.position import place, skyline_grid, truth_in_region  # noqa: E40
 from appliance.sim.demo import demo_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
 NEAR_M = 1000.0
@@ -97,17 +98,17 @@ def main() -> int:
             f"{np.median(ms):.0f} ms | {(time.monotonic() - t0) / 60:.1f} min, load {os.getloadavg()[0]:.1f} |\n")
     print(line)
     out = HERE / "results" / "estimator_valleys.md"
-    if not out.exists():
-        out.write_text(
-            "# Valley positions (bench/estimator_valleys.py)\n\n"
-            "jacksboro demo database at the map's spacing; positions whose horizon lies within 1 km over at least "
-            "60 % of azimuths; measured skyline from the dense reference march, noise 0.2 deg, 10 % missing, "
-            "compass error within +-4 deg.\n\n"
-            "| date | positions | within 2 cells | median (cells) | truth in region | wrong and not ambiguous | "
-            "median region where right | ambiguous | estimate time | run |\n"
-            "|---|---|---|---|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write(line)
+    append_result(
+        out,
+        "# Valley positions (bench/estimator_valleys.py)\n\n"
+        "jacksboro demo database at the map's spacing; positions whose horizon lies within 1 km over at least "
+        "60 % of azimuths; measured skyline from the dense reference march, noise 0.2 deg, 10 % missing, "
+        "compass error within +-4 deg.\n\n"
+        "| date | positions | within 2 cells | median (cells) | truth in region | wrong and not ambiguous | "
+        "median region where right | ambiguous | estimate time | run |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n",
+        line,
+    )
     return 0
 
 

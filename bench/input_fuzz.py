@@ -46,6 +46,9 @@ from appliance.terrain.dem import load_dem
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 OUT = ROOT / "bench" / "results" / "input_fuzz.md"
+sys.path.insert(0, str(ROOT))
+from bench.results_file import append_result  # noqa: E402
+
 HOSTILE = [b"nan", b"-inf", b"1e999", b"99999999999999999999", b"-", b"", b"\x00", b"\"", b"[", b"]]", b"=",
            b"\xef\xbb\xbf", b"\r\n", b",", b"-0", b"0", b"true", b"{}", b"\xff\xfe"]
 DEMS = ["dem_geotiff/gmted2010_clips/matterhorn.tiff", "dem_geotiff/msh00_MountStHelens_2000_webmerc.tif",
@@ -216,17 +219,16 @@ def main() -> int:
                      f"{sum(t.errors.values())} | {len(t.foreign)} |")
     print(f"{sum(t.inputs for t in tallies.values())} inputs in {elapsed:.0f} s -> {result}")
     if not args.no_record:
-        if not OUT.exists():
-            OUT.write_text("# Input-file fuzzing\n\n`bench/input_fuzz.py`: truncated, bit-flipped and otherwise "
-                           "mutated skyline CSVs, configurations, DEMs of every format in ../shared/data and skyline "
-                           "databases through their readers.\nTarget: every input loads or raises the project's own "
-                           "error (ViperError); no foreign exception.\n\n"
-                           "| date | seed | reader | inputs | loaded | project errors | foreign exceptions |\n"
-                           "|---|---|---|---|---|---|---|\n")
-        with OUT.open("a") as fh:
-            fh.write("\n".join(rows) + "\n")
-            fh.write(f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
-                     f"{args.dem_count} --seed {args.seed}): {result}.\n\n")
+        append_result(OUT,
+                      "# Input-file fuzzing\n\n`bench/input_fuzz.py`: truncated, bit-flipped and otherwise "
+                      "mutated skyline CSVs, configurations, DEMs of every format in ../shared/data and skyline "
+                      "databases through their readers.\nTarget: every input loads or raises the project's own "
+                      "error (ViperError); no foreign exception.\n\n"
+                      "| date | seed | reader | inputs | loaded | project errors | foreign exceptions |\n"
+                      "|---|---|---|---|---|---|---|\n",
+                      "\n".join(rows) + "\n"
+                      + f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
+                      f"{args.dem_count} --seed {args.seed}): {result}.\n\n")
     return 0 if not foreign else 1
 
 

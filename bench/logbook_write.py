@@ -13,6 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from appliance.atomic import write_text_atomic
 from appliance.logbook import Logbook, recover_log
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
@@ -65,7 +66,7 @@ def main() -> None:
         *[f"| {a} | {b} | {c} |" for a, b, c in rows],
         "",
     ]
-    out.write_text("\n".join(lines))
+    write_text_atomic(out, "\n".join(lines))
 
 
 if __name__ == "__main__":

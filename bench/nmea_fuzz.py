@@ -32,6 +32,9 @@ from appliance.errors import ViperError
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 OUT = ROOT / "bench" / "results" / "nmea_fuzz.md"
+sys.path.insert(0, str(ROOT))
+from bench.results_file import append_result  # noqa: E402
+
 HOSTILE = [
     "", "99999999999999999999", "999999999999999999999999999999", "-1", "nan", "NaN", "inf", "-inf", "1e999",
     "1_000", "0x1F", "+", "-", ".", "..", "1.2.3", " ", "00", "60", "99", "235960.99", "9999", "0000", "-0",
@@ -129,15 +132,14 @@ def main() -> int:
     for line in foreign[:20]:
         print("  " + line)
     if not args.no_record:
-        if not OUT.exists():
-            OUT.write_text("# NMEA fuzzing\n\n`bench/nmea_fuzz.py`: mutated sentences of the real logs through the "
-                           "framer, the GPS decoder and the heading decoder (RAISE policy).\n"
-                           "Target: no exception other than the project's own.\n\n"
-                           "| date | inputs | seed | ProtocolErrors raised | foreign exceptions | result |\n"
-                           "|---|---|---|---|---|---|\n")
-        with OUT.open("a") as fh:
-            fh.write(f"| {datetime.date.today().isoformat()} | {n} | {args.seed} | "
-                     f"{sum(errors.values())} | {len(foreign)} | {result} |\n")
+        append_result(OUT,
+                      "# NMEA fuzzing\n\n`bench/nmea_fuzz.py`: mutated sentences of the real logs through the "
+                      "framer, the GPS decoder and the heading decoder (RAISE policy).\n"
+                      "Target: no exception other than the project's own.\n\n"
+                      "| date | inputs | seed | ProtocolErrors raised | foreign exceptions | result |\n"
+                      "|---|---|---|---|---|---|\n",
+                      f"| {datetime.date.today().isoformat()} | {n} | {args.seed} | "
+                      f"{sum(errors.values())} | {len(foreign)} | {result} |\n")
     return 0 if not foreign else 1
 
 

@@ -43,6 +43,7 @@ from appliance.vision.camera import CameraPose  # noqa: E402
 from appliance.vision.intrinsics import CameraIntrinsics  # noqa: E402
 from appliance.vision.skyline_detect import detect_skyline  # noqa: E402
 from appliance.vision.synth import render_photo_from  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 
 #: The world's skyline is rendered once per seed at this azimuth step and interpolated.
 WORLD_STEP_DEG = 0.2
@@ -140,17 +141,17 @@ def main() -> int:
     )
     print(summary)
     out = HERE / "results" / "session_chain.md"
-    if not out.exists():
-        out.write_text(
-            "# The demo's session chain over many seeds (bench/session_chain.py)\n\n"
-            "Frames from the camera twin, stitched, skyline detected, estimated on the demo database (jacksboro at "
-            "its own spacing), compass error up to +-3 deg, tilt up to +-0.3 deg.  Cells: error over the geometric "
-            "mean node spacing.  Region: median over the estimates within two cells.\n\n"
-            "| date | seeds | cell | within 2 cells | median (cells) | truth in region | median region (cells) | "
-            "ambiguous | wrong and not ambiguous | estimate time | run |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write(summary)
+    append_result(
+        out,
+        "# The demo's session chain over many seeds (bench/session_chain.py)\n\n"
+        "Frames from the camera twin, stitched, skyline detected, estimated on the demo database (jacksboro at "
+        "its own spacing), compass error up to +-3 deg, tilt up to +-0.3 deg.  Cells: error over the geometric "
+        "mean node spacing.  Region: median over the estimates within two cells.\n\n"
+        "| date | seeds | cell | within 2 cells | median (cells) | truth in region | median region (cells) | "
+        "ambiguous | wrong and not ambiguous | estimate time | run |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|\n",
+        summary,
+    )
     return 0
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.atomic import write_text_atomic
 from appliance.cli.demo import demo_config
 from appliance.position import truth_error_m
 from appliance.sim.demo import demo_database
@@ -55,7 +56,7 @@ def main() -> None:
         f"median error vs true position {np.median(errs):.1f} m over {len(errs)} sessions.",
     ]
     Path("bench/results").mkdir(parents=True, exist_ok=True)
-    Path("bench/results/session_demo.md").write_text("\n".join(lines) + "\n")
+    write_text_atomic("bench/results/session_demo.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -28,6 +28,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
+from bench.results_file import append_result  # noqa: E402
+
 CACHE = HERE / "cache"
 TILE = ROOT.parent / "shared" / "data" / "dem_srtm_hgt" / "N44W072.hgt"
 VIPER = str(Path(sys.executable).with_name("viper"))
@@ -118,12 +120,10 @@ def main() -> int:
         if busy is not None:
             busy.join()
     out = HERE / "results" / "startup.md"
-    if not out.exists():
-        out.write_text("# Commands end to end (bench/startup.py)\n\n"
-                       "Process start to output, fresh process each run.\n\n"
-                       "| date | command | median | best | target | conditions |\n|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write("\n".join(rows) + "\n")
+    append_result(out, "# Commands end to end (bench/startup.py)\n\n"
+                  "Process start to output, fresh process each run.\n\n"
+                  "| date | command | median | best | target | conditions |\n|---|---|---|---|---|---|\n",
+                  "\n".join(rows) + "\n")
     return 0
 
 

@@ -18,6 +18,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
@@ -57,12 +58,11 @@ def main() -> int:
         print(f"{rel}: {rms:.4f} deg RMS, worst {worst:.3f} deg over {e.size} azimuths")
         rows.append(f"| {date.today()} | {rel} | {args.points} | {rms:.4f} | {worst:.3f} | 0.05 |\n")
     out = HERE / "results" / "terrain_accuracy.md"
-    if not out.exists():
-        out.write_text("# Renderer accuracy (bench/terrain_accuracy.py)\n\nviper render against the dense exact "
-                       "reference ray march, 360 azimuths, 60 km range, camera 1.5 m, random points between nodes.\n\n"
-                       "| date | DEM | points | RMS (deg) | worst (deg) | target RMS |\n|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.writelines(rows)
+    append_result(out,
+                  "# Renderer accuracy (bench/terrain_accuracy.py)\n\nviper render against the dense exact "
+                  "reference ray march, 360 azimuths, 60 km range, camera 1.5 m, random points between nodes.\n\n"
+                  "| date | DEM | points | RMS (deg) | worst (deg) | target RMS |\n|---|---|---|---|---|---|\n",
+                  "".join(rows))
     return 0
 
 

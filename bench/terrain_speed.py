@@ -78,8 +78,10 @@ def main() -> int:
         if busy is not None:
             busy.kill()
     res = HERE / "results" / "terrain_speed.md"
-    with res.open("a") as fh:
-        fh.writelines(rows)
+    sys.path.insert(0, str(HERE.parent))
+    from bench.results_file import append_result
+
+    append_result(res, "", "".join(rows))
     return 0
 
 

@@ -46,6 +46,7 @@ from appliance.sim.demo import demo_database, sensor_reading  # noqa: E402
 from appliance.sim.field_session import on_map_fn, random_position  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 
 EARTH_RADIUS_M = 6_371_008.8
 _STATE: dict = {}
@@ -180,34 +181,35 @@ def main() -> int:
                f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f} |\n")
     print(summary)
     out = HERE / "results" / "traverse.md"
-    if not out.exists():
-        out.write_text(
-            "# Rover traverses (bench/traverse.py)\n\n"
-            "Jacksboro, the demo's database (nodes 75 m x 92 m); legs of 200-400 m in random directions, odometry "
-            "with 15 m of noise per axis (sigma 15 m).  Errors against the simulated true position of each stop, "
-            "over the stops after the first (the first has nothing to fuse with).  Target: p90 fused < p90 alone.  "
-            "Ambiguous: stops whose estimate says so (region too large, or in session mode the GPS truth outside "
-            "the region), over every stop including the first.\n\n"
-            "| date | mode | traverses x stops | stops after the first | p90 alone / fused (m) | p90 vs GPS truth "
-            "alone / fused (m) | median alone / fused (m) | max alone / fused (m) | ambiguous alone / fused | "
-            "stops failed | run |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|\n")
-    with out.open("a") as fh:
-        fh.write(summary)
-        fh.write("\nPer stop (seed: stop error alone / fused, m; * ambiguous):\n\n" if args.mode == "session" else "")
-        if args.mode == "session":
-            for seed, rows in results:
-                cells = []
-                for r in rows:
-                    if "failed" in r:
-                        cells.append(f"{r['stop']}: failed")
-                        continue
-                    a = f"{r['alone_m']:.1f}{'*' if r['alone_flag'] == 'ambiguous' else ''}"
-                    f = "" if r["fused_m"] is None else \
-                        f" / {r['fused_m']:.1f}{'*' if r['fused_flag'] == 'ambiguous' else ''}"
-                    cells.append(f"{r['stop']}: {a}{f}")
-                fh.write(f"- seed {seed}: " + "; ".join(cells) + "\n")
-            fh.write("\n")
+    text = [summary]
+    text.append("\nPer stop (seed: stop error alone / fused, m; * ambiguous):\n\n" if args.mode == "session" else "")
+    if args.mode == "session":
+        for seed, rows in results:
+            cells = []
+            for r in rows:
+                if "failed" in r:
+                    cells.append(f"{r['stop']}: failed")
+                    continue
+                a = f"{r['alone_m']:.1f}{'*' if r['alone_flag'] == 'ambiguous' else ''}"
+                f = "" if r["fused_m"] is None else \
+                    f" / {r['fused_m']:.1f}{'*' if r['fused_flag'] == 'ambiguous' else ''}"
+                cells.append(f"{r['stop']}: {a}{f}")
+            text.append(f"- seed {seed}: " + "; ".join(cells) + "\n")
+        text.append("\n")
+    append_result(
+        out,
+        "# Rover traverses (bench/traverse.py)\n\n"
+        "Jacksboro, the demo's database (nodes 75 m x 92 m); legs of 200-400 m in random directions, odometry "
+        "with 15 m of noise per axis (sigma 15 m).  Errors against the simulated true position of each stop, "
+        "over the stops after the first (the first has nothing to fuse with).  Target: p90 fused < p90 alone.  "
+        "Ambiguous: stops whose estimate says so (region too large, or in session mode the GPS truth outside "
+        "the region), over every stop including the first.\n\n"
+        "| date | mode | traverses x stops | stops after the first | p90 alone / fused (m) | p90 vs GPS truth "
+        "alone / fused (m) | median alone / fused (m) | max alone / fused (m) | ambiguous alone / fused | "
+        "stops failed | run |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "".join(text),
+    )
     return 0
 
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
+import io
 import json
 import subprocess
 import sys
@@ -53,6 +54,10 @@ SANCY = DATA / "panorama" / "puydesancy_equirect_4096x2048.jpg"
 TRACE = REPO / "tests" / "data" / "finse_skyline_trace.csv"
 GCP_2022 = REPO / "tests" / "data" / "finse_2022_gcp_pixels.csv"
 RESULTS = REPO / "bench" / "results" / "vision_finse.md"
+sys.path.insert(0, str(REPO))
+from appliance.atomic import write_text_atomic  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
+
 SURVEYED = (419169.2, 6718421.3)  # camera_pos, EPSG:32632 (MANIFEST section 6)
 PHOTOS = ("2019-05-24_12-00_ori.jpg", "2022-07-08.jpg")
 BOX_M = 200  # half-width of the search box around the camera
@@ -73,7 +78,8 @@ def gcps_for_2022(work: Path) -> Path:
     """The data set's GCP file with the pixels replaced by their positions in the 2022 photo."""
     pixels = {r["name"]: r for r in csv.DictReader(GCP_2022.open())}
     out = work / "gcp_2022.csv"
-    with GCPS.open() as src, out.open("w", newline="") as dst:
+    dst = io.StringIO(newline="")
+    with GCPS.open() as src:
         reader = csv.DictReader(src)
         writer = csv.DictWriter(dst, fieldnames=["name", "x_world", "y_world", "z_world", "x_img", "y_img"])
         writer.writeheader()
@@ -90,6 +96,7 @@ def gcps_for_2022(work: Path) -> Path:
                         "y_img": p["v_px"],
                     }
                 )
+    write_text_atomic(out, dst.getvalue())
     return out
 
 
@@ -189,7 +196,7 @@ def main() -> int:
         return 0
     work = args.work or Path(tempfile.mkdtemp(prefix="viper-finse-"))
     work.mkdir(parents=True, exist_ok=True)
-    (work / "stated.toml").write_text(STATED_CAMERA)
+    write_text_atomic(work / "stated.toml", STATED_CAMERA)
     camera = work / "camera.toml"
     camera.unlink(missing_ok=True)
     viper(
@@ -305,31 +312,32 @@ def main() -> int:
             print(f"{photo} position: {positions[photo]}")
             defaults[photo] = position(work, photo, skylines[photo], fits[photo], db, sigma=None)
             print(f"{photo} position, default sigma: {defaults[photo]}")
-    with RESULTS.open("a", encoding="utf-8") as fh:
-        if RESULTS.stat().st_size == 0:
-            fh.write(
-                "# Real photographs through the command line (Finse, Puy de Sancy)\n\n"
-                "bench/vision_finse.py; targets: Finse detected >= 90 % of the traced columns inside the DSM,"
-                " RMS <= 0.1 deg, max <= 1 deg; positioning within 10 m, truth inside the region;"
-                " Puy de Sancy >= 85 % of 1-degree azimuths.\n\n"
-                "| date | photo | detected | RMS (deg) | max (deg) | position error (m) | truth in region |"
-                " detection (s) |\n|---|---|---|---|---|---|---|---|\n"
-            )
-        today = datetime.date.today()
-        for photo, m in rows:
-            p = positions.get(photo, {})
-            err = f"{p['error_m']:.1f}" if "error_m" in p else (f"refused: {p.get('stderr', '')}" if p else "not run")
-            if "error_m" in p:
-                err += f" (region {float(p['area_m2']) / 1e4:.2f} ha"  # type: ignore[arg-type]
-                d = defaults.get(photo, {})
-                if "error_m" in d:
-                    err += f"; default sigma: {d['error_m']:.1f}, {float(d['area_m2']) / 1e4:.1f} ha"  # type: ignore[arg-type]
-                err += ")"
-            fh.write(
-                f"| {today} | Finse {photo} | {m['detected']:.1%} | {m['rms_deg']:.3f} | {m['max_deg']:.2f} |"
-                f" {err} | {p.get('truth_in_region', '')} | {m['seconds']:.1f} |\n"
-            )
-        fh.write(f"| {today} | Puy de Sancy | {sancy:.1%} of 1-deg azimuths | | | | | {sancy_s:.1f} |\n")
+    text: list[str] = []
+    today = datetime.date.today()
+    for photo, m in rows:
+        p = positions.get(photo, {})
+        err = f"{p['error_m']:.1f}" if "error_m" in p else (f"refused: {p.get('stderr', '')}" if p else "not run")
+        if "error_m" in p:
+            err += f" (region {float(p['area_m2']) / 1e4:.2f} ha"  # type: ignore[arg-type]
+            d = defaults.get(photo, {})
+            if "error_m" in d:
+                err += f"; default sigma: {d['error_m']:.1f}, {float(d['area_m2']) / 1e4:.1f} ha"  # type: ignore[arg-type]
+            err += ")"
+        text.append(
+            f"| {today} | Finse {photo} | {m['detected']:.1%} | {m['rms_deg']:.3f} | {m['max_deg']:.2f} |"
+            f" {err} | {p.get('truth_in_region', '')} | {m['seconds']:.1f} |\n"
+        )
+    text.append(f"| {today} | Puy de Sancy | {sancy:.1%} of 1-deg azimuths | | | | | {sancy_s:.1f} |\n")
+    append_result(
+        RESULTS,
+        "# Real photographs through the command line (Finse, Puy de Sancy)\n\n"
+        "bench/vision_finse.py; targets: Finse detected >= 90 % of the traced columns inside the DSM,"
+        " RMS <= 0.1 deg, max <= 1 deg; positioning within 10 m, truth inside the region;"
+        " Puy de Sancy >= 85 % of 1-degree azimuths.\n\n"
+        "| date | photo | detected | RMS (deg) | max (deg) | position error (m) | truth in region |"
+        " detection (s) |\n|---|---|---|---|---|---|---|---|\n",
+        "".join(text),
+    )
     print(f"appended to {RESULTS}; outputs in {work}")
     return 0
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from appliance.atomic import write_bytes_atomic, write_text_atomic
 from appliance.vision.panorama import load_panorama
 from appliance.vision.skyline_detect import DetectionConfig, detect_columns, draw_overlay, resample
 
@@ -44,21 +45,21 @@ def main() -> int:
     ok, buf = cv2.imencode(".png", stacked, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     if not ok:
         return 1
-    OUT.write_bytes(buf.tobytes())
+    write_bytes_atomic(OUT, buf.tobytes())
     valid = float(np.isfinite(cols.row).mean())
     print(
         f"detection {dt * 1000:.0f} ms on {pano.width}x{pano.height}; columns valid {valid:.1%};"
         f" 1-degree rows valid {sky.valid.sum()}/360; overlay {OUT} ({len(buf) // 1024} kB)"
     )
     res = REPO / "bench" / "results" / "vision_puydesancy.md"
-    res.write_text(
+    write_text_atomic(
+        res,
         "# Skyline detection on the Puy de Sancy photo\n\n"
         f"{datetime.date.today()}, 2 cores. Overlay: docs/puydesancy_overlay.png (checked by eye).\n\n"
         "| figure | value |\n|---|---|\n"
         f"| detection time, 4096x2048 (el -30..30) | {dt * 1000:.0f} ms |\n"
         f"| columns with a skyline | {valid:.1%} |\n"
         f"| 1-degree rows with a skyline | {int(sky.valid.sum())}/360 |\n",
-        encoding="utf-8",
     )
     return 0
 

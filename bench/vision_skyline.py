@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.atomic import write_text_atomic
 from appliance.vision.camera import CameraPose
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.skyline_detect import DetectionConfig, Method, detect_columns
@@ -135,7 +136,7 @@ def main() -> int:
         "",
         *[line for note in NOTES for line in (note, "")],
     ]
-    OUT.write_text("\n".join(lines), encoding="utf-8")
+    write_text_atomic(OUT, "\n".join(lines))
     print(f"wrote {OUT}")
     return 0
 

@@ -66,6 +66,7 @@ from appliance.sim.demo import sensor_reading  # noqa: E402
 from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402
 from appliance.terrain.dem import Dem, bilinear, load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
+from bench.results_file import append_result  # noqa: E402
 
 SHARED = HERE.parent.parent / "shared" / "data"
 TILE = SHARED / "dem_srtm_hgt" / "N44W072.hgt"
@@ -391,8 +392,6 @@ Targets: forest >= 75 % within two cells; finer >= 90 %; confident wrong = 0; tr
 def record(world: World, args: argparse.Namespace, s: dict[str, float], n: int, sites: list[Site],
            options: dict[str, object], ignored: list[str]) -> None:
     RESULTS.parent.mkdir(exist_ok=True)
-    if not RESULTS.exists():
-        RESULTS.write_text(HEADER)
     kinds = {k: sum(1 for x in sites if x.kind == k) for k in dict.fromkeys(x.kind for x in sites)}
     target = TARGET_WITHIN_2.get(world.name)
     opts = ", ".join(f"{k}={v}" for k, v in options.items()) or "none"
@@ -409,8 +408,7 @@ def record(world: World, args: argparse.Namespace, s: dict[str, float], n: int, 
         f"{s['median_gap_deg']:+.2f}", facts, args.note, platform.machine(),
     ]
     line = "| " + " | ".join(cells) + " |\n"
-    with RESULTS.open("a") as fh:
-        fh.write(line)
+    append_result(RESULTS, HEADER, line)
 
 
 def main() -> int:
