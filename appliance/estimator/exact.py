@@ -43,9 +43,6 @@ START_SPREAD_CELLS = 0.4
 ANNEAL = 0.1
 #: How far (cells) a fit may wander from the node it started at.
 MAX_OFFSET_CELLS = 2.0
-#: The fewest independent readings a skyline's residuals are taken for, however correlated: the
-#: fit's four parameters twice over.
-MIN_INDEPENDENT = 8
 
 
 @dataclass(frozen=True)
@@ -151,9 +148,6 @@ class Fit:
     eye_offset_m: float = 0.0
     occluded: float = 0.0  # weight of the measurements taken for occluders (not in ssd)
     covariance_cells: np.ndarray | None = None
-    #: how many times the curvature at sigma overstates what the skyline tells of the position
-    #: (reduced chi-square times the residuals' correlation along azimuth); at least 1
-    inflation: float = 1.0
 
     @property
     def rms_deg(self) -> float:
@@ -290,18 +284,8 @@ def refine(
     the measurement weights, the occlusion cap and the map's vertical error; the fit's ``ssd`` is
     its cost (:meth:`Model.cost`).  A ``position_prior`` (a traverse's transported belief) adds its
     Mahalanobis term to what the fit minimises, so the answer between nodes weighs the odometry as
-    the grid's posterior does.  It is weighed against what the skyline truly tells: a first fit
-    without it gives the skyline's :attr:`Fit.inflation`, and the prior counts that many times
-    more against the curvature at sigma, so a skyline whose residuals run above the noise, or on
-    along the azimuths, yields more to the odometry.  ``ssd`` stays the measurements' own cost."""
+    the grid's posterior does; ``ssd`` stays the measurements' own cost."""
     mdl = Model() if model is None else model
-    weight = 1.0
-    if position_prior is not None:
-        alone = refine(terrain, dx_m, dy_m, measured, node_row, node_col, n_cols, heading_deg, height_m, start,
-                       sigma_deg, heading_bounds_deg, mdl)
-        if alone is None:
-            return None
-        weight = alone.inflation
     n_az = measured.size
     step = 360.0 / n_az
     az = np.arange(n_az) * step
@@ -344,7 +328,7 @@ def refine(
     P[3, 3] = 1.0 / eye2
     mu = np.zeros(4)
     if position_prior is not None:
-        P[:2, :2] = position_prior.information * weight
+        P[:2, :2] = position_prior.information
         mu[:2] = position_prior.row, position_prior.col
 
     def belief(q: np.ndarray) -> float:
@@ -400,54 +384,28 @@ def refine(
     ssd_u, occ_u = mdl.split(r, u)
     k = n_valid / max(int(ok.sum()), 1)
     ssd, occ = float(ssd_u) * k, float(occ_u) * k
-    if position_prior is not None:
-        P[:2, :2] = position_prior.information
-    cov, inflation = _position_covariance(terrain, dx_m, dy_m, p, az - gamma, s, d, ok, u, r, mdl, sig2, P, ssd,
-                                          n_valid)
+    cov = _position_covariance(terrain, dx_m, dy_m, p, az - gamma, s, d, ok, u, r, mdl, sig2, P, ssd, n_valid)
     return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2, n_valid, iterations,
-               float(p[3]), occ, cov, inflation)
+               float(p[3]), occ, cov)
 
 
 def _position_covariance(terrain: Terrain, dx_m: float, dy_m: float, p: np.ndarray, grid_azimuth_deg: np.ndarray,
                          s: np.ndarray, d: np.ndarray, ok: np.ndarray, u: np.ndarray, r: np.ndarray, mdl: Model,
-                         sig2: float, P: np.ndarray, ssd: float, n_valid: int) -> tuple[np.ndarray | None, float]:
-    """The (row, col) covariance (cells^2) of a fit, and its inflation: the inverse of the
-    Gauss-Newton curvature of its cost at sigma over the measurements the terrain explains
-    (occluders left out), divided by the inflation, plus the priors ``P``; heading and eye height
-    marginalised.
-
-    The curvature counts every azimuth as an independent reading at sigma.  Residuals above the
-    noise widen it by the reduced chi-square, so a fit that explains the skyline poorly does not
-    claim the precision of one that does; residuals that run on from one azimuth to the next (a
-    misdrawn ridge, a map's error, a tilt) are fewer independent readings than azimuths, and widen
-    it by (1 + rho) / (1 - rho), rho their correlation at one azimuth's lag."""
+                         sig2: float, P: np.ndarray, ssd: float, n_valid: int) -> np.ndarray | None:
+    """The (row, col) covariance (cells^2) of a fit: the inverse of the Gauss-Newton curvature of
+    its cost at sigma, over the measurements the terrain explains (occluders left out), heading
+    and eye height marginalised.  Residuals above the noise widen it by the reduced chi-square,
+    so a fit that explains the skyline poorly does not claim the precision of one that does."""
     okd = ok & np.isfinite(d)
     dd = np.where(okd, d, 1.0)
     J = np.where(okd[:, None], jacobian(terrain, dx_m, dy_m, p[0], p[1], grid_azimuth_deg + p[2], s, dd), 0.0)
-    used = okd & ~((r > 0) & (u * r * r > mdl.cap_deg2))
-    w = np.where(used, u, 0.0) / sig2
-    inflation = max(1.0, ssd / max(n_valid * sig2, 1e-300)) * _correlation_inflation(r * np.sqrt(w), used)
+    w = np.where(okd & ~((r > 0) & (u * r * r > mdl.cap_deg2)), u, 0.0) / sig2
+    inflation = max(1.0, ssd / max(n_valid * sig2, 1e-300))
     try:
-        c = np.linalg.inv(J.T @ (J * w[:, None]) / inflation + P)[:2, :2]
+        cov = np.linalg.inv(J.T @ (J * w[:, None]) / inflation + P)
     except np.linalg.LinAlgError:
-        return None, inflation
+        return None
+    c = cov[:2, :2]
     if not (np.all(np.isfinite(c)) and c[0, 0] > 0 and c[1, 1] > 0):
-        return None, inflation
-    return 0.5 * (c + c.T), inflation
-
-
-def _correlation_inflation(e: np.ndarray, used: np.ndarray) -> float:
-    """(1 + rho) / (1 - rho) for the normalised residuals ``e``, rho their correlation between
-    neighbouring azimuths both ``used`` (the azimuth grid closes on itself): the factor by which
-    first-order correlated residuals shrink the number of independent readings.  At least 1, and
-    at most the readings over MIN_INDEPENDENT."""
-    pair = used & np.roll(used, -1)
-    n_used = int(used.sum())
-    if pair.sum() < 2 or n_used < MIN_INDEPENDENT:
-        return 1.0
-    a, b = e[pair], np.roll(e, -1)[pair]
-    den = math.sqrt(float(a @ a) * float(b @ b))
-    rho = float(a @ b) / den if den > 0 else 0.0
-    if rho <= 0.0:
-        return 1.0
-    return min((1.0 + rho) / max(1.0 - rho, 1e-9), n_used / MIN_INDEPENDENT)
+        return None
+    return 0.5 * (c + c.T)
