@@ -17,6 +17,7 @@ from mcap.reader import make_reader
 
 from appliance.acquisition.platform import Platform
 from appliance.acquisition.session import Session, SessionResult
+from appliance.acquisition.session_facts import read_session_facts
 from appliance.acquisition.traverse import Traverse, TraverseResult, estimate_flag
 from appliance.cli.main import main
 from appliance.config import Config, TraverseConfig
@@ -153,6 +154,25 @@ def test_the_report_shows_the_track_and_every_stop(traverse):
     for s in r.stops:
         assert f'id="stop-{s.stop}"' in html and (out / "report" / f"stop-{s.stop:02d}.png").exists()
     assert str(out) not in html  # no absolute paths
+
+
+def test_the_report_gives_each_stop_its_own_session_facts(traverse):
+    from appliance.acquisition.traverse_report import stop_rows
+
+    r, _, db, _ = traverse
+    # each stop's truth procedure, as the log records it, in stop order
+    truths = [json.loads(m.data) for _, ch, m in _messages(r.log_path)
+              if ch.topic == t.PROCEDURE and json.loads(m.data).get("procedure") == "truth"]
+    rows = stop_rows(db, r.stops)
+    assert len(truths) == len(rows) == STOPS
+    for row, p in zip(rows, truths, strict=True):
+        assert row["truth"] == p["status"]
+        assert row["GPS fixes averaged, σ (m)"] == f"{p['used']}, {p['sigma_m']:.1f}"
+        assert row["frames"] != "0" and row["valid azimuths"].endswith(" of 360")
+    # the log-wide table keeps only what the whole log holds: no one stop's procedures
+    facts = dict(read_session_facts(r.log_path).rows(one_session=False))
+    assert "truth" not in facts and "level" not in facts and "valid azimuths (on board)" not in facts
+    assert int(facts["frames"]) == sum(s.session.frames for s in r.stops)
 
 
 def _bare_traverse(tmp_path, clock, reader, timeout_s=600.0):

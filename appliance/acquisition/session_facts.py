@@ -50,9 +50,11 @@ class SessionFacts:
             return None
         return (self.last_ns - self.first_ns) / 1e9
 
-    def rows(self) -> list[tuple[str, str]]:
+    def rows(self, one_session: bool = True) -> list[tuple[str, str]]:
         """(name, value) pairs for the report, in a fixed order; facts the log lacks are left out (all of
-        them for a log without a readable message)."""
+        them for a log without a readable message).  A log of several sessions (a traverse's stops)
+        gives ``one_session=False``: only what its whole holds (time, fixes and frames received),
+        since the procedures, the truth and the skyline are each stop's own."""
         out: list[tuple[str, str]] = []
         if self.first_ns is None:
             return out
@@ -60,18 +62,18 @@ class SessionFacts:
         out.append(("session time", f"{start:%Y-%m-%d %H:%M:%S} UTC, {self.duration_s:.0f} s"))
         if self.session_id is not None:
             out.append(("session id", self.session_id))
-        for name in PROCEDURES:
+        for name in PROCEDURES if one_session else ():
             if name in self.procedures:
                 o = self.procedures[name]
                 out.append((name, o.status + (f": {o.reason}" if o.reason else "")))
         gps = f"{self.gps_fixes} received"
-        if self.truth_fixes_used is not None:
+        if self.truth_fixes_used is not None and one_session:
             gps += f", {self.truth_fixes_used} averaged"
-        if self.truth_sigma_m is not None:
+        if self.truth_sigma_m is not None and one_session:
             gps += f", σ {self.truth_sigma_m:.1f} m"
         out.append(("GPS fixes", gps))
         out.append(("frames", str(self.captures)))
-        if self.valid_azimuths is not None:
+        if self.valid_azimuths is not None and one_session:
             out.append(("valid azimuths (on board)", f"{self.valid_azimuths} of {self.azimuths}"))
         return out
 

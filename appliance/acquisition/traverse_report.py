@@ -7,6 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from appliance.atomic import atomic_output, check_output_folder, write_text_atomic
 
 if TYPE_CHECKING:
@@ -38,9 +40,23 @@ def stop_rows(db: SkylineDatabase, stops: list[StopResult]) -> list[dict[str, st
             "fused: error (m)": _err(s.error_m) if s.fused else "",
             "fused: status": "" if pos is None or not s.fused else estimate_flag(db, pos, s.truth),
             "region (cells)": "" if pos is None else str(pos.result.region_nodes.size),
+            **_stop_facts(s),
             "note": s.fusion_note,
         })
     return rows
+
+
+def _stop_facts(s: StopResult) -> dict[str, str]:
+    """The stop's own session facts: how its procedures ended, its GPS truth, its frames and skyline."""
+    sr = s.session
+    facts = {name: sr.outcomes.get(name, "") for name in ("level", "compass", "truth")}
+    tr = sr.truth
+    facts["GPS fixes averaged, σ (m)"] = ("" if tr is None or tr.sigma_m is None
+                                         else f"{tr.used}, {tr.sigma_m:.1f}")
+    facts["frames"] = str(sr.frames)
+    el = None if sr.skyline is None else np.asarray(sr.skyline.elevation_deg)
+    facts["valid azimuths"] = "" if el is None else f"{int(np.count_nonzero(np.isfinite(el)))} of {el.size}"
+    return facts
 
 
 def write_traverse_report(result: TraverseResult, db: SkylineDatabase, out_dir: Path, title: str) -> Path:
@@ -68,7 +84,7 @@ def write_traverse_report(result: TraverseResult, db: SkylineDatabase, out_dir: 
              f"<p><b>Log:</b> {rp.link(result.log_path, out_dir)}</p>",
              rp.image(track_png, out_dir, "the track"),
              rp.table(stop_rows(db, result.stops), {i: f"#stop-{s.stop}" for i, s in enumerate(result.stops)}),
-             rp.facts_table(read_session_facts(result.log_path).rows())]
+             rp.facts_table(read_session_facts(result.log_path).rows(one_session=False))]
     for s, picture in zip(result.stops, pictures, strict=True):
         parts.append(rp.heading(f"stop {s.stop}", anchor=f"stop-{s.stop}"))
         if s.position is not None:
