@@ -180,7 +180,6 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=17)
     ap.add_argument("--profile", type=int, default=3, help="skylines to profile tile by tile (0: none)")
     args = ap.parse_args()
-    load_before = uptime()
     folder = cache_folder()
     build_s = build_or_reuse(folder)
     print(f"database {folder.name}: " + (f"built in {build_s:.0f} s" if build_s else "reused"), flush=True)
@@ -204,6 +203,7 @@ def main() -> int:
     cfg = EstimatorConfig()
     params = SearchParams(cfg.sigma_deg, COMPASS_DEG, occlusion_weight=cfg.occlusion_weight,
                           map_sigma_m=cfg.map_vertical_sigma_m)
+    load_before = uptime()  # after the build and the renders: the load the estimates start under
 
     t_serial, a_serial, e_serial = run(index, skies, truths, params, None)
     body = body_named(index.body)
