@@ -144,15 +144,17 @@ def locate(
     map_sigma_m: float = 0.0,
     position_prior: PositionPrior | None = None,
     refine: bool = True,
+    rescore_floor: float | None = None,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
-    its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior`` and ``refine`` are those of
-    :func:`appliance.estimator.estimate`."""
+    its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine`` and
+    ``rescore_floor`` are those of :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
-                   map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine)
+                   map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine,
+                   rescore_floor=rescore_floor)
     return place(db, res, source)
 
 

@@ -36,10 +36,10 @@ import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.errors import DatabaseError, EstimationError, InputError
-from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS
-from appliance.position import MAX_REGION_CELLS_IN_JSON, locate
+from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, SkylineGrid, first_pass_best
+from appliance.position import MAX_REGION_CELLS_IN_JSON, locate, skyline_grid
 from appliance.skyline import Skyline
-from appliance.terrain.database import load_database
+from appliance.terrain.database import SkylineDatabase, load_database
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -233,22 +233,60 @@ class TileOutcome:
     elapsed_s: float = 0.0
 
 
-def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
-                source: str = "", refine: bool = True, expect: tuple[int, float] | None = None) -> TileOutcome:
-    """The ordinary estimate on one tile (loaded here, memory-mapped: on a Dask worker the worker
-    maps its own tile), with the exact refinement or without (``refine``).  A tile where the
-    skyline cannot be placed at all (no terrain along its azimuths) is reported as such; the other
-    tiles may still place it.  ``expect`` (the index's azimuth count and camera height) refuses a
-    tile built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
-    t0 = time.perf_counter()
-    db = load_database(Path(folder) / tile.file)
-    if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):
-        raise DatabaseError(f"{Path(folder) / tile.file}: {db.n_azimuths} azimuths at {db.height_m} m, but "
-                            f"the tiled index says {expect[0]} at {expect[1]} m; rebuild the tile")
+#: Tiles a process keeps mapped between searches (checksums verified once, at the first load).
+OPEN_TILES = 64
+_open_tiles: dict[tuple[str, int, int], tuple[SkylineDatabase, SkylineGrid]] = {}
+
+
+def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None) -> tuple[SkylineDatabase, SkylineGrid]:
+    """A tile's database and search grid, memory-mapped (on a Dask worker the worker maps its own
+    tile) and kept for the next search of this process while the file stays the same (path, size,
+    modification time).  ``expect`` (the index's azimuth count and camera height) refuses a tile
+    built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
+    path = Path(folder) / tile.file
     try:
-        pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source,
+        st = path.stat()
+    except OSError as exc:
+        raise DatabaseError(f"{path}: cannot read the tile ({exc.strerror or exc})") from None
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _open_tiles:
+        db = load_database(path)
+        if len(_open_tiles) >= OPEN_TILES:
+            _open_tiles.pop(next(iter(_open_tiles)))
+        _open_tiles[key] = (db, skyline_grid(db))
+    db, grid = _open_tiles[key]
+    if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):
+        raise DatabaseError(f"{path}: {db.n_azimuths} azimuths at {db.height_m} m, but "
+                            f"the tiled index says {expect[0]} at {expect[1]} m; rebuild the tile")
+    return db, grid
+
+
+def tile_floor(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
+               expect: tuple[int, float] | None = None) -> float:
+    """The tile's best first-pass lower log-posterior (:func:`appliance.estimator.first_pass_best`);
+    -inf where the skyline cannot be placed on it."""
+    _, grid = _open_tile(folder, tile, expect)
+    try:
+        return first_pass_best(grid, skyline.azimuth_deg, skyline.elevation_deg, params.sigma_deg,
+                               params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
+                               params.map_sigma_m)
+    except EstimationError:
+        return -math.inf
+
+
+def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
+                source: str = "", refine: bool = True, expect: tuple[int, float] | None = None,
+                rescore_floor: float | None = None) -> TileOutcome:
+    """The ordinary estimate on one tile, with the exact refinement or without (``refine``), its
+    rescoring pruned against ``rescore_floor`` (the best first-pass lower bound over every tile
+    searched, :func:`tile_floor`).  A tile where the skyline cannot be placed at all (no terrain
+    along its azimuths) is reported as such; the other tiles may still place it."""
+    t0 = time.perf_counter()
+    db, grid = _open_tile(folder, tile, expect)
+    try:
+        pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source, grid=grid,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
-                     map_sigma_m=params.map_sigma_m, refine=refine)
+                     map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result
@@ -368,7 +406,7 @@ class TiledEstimate:
             w, s, e, n = t.bounds_lonlat
             if t.file not in self.tiles_searched or not (w <= lon <= e and s <= lat <= n):
                 continue
-            grid = load_database(index.path(t)).grid
+            grid = _open_tile(str(index.folder), t, None)[0].grid
             fr, fc = grid.xy_to_rc(*grid.lonlat_to_xy(lon, lat))
             r, c = int(round(float(fr))), int(round(float(fc)))
             if 0 <= r < grid.n_rows and 0 <= c < grid.n_cols and (t.file, r * grid.n_cols + c) in cells:
@@ -489,7 +527,10 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
                  client: Any = None, source: str = "") -> TiledEstimate:
     """Search the tiles that ``box`` meets (every tile with None) and combine them.
 
-    Two rounds: every tile on its grid alone, combined; then the exact refinement, only on the
+    First every tile's best first-pass lower bound, the largest of which each tile's rescoring is
+    then pruned against, as one search of the whole lattice would prune (a tile of sea or of
+    valleys that do not match rescores a handful of nodes, not all of them).  Then two rounds:
+    every tile on its grid alone, combined; then the exact refinement, only on the
     tiles holding a node of the combined region.  The refinement moves a tile's answer between its
     nodes and adds the cells of its fits, but changes none of the posteriors the combination
     weighs, so a tile no node of which reaches the best's lower posterior cannot change the answer;
@@ -499,21 +540,24 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     The combination is the same either way, so the answer is too."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
-    first = _search(index, tiles, skyline, params, client, source, refine=False)
+    floors = _run(index, tile_floor, tiles, client, skyline, params)
+    floor = max(floors, default=-math.inf)
+    first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor)
     grid_only = combine(first, index.body)
     contenders = {c.tile for c in grid_only.region} | {grid_only.tile} | set(grid_only.overflowed)
-    refined = _search(index, [t for t in tiles if t.file in contenders], skyline, params, client, source,
-                      refine=True)
+    refined = _run(index, search_tile, [t for t in tiles if t.file in contenders], client, skyline, params, source,
+                   True, rescore_floor=floor)
     outcomes = refined + [o for o in first if o.file not in contenders]
     return combine(outcomes, index.body, time.perf_counter() - t0)
 
 
-def _search(index: TiledIndex, tiles: Sequence[TileEntry], skyline: Skyline, params: SearchParams, client: Any,
-            source: str, refine: bool) -> list[TileOutcome]:
+def _run(index: TiledIndex, task: Callable[..., Any], tiles: Sequence[TileEntry], client: Any, skyline: Skyline,
+         params: SearchParams, *args: Any, **kwargs: Any) -> list[Any]:
+    """``task(folder, tile, skyline, params, *args, expect=..., **kwargs)`` for every tile, in
+    order: here one after the other, or one task per tile on the ``client``'s cluster."""
     folder = str(index.folder)
-    expect = (index.n_azimuths, index.height_m)
+    kwargs["expect"] = (index.n_azimuths, index.height_m)
     if client is None:
-        return [search_tile(folder, t, skyline, params, source, refine, expect) for t in tiles]
-    futures = [client.submit(search_tile, folder, t, skyline, params, source, refine, expect, pure=False)
-               for t in tiles]
+        return [task(folder, t, skyline, params, *args, **kwargs) for t in tiles]
+    futures = [client.submit(task, folder, t, skyline, params, *args, pure=False, **kwargs) for t in tiles]
     return list(client.gather(futures))

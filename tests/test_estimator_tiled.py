@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 
 import numpy as np
@@ -13,7 +14,9 @@ from appliance import tiled_search
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
-from appliance.position import locate
+from appliance.estimator import first_pass_best
+from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
+from appliance.position import locate, skyline_grid
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import load_database
 from appliance.terrain.dem import load_dem
@@ -155,13 +158,13 @@ def test_a_search_box_opens_only_the_tiles_it_meets(built, monkeypatch):
     folder, _ = built
     index = open_tiled(folder)
     opened: list[str] = []
-    real = tiled_search.load_database
+    real = tiled_search._open_tile
 
-    def recording(path, *a, **k):
-        opened.append(path.name)
-        return real(path, *a, **k)
+    def recording(folder, tile, *a, **k):
+        opened.append(tile.file)
+        return real(folder, tile, *a, **k)
 
-    monkeypatch.setattr(tiled_search, "load_database", recording)
+    monkeypatch.setattr(tiled_search, "_open_tile", recording)
     lat, lon = INTERIOR
     sky = _skyline(lat, lon)
     # a box well inside one tile
@@ -303,3 +306,59 @@ def test_refining_only_the_contending_tiles_gives_the_answer_of_refining_all(bui
         all_refined.pop("elapsed_ms")
         two_rounds.pop("elapsed_ms")
         assert two_rounds == all_refined
+
+
+def test_each_tile_rescores_what_one_search_of_the_whole_lattice_would(built):
+    """The floor is the whole lattice's best first-pass bound, and against it the tiles rescore
+    the single file's nodes (each at least MIN_RESCORE), not each its own best's neighbourhood."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    sky = _skyline(lat, lon)
+    floors = [tiled_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles]
+    wdb = load_database(whole)
+    sg = skyline_grid(wdb)
+    whole_best = first_pass_best(sg, sky.azimuth_deg, sky.elevation_deg, PARAMS.sigma_deg,
+                                 PARAMS.heading_tolerance_deg)
+    # these tiles are ordinary builds of parts of the area (tests/tiled_build.py), whose sweeps
+    # interpolate the terrain a little differently from the whole's: the bounds agree to well
+    # within the rescoring's margin, not to the last digit
+    assert abs(max(floors) - whole_best) < 0.01 * RESCORE_MARGIN_NATS
+    single = locate(wdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg, grid=sg, refine=False)
+    alone, floored = [], []
+    for t in index.tiles:
+        tdb = load_database(index.path(t))
+        for out, floor in ((alone, None), (floored, max(floors))):
+            pos = locate(tdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg, refine=False, rescore_floor=floor)
+            out.append(pos.result.rescored)
+    assert all(f <= a for f, a in zip(floored, alone, strict=True))
+    assert sum(floored) < sum(alone)
+    assert single.result.rescored <= sum(floored) <= single.result.rescored + MIN_RESCORE * len(index.tiles)
+
+
+def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
+    folder, _ = built
+    index = open_tiled(folder)
+    loads: list[str] = []
+    real = tiled_search.load_database
+
+    def recording(path, *a, **k):
+        loads.append(path.name)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(tiled_search, "load_database", recording)
+    monkeypatch.setattr(tiled_search, "_open_tiles", {})
+    sky = _skyline(*INTERIOR)
+    first = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
+    assert sorted(loads) == sorted(t.file for t in index.tiles)
+    again = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
+    assert len(loads) == len(index.tiles)
+    first.pop("elapsed_ms")
+    again.pop("elapsed_ms")
+    assert again == first
+    # a tile written again (a rebuild) is mapped again
+    path = index.path(index.tiles[0])
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    locate_tiled(index, sky, PARAMS)
+    assert loads[len(index.tiles):] == [index.tiles[0].file]

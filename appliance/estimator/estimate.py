@@ -203,6 +203,8 @@ class EstimateResult:
     #: (n_nodes,) each node's unnormalised log upper posterior (its best heading), on the same scale;
     #: None when not made
     log_upper_unnormalised_map: np.ndarray | None = None
+    #: how many nodes the first pass let through to be scored on every azimuth
+    rescored: int = 0
 
 
 class _RefineContext:
@@ -440,6 +442,7 @@ def estimate(
     weights: np.ndarray | None = None,
     map_sigma_m: float = 0.0,
     position_prior: PositionPrior | None = None,
+    rescore_floor: float | None = None,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -453,17 +456,16 @@ def estimate(
     it adds (sigma_v / d)^2 to each azimuth's variance.  ``position_prior`` is the same belief as
     ``log_prior`` held in continuous form (a Gaussian in grid cells, e.g. a traverse's transported
     estimate): the exact fit between nodes weighs it, where the per-node prior cannot reach.
+    ``rescore_floor`` is a first-pass lower log-posterior (unnormalised, nats) already reached on
+    another part of the same lattice (:func:`first_pass_best` on another tile): the nodes here are
+    rescored only if they come within reach of it too, as one search over both parts would do.
     """
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
-    if heading_tolerance_deg is not None:
-        first = _compass_first_pass(grid, meas, heading_tolerance_deg)
-    else:
-        first = _FirstPass(*_every_heading_first_pass(grid, meas.elevation_deg, meas.valid, meas.weight, meas.n_eff,
-                                                      meas.sigma_ref_deg, meas.cap_deg2, meas.map_sigma_m))
+    first = _first_pass(grid, meas, heading_tolerance_deg)
     lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
-    plausible = _plausible_nodes(first, meas, lp)
+    plausible = _plausible_nodes(first, meas, lp, rescore_floor)
     rescored = _rescore(grid, meas, plausible.nodes, first.node_shifts)
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
@@ -486,7 +488,7 @@ def estimate(
         elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
         log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
         log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
-        log_upper_unnormalised_map=post.node_upper_unnormalised,
+        log_upper_unnormalised_map=post.node_upper_unnormalised, rescored=int(plausible.nodes.size),
     )
 
 
@@ -553,6 +555,35 @@ class _FirstPass:
     node_shifts: np.ndarray  # (n_nodes, n_fine_shifts) azimuth steps
 
 
+def first_pass_best(
+    grid: SkylineGrid,
+    azimuth_deg: np.ndarray,
+    elevation_deg: np.ndarray,
+    sigma_deg: tuple[float, float] = (0.3, 0.8),
+    heading_tolerance_deg: float | None = 4.0,
+    weights: np.ndarray | None = None,
+    occlusion_weight: float = 0.0,
+    map_sigma_m: float = 0.0,
+    min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
+) -> float:
+    """The best first-pass lower log-posterior (unnormalised, nats, uniform prior) of any node of
+    ``grid``: what :func:`estimate` prunes its rescoring against.  Over the tiles of one lattice
+    the largest of these is the ``rescore_floor`` that makes each tile's search rescore the nodes a
+    search of the whole lattice would."""
+    meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
+                    min_field_of_view_deg)
+    node_lo, _, _ = _first_pass_bounds(_first_pass(grid, meas, heading_tolerance_deg), meas)
+    return float(np.max(node_lo))
+
+
+def _first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> _FirstPass:
+    """Step 2: every node scored cheaply, with a compass or over every heading (None)."""
+    if heading_tolerance_deg is not None:
+        return _compass_first_pass(grid, meas, heading_tolerance_deg)
+    return _FirstPass(*_every_heading_first_pass(grid, meas.elevation_deg, meas.valid, meas.weight, meas.n_eff,
+                                                 meas.sigma_ref_deg, meas.cap_deg2, meas.map_sigma_m))
+
+
 def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float) -> _FirstPass:
     """Step 2, with a compass: every node scored on skylines averaged over runs of COARSE_STRIDE
     azimuths, turned in whole runs across +-``heading_tolerance_deg``; every node is then rescored
@@ -590,11 +621,10 @@ class _Plausible:
     scored_nodes: int  # nodes with a finite first-pass score
 
 
-def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray) -> _Plausible:
-    """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
-    within RESCORE_MARGIN_NATS of the best lower one, at least MIN_RESCORE of them.  Both
-    likelihood bounds fall as the residual grows, so each node's best first-pass shift decides for
-    the node (an occluded measurement counting the cap there)."""
+def _first_pass_bounds(first: _FirstPass, meas: _Measurement) -> tuple[np.ndarray, np.ndarray, int]:
+    """Each node's first-pass lower and upper log-likelihood (nats, normaliser included) and the
+    count of nodes scored.  Both likelihood bounds fall as the residual grows, so each node's best
+    first-pass shift decides for the node (an occluded measurement counting the cap there)."""
     n_nodes = first.ssd.shape[0]
     k_first = _argmin_columns(_capped(first.ssd, first.occluded, meas.cap_deg2))
     rows = np.arange(n_nodes)
@@ -602,14 +632,22 @@ def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray) -> _
     cocc = first.occluded[rows, k_first].astype(np.float64)
     c_lo, c_up = mixture_log_likelihood_bounds(cmin, meas.n_eff, cocc, meas.sigma_lo_deg, meas.sigma_hi_deg,
                                                meas.occlusion_weight)
-    c_lo, c_up = c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty
+    return c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty, int(np.isfinite(cmin).sum())
+
+
+def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray, floor: float | None) -> _Plausible:
+    """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
+    within RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound
+    reached elsewhere on the lattice), at least MIN_RESCORE of them."""
+    c_lo, c_up, scored = _first_pass_bounds(first, meas)
+    n_nodes = c_lo.size
     node_lo = c_lo + lp
     node_up = c_up + lp
-    best_lo = float(np.max(node_lo))
+    best_lo = float(np.max(node_lo)) if floor is None else max(float(np.max(node_lo)), floor)
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
         rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
-    return _Plausible(rescore, node_lo, node_up, int(np.isfinite(cmin).sum()))
+    return _Plausible(rescore, node_lo, node_up, scored)
 
 
 @dataclass(frozen=True)
