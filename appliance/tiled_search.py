@@ -369,12 +369,17 @@ class TiledEstimate:
         return "ok"
 
     def truth_in_region(self, index: TiledIndex, truth: tuple[float, float]) -> bool:
-        """Whether the node nearest the true (lat, lon), in a searched tile holding it, belongs to the region."""
+        """Whether the node nearest the true (lat, lon), in a searched tile holding it or within half a
+        degree of it, belongs to the region (a facet of a whole-body database keeps only the nodes
+        inside its box, so the nearest node may belong to its neighbour)."""
         lat, lon = truth
         cells = {(c.tile, c.node) for c in self.region}
+        m = 0.5
+        m_lon = min(180.0, m / max(math.cos(math.radians(min(abs(lat) + m, 90.0))), 1e-9))
         for t in index.tiles:
             w, s, e, n = t.bounds_lonlat
-            if t.file not in self.tiles_searched or not (_lon_inside(lon, w, e) and s <= lat <= n):
+            if t.file not in self.tiles_searched or not (_lon_inside(lon, w - m_lon, e + m_lon)
+                                                         and s - m <= lat <= n + m):
                 continue
             grid = load_database(index.path(t)).grid
             fr, fc = grid.xy_to_rc(*grid.lonlat_to_xy(lon, lat))

@@ -63,8 +63,15 @@ from appliance.terrain.dem import Dem
 from appliance.terrain.grid import NodeGrid, _box_in_grid, _Lattice, _tmerc, lon_overlap
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M
 from appliance.terrain.mosaic import MapSource
-from appliance.terrain.tiled import INDEX, INDEX_FORMAT, INDEX_VERSION, TiledResult, _lattice_entry, _tile_state
-from appliance.terrain.tiled import remove_tile_temporaries
+from appliance.terrain.tiled import (
+    INDEX,
+    INDEX_FORMAT,
+    INDEX_VERSION,
+    TiledResult,
+    _lattice_entry,
+    _tile_state,
+    remove_tile_temporaries,
+)
 
 DEFAULT_BAND_DEG = 15.0
 DEFAULT_CAP_DEG = 75.0
