@@ -15,9 +15,11 @@ from above (:func:`global_log_upper_bound`).  The region is then every node, in 
 bound reaches the best's lower posterior; a node of it in another tile, away from the best, is a
 rival the skyline does not rule out, and the answer is ambiguous.
 
-The prior is uniform per unit area: a tile's evidence is weighed by its cell area, which is the
-same in every tile of one lattice.  A search box or a position and radius choose the tiles; within
-them the prior stays uniform.
+The prior is uniform per unit area: a tile's evidence is weighed by its own cell area, which is the
+same in every tile of one lattice and differs between the facets of a whole-body database
+(:mod:`appliance.terrain.whole_body`), each on its own grid; every position (lon/lat) of the
+region comes from its own tile's grid.  A search box or a position and radius choose the tiles
+(longitudes compared modulo 360); within them the prior stays uniform.
 
 Nothing here touches devices or logs: the module maps a folder and skylines to numbers.
 """
@@ -40,6 +42,7 @@ from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, Sky
 from appliance.position import MAX_REGION_CELLS_IN_JSON, locate, skyline_grid
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
+from appliance.terrain.grid import lon_overlap
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -174,6 +177,11 @@ def box_around(lat: float, lon: float, radius_m: float, body: str) -> Box:
     return lon - dlon, max(lat - dlat, -90.0), lon + dlon, min(lat + dlat, 90.0)
 
 
+def _lon_inside(lon: float, w: float, e: float) -> bool:
+    """Whether a longitude lies in [w, e], modulo 360."""
+    return e - w >= 360.0 or (lon - w) % 360.0 <= e - w
+
+
 def select_tiles(index: TiledIndex, box: Box | None = None) -> list[TileEntry]:
     """The tiles whose candidate area meets ``box`` (W, S, E, N; None: every tile)."""
     if box is None:
@@ -182,7 +190,7 @@ def select_tiles(index: TiledIndex, box: Box | None = None) -> list[TileEntry]:
     if not (w < e and s < n):
         raise InputError(f"search bounds {box}: expected W,S,E,N with W < E and S < N")
     out = [t for t in index.tiles
-           if t.bounds_lonlat[0] <= e and w <= t.bounds_lonlat[2] and t.bounds_lonlat[1] <= n
+           if lon_overlap(t.bounds_lonlat[0], t.bounds_lonlat[2], w, e) and t.bounds_lonlat[1] <= n
            and s <= t.bounds_lonlat[3]]
     if not out:
         raise InputError(f"search bounds {tuple(round(v, 6) for v in box)} meet no tile of {index.folder}")
@@ -399,12 +407,17 @@ class TiledEstimate:
         return "ok"
 
     def truth_in_region(self, index: TiledIndex, truth: tuple[float, float]) -> bool:
-        """Whether the node nearest the true (lat, lon), in a searched tile holding it, belongs to the region."""
+        """Whether the node nearest the true (lat, lon), in a searched tile holding it or within half a
+        degree of it, belongs to the region (a facet of a whole-body database keeps only the nodes
+        inside its box, so the nearest node may belong to its neighbour)."""
         lat, lon = truth
         cells = {(c.tile, c.node) for c in self.region}
+        m = 0.5
+        m_lon = min(180.0, m / max(math.cos(math.radians(min(abs(lat) + m, 90.0))), 1e-9))
         for t in index.tiles:
             w, s, e, n = t.bounds_lonlat
-            if t.file not in self.tiles_searched or not (w <= lon <= e and s <= lat <= n):
+            if t.file not in self.tiles_searched or not (_lon_inside(lon, w - m_lon, e + m_lon)
+                                                         and s - m <= lat <= n + m):
                 continue
             grid = _open_tile(str(index.folder), t, None)[0].grid
             fr, fc = grid.xy_to_rc(*grid.lonlat_to_xy(lon, lat))

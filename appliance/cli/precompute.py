@@ -3,7 +3,8 @@
 Several DEM files (adjacent tiles) are read as one mosaic.  ``--tiles`` (or an ``--out`` that is an
 existing folder) builds a tiled database in that folder, one Dask task per tile, on a local cluster
 of ``--workers`` processes or on the cluster at ``--scheduler``; a rerun completes an interrupted
-build.
+build.  ``--tiles --whole-body`` builds a map of a whole body (the LOLA Moon) as facets, each on its
+own metric grid (:mod:`appliance.terrain.whole_body`); ``--search-bounds`` then chooses the facets.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from appliance.terrain.grid import plan_grids
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.mosaic import MOSAIC_VRT, open_map
 from appliance.terrain.tiled import DEFAULT_TILE_NODES, TiledPlan, build_tiled, plan_tiles, remove_tile_temporaries
+from appliance.terrain.whole_body import DEFAULT_BAND_DEG, DEFAULT_CAP_DEG, build_whole_body
 
 MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)
 MAX_DATABASE_BYTES = 16 * 2**30  # the skylines held in memory while they are built
@@ -55,14 +57,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "'jacksboro'")
     p.add_argument("--out", required=True, help="database file to write (a folder with --tiles)")
     p.add_argument("--search-bounds", type=parse_bounds, help="W,S,E,N (deg) of the candidates")
-    p.add_argument("--spacing", type=float, help="node spacing (m); default the DEM's own grid")
+    p.add_argument("--spacing", type=float, help="node spacing (m); default the DEM's own grid (with --whole-body: "
+                   "half the map's pixel size)")
     p.add_argument("--height", type=float, default=DEFAULT_HEIGHT_M, help="camera height (m)")
     p.add_argument("--azimuths", type=int, default=360, help="azimuths per skyline (default 360)")
-    p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE_M, help="terrain reach (m)")
+    p.add_argument("--max-range", type=float, help=f"terrain reach (m); default {DEFAULT_MAX_RANGE_M:.0f}, and with "
+                   "--whole-body the distance at which the map's highest point sinks below the horizon of its lowest "
+                   "(about 260 km on the Moon)")
     p.add_argument("--refraction", type=float, help="refraction coefficient (default: the body's)")
     p.add_argument("--crs", help="CRS for a DEM file that carries none")
     p.add_argument("--force", action="store_true", help="replace the database if it exists")
     p.add_argument("--tiles", action="store_true", help="build a tiled database into the folder --out")
+    p.add_argument("--whole-body", action="store_true",
+                   help="with --tiles: a map of the whole body (wrapping in longitude, reaching both poles) as "
+                   f"facets on their own grids: {DEFAULT_BAND_DEG:.0f}-degree latitude bands cut into boxes about as "
+                   f"wide as high, and two polar caps beyond +-{DEFAULT_CAP_DEG:.0f} degrees; --search-bounds builds "
+                   "only the facets it meets; --tile-nodes does not apply")
     p.add_argument("--tile-nodes", type=parse_tile_nodes, default=DEFAULT_TILE_NODES,
                    help="rows,cols of candidate nodes per tile (default %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="local worker processes of a tiled build (default 2)")
@@ -103,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
                          f"coarse pass averages runs of {COARSE_STRIDE} azimuths)")
     if args.spacing is not None and args.spacing <= 0:
         raise InputError(f"--spacing {args.spacing} m must be positive")
+    if args.max_range is not None and not args.max_range > 0:
+        raise InputError(f"--max-range {args.max_range} m must be positive")
+    if args.whole_body and not args.tiles:
+        raise InputError("--whole-body builds a tiled database: give --tiles too")
+    if args.max_range is None and not args.whole_body:
+        args.max_range = DEFAULT_MAX_RANGE_M
     if args.tiles or Path(args.out).is_dir():
         return run_tiled(args)
     check_output_path(args.out, args.dem, args.force)
@@ -133,8 +149,9 @@ def run_tiled(args: argparse.Namespace) -> int:
         raise InputError(f"--workers {args.workers}: at least 1")
     out = check_output_folder(args.out, args.dem)
     source = open_map(args.dem, out / MOSAIC_VRT if len(args.dem) > 1 else None, args.crs)
-    check_tile_size(plan_tiles(source.header(), args.search_bounds, args.spacing, args.max_range, args.tile_nodes),
-                    args)
+    if not args.whole_body:
+        check_tile_size(plan_tiles(source.header(), args.search_bounds, args.spacing, args.max_range,
+                                   args.tile_nodes), args)
     t0 = time.perf_counter()
     terminal = sys.stderr.isatty()
     cluster: Any = None
@@ -153,14 +170,25 @@ def run_tiled(args: argparse.Namespace) -> int:
     try:
         if terminal and client.dashboard_link:
             print(f"dashboard: {client.dashboard_link}", file=sys.stderr)
-        result = build_tiled(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
-                             args.refraction, args.max_range, args.tile_nodes, client, args.force,
-                             progress=ProgressCallback("tile"))
+        if args.whole_body:
+            result = build_whole_body(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
+                                      args.refraction, args.max_range, client=client, force=args.force,
+                                      progress=ProgressCallback("facet"))
+        else:
+            result = build_tiled(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
+                                 args.refraction, args.max_range, args.tile_nodes, client, args.force,
+                                 progress=ProgressCallback("tile"))
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
             remove_tile_temporaries(out)  # the local workers are gone: their unfinished tiles with them
+    if args.whole_body:
+        wb = result.index["whole_body"]
+        print(f"{out}: {len(result.index['tiles'])} facets ({len(result.built)} built, {len(result.kept)} kept) at "
+              f"{wb['spacing_m']:.1f} m x {result.index['n_azimuths']} azimuths, reach "
+              f"{result.index['max_range_m'] / 1000:.0f} km, in {time.perf_counter() - t0:.1f} s")
+        return 0
     lat = result.index["lattice"]
     print(f"{out}: {len(result.index['tiles'])} tiles ({len(result.built)} built, {len(result.kept)} kept) of "
           f"{lat['n_rows']} x {lat['n_cols']} nodes ({lat['dx_m']:.1f} x {lat['dy_m']:.1f} m) x "

@@ -51,6 +51,7 @@ from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
 from appliance.terrain.quantize import (
     DISTANCE_LOG_STEP,
     DISTANCE_MIN_M,
+    MISSING_CDEG,
     MISSING_CODE,
     decode_distance,
     store_centidegrees,
@@ -181,13 +182,19 @@ def build_on_grids(
     max_range_m: float = DEFAULT_MAX_RANGE_M,
     progress: Callable[[int, int, str], None] | None = None,
     workers: int | None = None,
+    keep: np.ndarray | None = None,
 ) -> dict:
     """The database of a candidate grid already planned: ``cand`` lies at ``offset`` (row, col) in the
     terrain grid ``terr``, and ``terr`` at ``lattice_origin`` in a lattice of ``lattice_shape`` nodes.
 
     A tiled build passes windows of one mosaic-wide lattice here, so that every tile's sweep lines,
-    metric spacing and node placement are those of the whole map, not re-planned from its bounds."""
+    metric spacing and node placement are those of the whole map, not re-planned from its bounds.
+    ``keep`` (bool per candidate node, row-major) leaves the other nodes out of the database as
+    nodes on nodata are (no skyline, NaN offset): a facet of a whole-body build keeps only the
+    nodes inside its own lon/lat box."""
     _check_sampling(n_azimuths, height_m)
+    if keep is not None and np.shape(keep) != (cand.n_nodes,):
+        raise InputError(f"keep mask of shape {np.shape(keep)} for {cand.n_nodes} candidate nodes")
     ro, co = offset
     Z = terrain_on_grid(dem, terr)
     if not np.isfinite(Z[ro : ro + cand.n_rows, co : co + cand.n_cols]).any():
@@ -210,6 +217,10 @@ def build_on_grids(
         done += 1
         if progress is not None:
             progress(done, n_azimuths, "skylines")
+    if keep is not None:
+        left_out = ~np.asarray(keep, dtype=bool)
+        cdeg[:, left_out] = MISSING_CDEG
+        dgrid[:, left_out] = MISSING_CODE
 
     header = {
         "format": "viper-skyline-db",
@@ -231,6 +242,8 @@ def build_on_grids(
         "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
     }
     ground = Z[ro : ro + cand.n_rows, co : co + cand.n_cols].ravel().astype(np.float32)
+    if keep is not None:
+        ground[~np.asarray(keep, dtype=bool)] = np.nan
     _write(out_path, header, cdeg, dgrid, gamma.ravel(), step_az, ground, Z.astype(np.float32), cand, workers)
     return header
 

@@ -96,14 +96,41 @@ class Dem:
         return abs(abs(step) * cols - 360.0) < 0.5 * abs(step)
 
     @cached_property
+    def _poles(self) -> tuple[bool, bool]:
+        """Whether the top and the bottom edge of a map that wraps around are the poles (a whole
+        body's map); a map with an odd column count cannot pair a column with its opposite one."""
+        rows, cols = self.shape
+        if not self.wraps_around or cols % 2:
+            return False, False
+        xs, ys = affine_apply(self.transform, np.array([cols / 2, cols / 2]), np.array([0.0, float(rows)]))
+        _, lat = self.xy_to_lonlat(xs, ys)
+        tol = 0.01 * 180.0 / rows  # a hundredth of a pixel: map labels round their pixel size
+        return bool(abs(abs(float(lat[0])) - 90.0) < tol), bool(abs(abs(float(lat[1])) - 90.0) < tol)
+
+    @property
+    def whole_body(self) -> bool:
+        """True for a map of the whole body: it wraps around and reaches both poles."""
+        return all(self._poles)
+
+    @cached_property
     def _wrapped(self) -> np.ndarray:
-        return np.hstack([self.elevation_m, self.elevation_m[:, :1]])
+        """The heights with the first column repeated after the last; for a whole body's map, also a
+        row beyond each pole: the edge row across the pole, i.e. shifted by 180 degrees of longitude,
+        so that bilinear samples between the last row of pixel centres and the pole exist."""
+        z = self.elevation_m
+        top, bottom = self._poles
+        half = self.shape[1] // 2
+        parts = ([np.roll(z[:1], -half, axis=1)] if top else []) + [z] + (
+            [np.roll(z[-1:], -half, axis=1)] if bottom else [])
+        z = np.vstack(parts) if len(parts) > 1 else z
+        return np.hstack([z, z[:, :1]])
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Bilinear height (m) at CRS coordinates; NaN off the map or next to nodata."""
+        """Bilinear height (m) at CRS coordinates; NaN off the map or next to nodata.  A map that
+        wraps around is read across its 0/360 seam, and a whole body's map across its poles."""
         col, row = self.xy_to_pixel(x, y)
         if self.wraps_around:
-            return bilinear(self._wrapped, np.mod(col, self.shape[1]), row)
+            return bilinear(self._wrapped, np.mod(col, self.shape[1]), row + (1.0 if self._poles[0] else 0.0))
         return bilinear(self.elevation_m, col, row)
 
     def sample_lonlat(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:

@@ -105,11 +105,19 @@ def _tmerc(dem: Dem, lon_c: float, lat_c: float) -> CRS:
     ell = dem.crs.ellipsoid
     a = ell.semi_major_metre if ell is not None else dem.body.semi_major_m
     b = ell.semi_minor_metre if ell is not None else dem.body.semi_major_m
-    proj = f"+proj=tmerc +lat_0={lat_c!r} +lon_0={lon_c!r} +k=1 +x_0=0 +y_0=0 +a={a!r} +b={b!r} +units=m"
+    proj = f"+proj=tmerc +lat_0={float(lat_c)!r} +lon_0={float(lon_c)!r} +k=1 +x_0=0 +y_0=0 +a={a!r} +b={b!r} +units=m"
     return CRS.from_proj4(proj + " +no_defs")
 
 
 Bounds = tuple[float, float, float, float]
+
+
+def lon_overlap(w1: float, e1: float, w2: float, e2: float) -> bool:
+    """Whether two longitude intervals [w1, e1] and [w2, e2] (degrees) meet, modulo 360: a box given
+    in -180..180 meets one given in 0..360, or one across the 0/360 seam."""
+    if e1 - w1 >= 360.0 or e2 - w2 >= 360.0:
+        return True
+    return any(w1 <= e2 + k * 360.0 and w2 + k * 360.0 <= e1 for k in (-2, -1, 0, 1, 2))
 
 
 def plan_grids(
@@ -128,7 +136,9 @@ def plan_grids(
     to_grid = Transformer.from_crs(dem.crs.geodetic_crs, lattice.crs, always_xy=True)
     cx0, cy0, cx1, cy1 = _box_in_grid(to_grid, (sw, ss, se, sn))
     tx0, ty0, tx1, ty1 = _box_in_grid(to_grid, dem.bounds_lonlat())
-    if not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
+    # a map that wraps around has no edge in longitude: its lon/lat box says nothing of where its
+    # terrain ends in a grid centred on the search area (beyond its latitudes it samples as nodata)
+    if dem.wraps_around or not np.all(np.isfinite([tx0, ty0, tx1, ty1])):
         tx0, ty0, tx1, ty1 = -np.inf, -np.inf, np.inf, np.inf
     # the terrain grid holds the candidates and the horizon's reach around them, within the map
     tx0, ty0 = min(max(tx0, cx0 - reach), cx0), min(max(ty0, cy0 - reach), cy0)

@@ -38,7 +38,7 @@ def local_aeqd(dem: Dem, lat: float, lon: float) -> CRS:
     ell = dem.crs.ellipsoid
     a = ell.semi_major_metre if ell is not None else dem.body.semi_major_m
     b = ell.semi_minor_metre if ell is not None else dem.body.semi_major_m
-    return CRS.from_proj4(f"+proj=aeqd +lat_0={lat!r} +lon_0={lon!r} +a={a!r} +b={b!r} +units=m +no_defs")
+    return CRS.from_proj4(f"+proj=aeqd +lat_0={float(lat)!r} +lon_0={float(lon)!r} +a={a!r} +b={b!r} +units=m +no_defs")
 
 
 def render_skyline(
@@ -91,7 +91,10 @@ def render_skyline(
 
 
 def _farthest_corner_m(dem: Dem, lat: float, lon: float) -> float:
-    """Geodesic distance (m) from the viewpoint to the farthest corner of the map."""
+    """Geodesic distance (m) from the viewpoint to the farthest corner of the map (no bound on a
+    map of the whole body)."""
+    if dem.whole_body:
+        return float("inf")
     left, bottom, right, top = dem.bounds_xy()
     cx = np.array([left, right, left, right, (left + right) / 2])
     cy = np.array([bottom, bottom, top, top, (bottom + top) / 2])
