@@ -241,8 +241,10 @@ class TileOutcome:
     elapsed_s: float = 0.0
 
 
-#: Tiles a process keeps mapped between searches (checksums verified once, at the first load).
-OPEN_TILES = 64
+#: Candidate nodes of the tiles a process keeps mapped between searches (checksums verified once,
+#: at the first load): a whole-body database or a few 1-degree tiles at 90 m, a few hundred MB of
+#: per-node arrays besides the mapped files.
+OPEN_TILE_NODES = 16_000_000
 _open_tiles: dict[tuple[str, int, int], tuple[SkylineDatabase, SkylineGrid]] = {}
 
 
@@ -259,8 +261,9 @@ def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None) -
     key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
     if key not in _open_tiles:
         db = load_database(path)
-        if len(_open_tiles) >= OPEN_TILES:
-            _open_tiles.pop(next(iter(_open_tiles)))
+        held = sum(d.grid.n_nodes for d, _ in _open_tiles.values())
+        while _open_tiles and held + db.grid.n_nodes > OPEN_TILE_NODES:
+            held -= _open_tiles.pop(next(iter(_open_tiles)))[0].grid.n_nodes
         _open_tiles[key] = (db, skyline_grid(db))
     db, grid = _open_tiles[key]
     if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):

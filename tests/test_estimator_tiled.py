@@ -362,3 +362,24 @@ def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
     locate_tiled(index, sky, PARAMS)
     assert loads[len(index.tiles):] == [index.tiles[0].file]
+
+
+def test_the_tiles_kept_mapped_stay_within_their_node_budget(built, monkeypatch):
+    folder, _ = built
+    index = open_tiled(folder)
+    loads: list[str] = []
+    real = tiled_search.load_database
+
+    def recording(path, *a, **k):
+        loads.append(path.name)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(tiled_search, "load_database", recording)
+    monkeypatch.setattr(tiled_search, "_open_tiles", {})
+    a, b = index.tiles[0], index.tiles[1]
+    # room for one tile: the second evicts the first, which is then mapped again
+    monkeypatch.setattr(tiled_search, "OPEN_TILE_NODES", max(a.n_rows * a.n_cols, b.n_rows * b.n_cols))
+    for t in (a, a, b, a):
+        tiled_search._open_tile(str(folder), t, None)
+    assert loads == [a.file, b.file, a.file]
+    assert len(tiled_search._open_tiles) == 1
