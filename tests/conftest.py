@@ -56,3 +56,13 @@ def small_config(time_rate: float = 50.0) -> Config:
         devices=DevicesConfig(camera=CameraDeviceConfig(width=320, height=240)),
         sim=SimConfig(time_rate=time_rate),
     )
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A real Dask cluster on this machine: two single-threaded worker processes, one per module."""
+    import distributed
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=50) as cluster, distributed.Client(cluster) as c:
+        yield c

@@ -336,9 +336,8 @@ def test_each_tile_rescores_what_one_search_of_the_whole_lattice_would(built):
     assert single.result.rescored <= sum(floored) <= single.result.rescored + MIN_RESCORE * len(index.tiles)
 
 
-def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
-    folder, _ = built
-    index = open_tiled(folder)
+def _record_loads(monkeypatch) -> list[str]:
+    """The names of the tile files the tiled search loads from now on, with none kept mapped yet."""
     loads: list[str] = []
     real = tiled_search.load_database
 
@@ -348,6 +347,13 @@ def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
 
     monkeypatch.setattr(tiled_search, "load_database", recording)
     monkeypatch.setattr(tiled_search, "_open_tiles", {})
+    return loads
+
+
+def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
+    folder, _ = built
+    index = open_tiled(folder)
+    loads = _record_loads(monkeypatch)
     sky = _skyline(*INTERIOR)
     first = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
     assert sorted(loads) == sorted(t.file for t in index.tiles)
@@ -367,15 +373,7 @@ def test_a_tile_is_mapped_once_per_process_until_it_changes(built, monkeypatch):
 def test_the_tiles_kept_mapped_stay_within_their_node_budget(built, monkeypatch):
     folder, _ = built
     index = open_tiled(folder)
-    loads: list[str] = []
-    real = tiled_search.load_database
-
-    def recording(path, *a, **k):
-        loads.append(path.name)
-        return real(path, *a, **k)
-
-    monkeypatch.setattr(tiled_search, "load_database", recording)
-    monkeypatch.setattr(tiled_search, "_open_tiles", {})
+    loads = _record_loads(monkeypatch)
     a, b = index.tiles[0], index.tiles[1]
     # room for one tile: the second evicts the first, which is then mapped again
     monkeypatch.setattr(tiled_search, "OPEN_TILE_NODES", max(a.n_rows * a.n_cols, b.n_rows * b.n_cols))

@@ -62,13 +62,6 @@ def tiles(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, np.ndar
 
 
 @pytest.fixture(scope="module")
-def client():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=50) as cluster, distributed.Client(cluster) as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
 def single(tiles, tmp_path_factory):
     """The single-process build of the whole mosaic."""
     folder = tmp_path_factory.mktemp("single")

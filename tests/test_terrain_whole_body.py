@@ -49,13 +49,6 @@ def moon():
 
 
 @pytest.fixture(scope="module")
-def client():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=50) as cluster, distributed.Client(cluster) as c:
-        yield c
-
-
-@pytest.fixture(scope="module")
 def seam_db(moon, client, tmp_path_factory):
     source, _ = moon
     out = tmp_path_factory.mktemp("seam")

@@ -238,27 +238,49 @@ def build_tiled(
         "body": dem.body.name.value,
         "sources": [{"name": n, "sha256": s} for n, s in source.sources],
     }
+    jobs = [TileJob(t.file, _lattice_entry(_window(plan.cand, t.row0, t.col0, t.n_rows, t.n_cols)), build_tile,
+                    (source, str(out.resolve()), plan, t, params)) for t in plan.tiles]
+    keys = ("format", "format_version", "lattice", "tile_nodes", "n_azimuths", "height_m", "max_range_m",
+            "refraction", "body", "sources")
+    return run_tile_jobs(source, out, index, keys, params, jobs, client, force, progress, "tiles", t_start)
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """One file of a tiled database: its name, its candidate grid (:func:`_lattice_entry`) and the
+    Dask task that builds it, ``task(*args)``, returning its file, seconds and peak memory."""
+
+    file: str
+    grid: dict
+    task: Callable[..., dict]
+    args: tuple
+
+
+def run_tile_jobs(source: MapSource, out: Path, index: dict, keys: tuple[str, ...], params: dict,
+                  jobs: list[TileJob], client: Any, force: bool,
+                  progress: Callable[[int, int, str], None] | None, unit: str, t_start: float) -> TiledResult:
+    """Build the jobs' files missing from ``out`` on the Dask ``client`` and write ``index`` last.
+
+    An index already there whose ``keys`` differ, or a file built with other ``params`` (or from
+    another map), is an error unless ``force`` (then it is built again); a file with the same ones
+    is kept, so an interrupted build resumes where it stopped."""
     old_path = out / INDEX
     if old_path.exists() and not force:
         try:
             old = json.loads(old_path.read_text())
         except (OSError, ValueError):
             old = None
-        keys = ("format", "format_version", "lattice", "tile_nodes", "n_azimuths", "height_m", "max_range_m",
-                "refraction", "body", "sources")
-        if not isinstance(old, dict) or any(old.get(k) != index[k] for k in keys):
-            differ = [k for k in keys if not isinstance(old, dict) or old.get(k) != index[k]]
+        differ = [k for k in keys if not isinstance(old, dict) or old.get(k) != index[k]]
+        if differ:
             raise OutputError(f"{out}: holds a tiled database built with other parameters ({', '.join(differ)}); "
                               "pass --force to build it again")
-    todo: list[Tile] = []
-    kept: list[Tile] = []
-    for t in plan.tiles:
-        expect = dict(params, dem_sha256=source.sha256, grid=_lattice_entry(
-            _window(plan.cand, t.row0, t.col0, t.n_rows, t.n_cols)))
-        state = _tile_state(out / t.file, expect)
+    todo: list[TileJob] = []
+    kept: list[TileJob] = []
+    for job in jobs:
+        state = _tile_state(out / job.file, dict(params, dem_sha256=source.sha256, grid=job.grid))
         if state == "differs" and not force:
-            raise OutputError(f"{out / t.file}: built with other parameters; pass --force to build it again")
-        (kept if state == "kept" else todo).append(t)
+            raise OutputError(f"{out / job.file}: built with other parameters; pass --force to build it again")
+        (kept if state == "kept" else todo).append(job)
     built: list[str] = []
     peak = 0
     if todo:
@@ -266,10 +288,10 @@ def build_tiled(
 
         if client is None:
             raise InputError("a tiled build needs a Dask client")
-        futures = [client.submit(build_tile, source, str(out.resolve()), plan, t, params, pure=False) for t in todo]
+        futures = [client.submit(job.task, *job.args, pure=False) for job in todo]
         done = len(kept)
         if progress is not None:
-            progress(done, len(plan.tiles), "tiles")
+            progress(done, len(jobs), unit)
         try:
             for fut in as_completed(futures):
                 res = fut.result()
@@ -278,10 +300,10 @@ def build_tiled(
                 done += 1
                 log.debug("%s built in %.1f s", res["file"], res["seconds"])
                 if progress is not None:
-                    progress(done, len(plan.tiles), "tiles")
+                    progress(done, len(jobs), unit)
         finally:
             client.cancel(futures)
     remove_tile_temporaries(out)
     with atomic_output(old_path) as tmp:
         tmp.write_text(json.dumps(index, indent=1) + "\n")
-    return TiledResult(index, tuple(built), tuple(t.file for t in kept), peak, time.perf_counter() - t_start)
+    return TiledResult(index, tuple(built), tuple(job.file for job in kept), peak, time.perf_counter() - t_start)

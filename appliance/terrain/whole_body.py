@@ -43,8 +43,6 @@ A rerun into the same folder with the same parameters keeps the facets already b
 
 from __future__ import annotations
 
-import json
-import logging
 import math
 import resource
 import time
@@ -56,7 +54,6 @@ from typing import Any
 import numpy as np
 from pyproj import CRS, Transformer
 
-from appliance.atomic import atomic_output
 from appliance.errors import InputError, OutputError
 from appliance.terrain.database import build_on_grids
 from appliance.terrain.dem import Dem
@@ -64,20 +61,18 @@ from appliance.terrain.grid import NodeGrid, _box_in_grid, _Lattice, _tmerc, lon
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M
 from appliance.terrain.mosaic import MapSource
 from appliance.terrain.tiled import (
-    INDEX,
     INDEX_FORMAT,
     INDEX_VERSION,
     TiledResult,
+    TileJob,
     _lattice_entry,
-    _tile_state,
-    remove_tile_temporaries,
+    run_tile_jobs,
 )
 
 DEFAULT_BAND_DEG = 15.0
 DEFAULT_CAP_DEG = 75.0
 WHOLE_BODY_VERSION = 1
 
-log = logging.getLogger("appliance.terrain.whole_body")
 
 Box = tuple[float, float, float, float]
 
@@ -281,50 +276,8 @@ def build_whole_body(
         "body": dem.body.name.value,
         "sources": [{"name": n, "sha256": s} for n, s in source.sources],
     }
-    old_path = out / INDEX
-    if old_path.exists() and not force:
-        try:
-            old = json.loads(old_path.read_text())
-        except (OSError, ValueError):
-            old = None
-        keys = ("format", "format_version", "whole_body", "n_azimuths", "height_m", "max_range_m", "refraction",
-                "body", "sources")
-        differ = [k for k in keys if not isinstance(old, dict) or old.get(k) != index[k]]
-        if differ:
-            raise OutputError(f"{out}: holds a tiled database built with other parameters ({', '.join(differ)}); "
-                              "pass --force to build it again")
-    todo: list[Facet] = []
-    kept: list[Facet] = []
-    for f in facets:
-        expect = dict(params, dem_sha256=source.sha256, grid=_lattice_entry(grids[f.file]))
-        state = _tile_state(out / f.file, expect)
-        if state == "differs" and not force:
-            raise OutputError(f"{out / f.file}: built with other parameters; pass --force to build it again")
-        (kept if state == "kept" else todo).append(f)
-    built: list[str] = []
-    peak = 0
-    if todo:
-        from distributed import as_completed
-
-        if client is None:
-            raise InputError("a tiled build needs a Dask client")
-        futures = [client.submit(build_facet, source, str(out.resolve()), f, spacing, params, pure=False)
-                   for f in todo]
-        done = len(kept)
-        if progress is not None:
-            progress(done, len(facets), "facets")
-        try:
-            for fut in as_completed(futures):
-                res = fut.result()
-                built.append(res["file"])
-                peak = max(peak, int(res["peak_rss_bytes"]))
-                done += 1
-                log.debug("%s built in %.1f s", res["file"], res["seconds"])
-                if progress is not None:
-                    progress(done, len(facets), "facets")
-        finally:
-            client.cancel(futures)
-    remove_tile_temporaries(out)
-    with atomic_output(old_path) as tmp:
-        tmp.write_text(json.dumps(index, indent=1) + "\n")
-    return TiledResult(index, tuple(built), tuple(f.file for f in kept), peak, time.perf_counter() - t_start)
+    jobs = [TileJob(f.file, _lattice_entry(grids[f.file]), build_facet,
+                    (source, str(out.resolve()), f, spacing, params)) for f in facets]
+    keys = ("format", "format_version", "whole_body", "n_azimuths", "height_m", "max_range_m", "refraction",
+            "body", "sources")
+    return run_tile_jobs(source, out, index, keys, params, jobs, client, force, progress, "facets", t_start)
