@@ -45,3 +45,20 @@ def test_a_command_loads_its_own_module_only():
 def test_the_command_is_found_after_global_options():
     assert command_of(["--version"]) is None
     assert command_of(["estimate", "db", "demo.csv"]) == "estimate"
+
+
+def test_detecting_a_skyline_loads_no_compiler(tmp_path):
+    """`viper skyline` is a one-shot command: it detects with numpy and OpenCV, and loading numba's
+    kernels would cost it more than the detection itself."""
+    import numpy as np
+
+    from appliance.vision.panorama import save_panorama
+    from appliance.vision.synth import analytic_skyline_fn, render_panorama
+
+    synth = render_panorama(analytic_skyline_fn(seed=3), np.random.default_rng(3), px_per_rad=150.0, height_px=120)
+    image = tmp_path / "pano.png"
+    save_panorama(synth.panorama, image)
+    out = tmp_path / "sky.csv"
+    loaded = _modules_after(["skyline", str(image), "--out", str(out)])
+    assert out.is_file() and len(out.read_text().splitlines()) > 300  # a header and 360 azimuths
+    assert not {"numba", "scipy", "appliance.estimator.estimate"} & loaded

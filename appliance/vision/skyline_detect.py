@@ -19,9 +19,10 @@ smooth and bright): a column must show such sky somewhere above its line, so an 
 yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
 clear sky shows above it.  Masked azimuth ranges are missing too.
 
-Speed: the per-pixel costs are built column-major by a compiled kernel (band sums by cumulative
-sums), the dynamic programme runs vectorised in float32 without back-pointers, and the Gaussian models are
-evaluated per pixel by ``cv2.transform`` (an affine map, then a sum of squares).
+Speed: the per-pixel costs are built column-major (band sums by cumulative sums), the dynamic
+programme steps a column at a time over a sliding window of rows in float32 without back-pointers,
+and the Gaussian models are evaluated per pixel by ``cv2.transform`` (an affine map, then a sum of
+squares).  Plain numpy and OpenCV: a one-shot ``viper skyline`` loads no compiler.
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.
@@ -34,8 +35,8 @@ import math
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from appliance.errors import ConfigError, InputError
 from appliance.skyline import Skyline
@@ -202,89 +203,68 @@ def _gaussian_llr(feats: np.ndarray, sky: np.ndarray, ground: np.ndarray) -> np.
 # ----------------------------------------------------------------------------- dynamic programming
 
 
-@numba.njit(cache=True)
-def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:  # pragma: no cover - jit
+def _dp_path(cost_t: np.ndarray, max_jump: int, jump_cost: float) -> np.ndarray:
     """Row per column minimising sum(cost_t[c, row]) + jump_cost * sum |row step|; cost_t is WxH.
 
     The forward pass keeps every column's accumulated cost (float32, shifted by its minimum at each
-    column so that float32 keeps its precision) and its inner loops are branch-free minima over
-    rows for one step at a time, which the compiler vectorises.  No back-pointers are stored: the
+    column so that float32 keeps its precision).  A column is one step: the previous column's costs,
+    seen from each row through a sliding window of the 2 max_jump + 1 rows around it (a view, no
+    copy), plus the jump penalties, reduced by their minimum.  No back-pointers are stored: the
     backward pass recomputes the best predecessor of the path's row only, with the forward pass's
-    arithmetic and its tie rule (offsets in increasing order, strict comparison: the uppermost row).
+    arithmetic and the first minimum in increasing row order (the uppermost row) on ties.
     """
     w, h = cost_t.shape
+    cost = np.asarray(cost_t, dtype=np.float32)
+    m = int(max_jump)
+    pen = np.array([jump_cost * abs(d) for d in range(-m, m + 1)], dtype=np.float32)
+    padded = np.full(h + 2 * m, np.inf, dtype=np.float32)
+    reach = sliding_window_view(padded, h)  # reach[k, r] = previous column's cost at row r + k - m
+    stepped = np.empty((2 * m + 1, h), dtype=np.float32)
     accs = np.empty((w, h), dtype=np.float32)
-    for r in range(h):
-        accs[0, r] = cost_t[0, r]
+    accs[0] = cost[0]
     for c in range(1, w):
-        prev = accs[c - 1]
+        padded[m : m + h] = accs[c - 1]
+        np.add(reach, pen[:, None], out=stepped)
         cur = accs[c]
-        for r in range(h):
-            cur[r] = prev[r]
-        for d in range(1, max_jump + 1):
-            pen = np.float32(jump_cost * d)
-            for r in range(d, h):
-                v = prev[r - d] + pen
-                cur[r] = v if v < cur[r] else cur[r]
-            for r in range(0, h - d):
-                v = prev[r + d] + pen
-                cur[r] = v if v < cur[r] else cur[r]
-        low = cur[0]
-        for r in range(1, h):
-            low = cur[r] if cur[r] < low else low
-        for r in range(h):
-            cur[r] = cur[r] - low + cost_t[c, r]
+        np.minimum.reduce(stepped, axis=0, out=cur)
+        cur -= cur.min()
+        cur += cost[c]
     path = np.empty(w, dtype=np.int32)
-    best = np.float32(np.inf)
-    arg = 0
-    for r in range(h):
-        if accs[w - 1, r] < best:
-            best = accs[w - 1, r]
-            arg = r
-    path[w - 1] = arg
+    r = int(np.argmin(accs[w - 1]))
+    path[w - 1] = r
     for c in range(w - 1, 0, -1):
-        r = path[c]
-        prev = accs[c - 1]
-        best = np.float32(np.inf)
-        arg = r
-        for d in range(-max_jump, max_jump + 1):
-            q = r + d
-            if q < 0 or q >= h:
-                continue
-            v = prev[q] + np.float32(jump_cost * abs(d))
-            if v < best:
-                best = v
-                arg = q
-        path[c - 1] = arg
+        lo, hi = max(0, r - m), min(h, r + m + 1)
+        r = lo + int(np.argmin(accs[c - 1, lo:hi] + pen[lo - r + m : hi - r + m]))
+        path[c - 1] = r
     return path
 
 
-@numba.njit(cache=True)
 def _cost_columns(
     llr_t: np.ndarray, edge_t: np.ndarray, masked: np.ndarray, band: int, edge_weight: float
-) -> np.ndarray:  # pragma: no cover - jit
+) -> np.ndarray:
     """Per column (WxH, from transposed WxH inputs): region term minus weighted edge term.
 
     Region: (sum of clip(llr) over the ``band`` rows from the pixel down) minus (the same over the
-    ``band`` rows above it), divided by ``band``: -2 (sky above, ground below) .. +2.  Edge: the
-    downward drop, saturating at 0.1.  Masked columns cost nothing.
+    ``band`` rows above it), divided by ``band``: -2 (sky above, ground below) .. +2, from cumulative
+    sums in float64.  Edge: the downward drop, saturating at 0.1.  Masked columns cost nothing.
     """
     w, h = llr_t.shape
-    out = np.zeros((w, h), dtype=np.float32)
-    cs = np.empty(h + 1, dtype=np.float64)
-    inv_band = 1.0 / band
-    for c in range(w):
-        if masked[c]:
-            continue
-        cs[0] = 0.0
-        for r in range(h):
-            cs[r + 1] = cs[r] + min(max(llr_t[c, r], -1.0), 1.0)
-        for r in range(h):
-            top = max(r - band, 0)
-            bot = min(r + band, h)
-            region = ((cs[bot] - cs[r]) - (cs[r] - cs[top])) * inv_band
-            e = min(max(edge_t[c, r] * 10.0, 0.0), 1.0)
-            out[c, r] = region - edge_weight * e
+    # cumulative sums padded by ``band`` copies of their ends, so that every clamped window end is a slice
+    cs = np.empty((w, h + 1 + 2 * band), dtype=np.float64)
+    cs[:, band] = 0.0
+    np.cumsum(np.clip(llr_t, -1.0, 1.0), axis=1, dtype=np.float64, out=cs[:, band + 1 : band + h + 1])
+    cs[:, :band] = 0.0
+    cs[:, band + h + 1 :] = cs[:, band + h : band + h + 1]
+    here = cs[:, band : band + h]
+    out64 = cs[:, 2 * band : 2 * band + h] - here  # the band below
+    out64 -= here - cs[:, :h]  # the band above
+    out64 *= 1.0 / band
+    edge = np.asarray(edge_t, dtype=np.float64) * 10.0
+    np.clip(edge, 0.0, 1.0, out=edge)
+    edge *= edge_weight
+    out64 -= edge
+    out = out64.astype(np.float32)
+    out[np.asarray(masked, dtype=bool)] = 0.0
     return out
 
 
@@ -485,26 +465,21 @@ def _learn_llr(
     return _gaussian_llr(feats, sky, gnd)
 
 
-@numba.njit(cache=True)
-def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: int) -> np.ndarray:  # pragma: no cover
+def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: int) -> np.ndarray:
     """Per column of the transposed (WxH) ``score_t``, the largest mean of the score (clipped to
     [-1, 1]) over ``depth`` consecutive rows lying wholly at least ``gap`` rows above the path; -1
-    where no such run of rows fits."""
+    where no such run of rows fits.  A running sum down the rows, every column at once."""
     w, h = score_t.shape
-    out = np.full(w, -1.0)
-    for c in range(w):
-        last = min(path[c] - gap, h - 1)  # the lowest row a window may reach
-        if last - depth + 1 < 0:
-            continue
-        run = 0.0
-        for r in range(depth):
-            run += min(max(score_t[c, r], -1.0), 1.0)
-        best = run
-        for r in range(depth, last + 1):
-            run += min(max(score_t[c, r], -1.0), 1.0) - min(max(score_t[c, r - depth], -1.0), 1.0)
-            best = max(best, run)
-        out[c] = best / depth
-    return out
+    rows = np.ascontiguousarray(np.clip(score_t, -1.0, 1.0).T, dtype=np.float64)  # HxW
+    last = np.minimum(np.asarray(path, dtype=np.int64) - gap, h - 1)  # the lowest row a window may reach
+    run = np.zeros(w)
+    for r in range(min(depth, h)):
+        run += rows[r]
+    best = run.copy()
+    for r in range(depth, h):
+        run += rows[r] - rows[r - depth]
+        np.maximum(best, run, out=best, where=r <= last)
+    return np.where(last - depth + 1 < 0, -1.0, best / depth)
 
 
 def _confidence(
