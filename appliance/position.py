@@ -47,13 +47,14 @@ class Position:
     cell_size_m: tuple[float, float]
     source: str = ""
 
-    def region_lonlat(self, db: SkylineDatabase) -> tuple[np.ndarray, np.ndarray]:
-        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(self.result.region_nodes))
+    def region_lonlat(self, db: SkylineDatabase, limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Longitudes and latitudes of the region's cells (the first ``limit`` of them)."""
+        lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(self.result.region_nodes[:limit]))
         return np.atleast_1d(lon), np.atleast_1d(lat)
 
     def to_json(self, db: SkylineDatabase, truth: tuple[float, float] | None = None) -> dict:
         r = self.result
-        lon, lat = self.region_lonlat(db)
+        lon, lat = self.region_lonlat(db, MAX_REGION_CELLS_IN_JSON)
         cells = [[round(float(a), 7), round(float(b), 7)] for a, b in zip(lat, lon)]
         out: dict = {
             "skyline": self.source,
@@ -70,8 +71,8 @@ class Position:
                 "area_m2": round(r.region_area_m2, 1),
                 "cell_size_m": [round(v, 3) for v in self.cell_size_m],
                 "n_cells": int(r.region_nodes.size),
-                "cells": cells[:MAX_REGION_CELLS_IN_JSON],
-                "cells_truncated": len(cells) > MAX_REGION_CELLS_IN_JSON,
+                "cells": cells,
+                "cells_truncated": int(r.region_nodes.size) > MAX_REGION_CELLS_IN_JSON,
             },
             "ambiguous": r.ambiguous,
             "status": estimate_status(db, self, truth),

@@ -166,3 +166,25 @@ def test_the_readme_python_api_snippet_locates_a_skyline(db_path, tmp_path, monk
     cell = float(np.hypot(db.grid.dx_m, db.grid.dy_m)) / np.sqrt(2)
     geod = load_dem("jacksboro").geod
     assert geod.inv(pos.lon, pos.lat, lon, lat)[2] <= 2 * cell
+
+
+def test_a_large_region_is_written_truncated_with_its_full_count(db_path, tmp_path, monkeypatch):
+    """The JSON record keeps the region's first cells only, names its full size, and says so."""
+    import dataclasses
+
+    from appliance import position
+    from appliance.skyline import read_skyline_csv
+
+    db = load_database(db_path)
+    sky = read_skyline_csv(_skyline_at(tmp_path, "a.csv", 36.5731, -84.2687))
+    pos = position.locate(db, sky, (0.3, 1.2), 4.0)
+    nodes = np.arange(0, 60, 5)  # twelve cells
+    big = dataclasses.replace(pos, result=dataclasses.replace(pos.result, region_nodes=nodes))
+    lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(nodes))
+    monkeypatch.setattr(position, "MAX_REGION_CELLS_IN_JSON", 5)
+    region = big.to_json(db)["region"]
+    assert region["n_cells"] == 12 and region["cells_truncated"] is True
+    assert np.allclose(region["cells"], np.column_stack([lat, lon])[:5], atol=1e-7)
+    monkeypatch.setattr(position, "MAX_REGION_CELLS_IN_JSON", 12)
+    region = big.to_json(db)["region"]
+    assert region["cells_truncated"] is False and np.allclose(region["cells"], np.column_stack([lat, lon]), atol=1e-7)
