@@ -13,7 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
-from appliance.estimator import EstimateResult, PositionPrior, SkylineGrid, estimate, transport_fix, transport_prior
+from appliance.estimator import (
+    EstimateResult,
+    FirstPass,
+    PositionPrior,
+    SkylineGrid,
+    estimate,
+    transport_fix,
+    transport_prior,
+)
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -52,9 +60,12 @@ class Position:
         lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(self.result.region_nodes[:limit]))
         return np.atleast_1d(lon), np.atleast_1d(lat)
 
-    def to_json(self, db: SkylineDatabase, truth: tuple[float, float] | None = None) -> dict:
+    def to_json(self, db: SkylineDatabase, truth: tuple[float, float] | None = None,
+                max_cells: int | None = None) -> dict:
+        """The estimate's record; the region lists its first ``max_cells`` cells (default
+        MAX_REGION_CELLS_IN_JSON) and counts them all."""
         r = self.result
-        lon, lat = self.region_lonlat(db, MAX_REGION_CELLS_IN_JSON)
+        lon, lat = self.region_lonlat(db, MAX_REGION_CELLS_IN_JSON if max_cells is None else max_cells)
         cells = [[round(float(a), 7), round(float(b), 7)] for a, b in zip(lat, lon)]
         out: dict = {
             "skyline": self.source,
@@ -72,7 +83,7 @@ class Position:
                 "cell_size_m": [round(v, 3) for v in self.cell_size_m],
                 "n_cells": int(r.region_nodes.size),
                 "cells": cells,
-                "cells_truncated": int(r.region_nodes.size) > MAX_REGION_CELLS_IN_JSON,
+                "cells_truncated": int(r.region_nodes.size) > len(cells),
             },
             "ambiguous": r.ambiguous,
             "status": estimate_status(db, self, truth),
@@ -146,16 +157,17 @@ def locate(
     position_prior: PositionPrior | None = None,
     refine: bool = True,
     rescore_floor: float | None = None,
+    first: FirstPass | None = None,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
-    its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine`` and
-    ``rescore_floor`` are those of :func:`appliance.estimator.estimate`."""
+    its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine``,
+    ``rescore_floor`` and ``first`` are those of :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
                    map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine,
-                   rescore_floor=rescore_floor)
+                   rescore_floor=rescore_floor, first=first)
     return place(db, res, source)
 
 

@@ -26,6 +26,7 @@ Nothing here touches devices or logs: the module maps a folder and skylines to n
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
@@ -38,7 +39,7 @@ import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.errors import DatabaseError, EstimationError, InputError
-from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, SkylineGrid, first_pass_best
+from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, FirstPass, SkylineGrid, first_pass
 from appliance.position import MAX_REGION_CELLS_IN_JSON, locate, skyline_grid
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
@@ -215,7 +216,7 @@ class TileOutcome:
 
     file: str
     error: str | None
-    record: dict = field(default_factory=dict)  # the tile's own JSON record (appliance.position)
+    record: dict = field(default_factory=dict)  # the tile's own JSON record (appliance.position), no region cells
     node: int = -1
     lat: float = math.nan
     lon: float = math.nan
@@ -254,11 +255,7 @@ def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None) -
     modification time).  ``expect`` (the index's azimuth count and camera height) refuses a tile
     built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
     path = Path(folder) / tile.file
-    try:
-        st = path.stat()
-    except OSError as exc:
-        raise DatabaseError(f"{path}: cannot read the tile ({exc.strerror or exc})") from None
-    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    key = _tile_key(path)
     if key not in _open_tiles:
         db = load_database(path)
         held = sum(d.grid.n_nodes for d, _ in _open_tiles.values())
@@ -272,15 +269,53 @@ def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None) -
     return db, grid
 
 
+def _tile_key(path: Path) -> tuple[str, int, int]:
+    """A tile file's identity while it stays the same: path, size, modification time."""
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise DatabaseError(f"{path}: cannot read the tile ({exc.strerror or exc})") from None
+    return str(path.resolve()), st.st_size, st.st_mtime_ns
+
+
+#: Bytes of first passes a process keeps between the rounds of a tiled search, which all start from
+#: each tile's first pass (the pruning floor, the grid search, the refinement): the 15 tiles of
+#: the two-tile seam mosaic at +-4 deg take about 150 MB.  Oldest out first.
+FIRST_PASS_BYTES = 512 * 2**20
+_first_passes: dict[tuple[Any, ...], FirstPass] = {}
+
+
+def _skyline_digest(skyline: Skyline) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for a in (skyline.azimuth_deg, skyline.elevation_deg, skyline.confidence):
+        h.update(b"-" if a is None else np.ascontiguousarray(a, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _tile_first_pass(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
+                     expect: tuple[int, float] | None) -> tuple[SkylineDatabase, SkylineGrid, FirstPass]:
+    """The tile's database, grid and the skyline's first pass on it: made once per process and
+    search, then kept (within FIRST_PASS_BYTES) for the next round of the same search."""
+    db, grid = _open_tile(folder, tile, expect)
+    key = (_tile_key(Path(folder) / tile.file), _skyline_digest(skyline), params)
+    first = _first_passes.pop(key, None)
+    if first is None or first.grid_id != id(grid.codes):  # the tile was mapped again since
+        first = first_pass(grid, skyline.azimuth_deg, skyline.elevation_deg, params.sigma_deg,
+                           params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
+                           params.map_sigma_m)
+    _first_passes[key] = first
+    held = sum(f.nbytes for f in _first_passes.values())
+    while len(_first_passes) > 1 and held > FIRST_PASS_BYTES:
+        held -= _first_passes.pop(next(iter(_first_passes))).nbytes
+    return db, grid, first
+
+
 def tile_floor(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
                expect: tuple[int, float] | None = None) -> float:
-    """The tile's best first-pass lower log-posterior (:func:`appliance.estimator.first_pass_best`);
+    """The tile's best first-pass lower log-posterior (:attr:`appliance.estimator.FirstPass.best_lower`);
     -inf where the skyline cannot be placed on it."""
-    _, grid = _open_tile(folder, tile, expect)
     try:
-        return first_pass_best(grid, skyline.azimuth_deg, skyline.elevation_deg, params.sigma_deg,
-                               params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
-                               params.map_sigma_m)
+        return _tile_first_pass(folder, tile, skyline, params, expect)[2].best_lower
     except EstimationError:
         return -math.inf
 
@@ -293,11 +328,11 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
     searched, :func:`tile_floor`).  A tile where the skyline cannot be placed at all (no terrain
     along its azimuths) is reported as such; the other tiles may still place it."""
     t0 = time.perf_counter()
-    db, grid = _open_tile(folder, tile, expect)
     try:
+        db, grid, first = _tile_first_pass(folder, tile, skyline, params, expect)
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source, grid=grid,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
-                     map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor)
+                     map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor, first=first)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result
@@ -322,7 +357,7 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
     region = np.asarray(r.region_nodes, dtype=np.int64)
     g = db.grid
     return TileOutcome(
-        tile.file, None, pos.to_json(db), r.node, pos.lat, pos.lon, r.log_lower,
+        tile.file, None, pos.to_json(db, max_cells=0), r.node, pos.lat, pos.lon, r.log_lower,
         math.log(r.upper) if r.upper > 0 else -math.inf, r.log_lower_unnormalised, r.log_upper_unnormalised,
         r.log_evidence_lower, r.log_evidence_upper, r.log_evidence_mid, math.log(g.dx_m * g.dy_m),
         (g.dx_m, g.dy_m), r.ambiguous, region, lonlat(region), top.astype(np.int64), up[top], up_un[top],
@@ -556,24 +591,38 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     The combination is the same either way, so the answer is too."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
-    floors = _run(index, tile_floor, tiles, client, skyline, params)
+    placed: dict[str, str] = {}
+    floors = _run(index, tile_floor, tiles, client, skyline, params, placed=placed)
     floor = max(floors, default=-math.inf)
-    first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor)
+    first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor,
+                 placed=placed)
     grid_only = combine(first, index.body)
     contenders = {c.tile for c in grid_only.region} | {grid_only.tile} | set(grid_only.overflowed)
     refined = _run(index, search_tile, [t for t in tiles if t.file in contenders], client, skyline, params, source,
-                   True, rescore_floor=floor)
+                   True, rescore_floor=floor, placed=placed)
     outcomes = refined + [o for o in first if o.file not in contenders]
     return combine(outcomes, index.body, time.perf_counter() - t0)
 
 
 def _run(index: TiledIndex, task: Callable[..., Any], tiles: Sequence[TileEntry], client: Any, skyline: Skyline,
-         params: SearchParams, *args: Any, **kwargs: Any) -> list[Any]:
+         params: SearchParams, *args: Any, placed: dict[str, str] | None = None, **kwargs: Any) -> list[Any]:
     """``task(folder, tile, skyline, params, *args, expect=..., **kwargs)`` for every tile, in
-    order: here one after the other, or one task per tile on the ``client``'s cluster."""
+    order: here one after the other, or one task per tile on the ``client``'s cluster.  On a
+    cluster, ``placed`` maps a tile to the worker that first ran one of its tasks, which then
+    holds the tile's first pass: the tile's later tasks ask for that worker (any other may still
+    take them, making the first pass again)."""
     folder = str(index.folder)
     kwargs["expect"] = (index.n_azimuths, index.height_m)
     if client is None:
         return [task(folder, t, skyline, params, *args, **kwargs) for t in tiles]
-    futures = [client.submit(task, folder, t, skyline, params, *args, pure=False, **kwargs) for t in tiles]
-    return list(client.gather(futures))
+    placed = {} if placed is None else placed
+    futures = []
+    for t in tiles:
+        where = {"workers": [placed[t.file]], "allow_other_workers": True} if t.file in placed else {}
+        futures.append(client.submit(task, folder, t, skyline, params, *args, pure=False, **where, **kwargs))
+    out = list(client.gather(futures))
+    held = client.who_has(futures)
+    for t, f in zip(tiles, futures, strict=True):
+        if held.get(f.key):
+            placed.setdefault(t.file, held[f.key][0])
+    return out

@@ -14,7 +14,7 @@ from appliance import tiled_search
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
-from appliance.estimator import first_pass_best
+from appliance.estimator import first_pass
 from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
 from appliance.position import locate, skyline_grid
 from appliance.skyline import Skyline, write_skyline_csv
@@ -318,8 +318,8 @@ def test_each_tile_rescores_what_one_search_of_the_whole_lattice_would(built):
     floors = [tiled_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles]
     wdb = load_database(whole)
     sg = skyline_grid(wdb)
-    whole_best = first_pass_best(sg, sky.azimuth_deg, sky.elevation_deg, PARAMS.sigma_deg,
-                                 PARAMS.heading_tolerance_deg)
+    whole_best = first_pass(sg, sky.azimuth_deg, sky.elevation_deg, PARAMS.sigma_deg,
+                            PARAMS.heading_tolerance_deg).best_lower
     # these tiles are ordinary builds of parts of the area (tests/tiled_build.py), whose sweeps
     # interpolate the terrain a little differently from the whole's: the bounds agree to well
     # within the rescoring's margin, not to the last digit
@@ -381,3 +381,52 @@ def test_the_tiles_kept_mapped_stay_within_their_node_budget(built, monkeypatch)
         tiled_search._open_tile(str(folder), t, None)
     assert loads == [a.file, b.file, a.file]
     assert len(tiled_search._open_tiles) == 1
+
+
+def test_each_tile_scores_its_first_pass_once_per_search(built, monkeypatch):
+    """The floor, the grid search and the refinement all start from a tile's first pass: a search
+    makes it once per tile, and the answer is the one made from scratch in each round."""
+    folder, _ = built
+    index = open_tiled(folder)
+    sky = _skyline(*INTERIOR)
+    monkeypatch.setattr(tiled_search, "_first_passes", {})
+    made: list[int] = []
+    real = tiled_search.first_pass
+
+    def counting(grid, *a, **k):
+        made.append(id(grid))
+        return real(grid, *a, **k)
+
+    monkeypatch.setattr(tiled_search, "first_pass", counting)
+    kept = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
+    assert len(made) == len(index.tiles) == len(set(made))
+    # with no room to keep any first pass, every round makes its own
+    monkeypatch.setattr(tiled_search, "FIRST_PASS_BYTES", 0)
+    monkeypatch.setattr(tiled_search, "_first_passes", {})
+    made.clear()
+    remade = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
+    assert len(made) > len(index.tiles)
+    kept.pop("elapsed_ms")
+    remade.pop("elapsed_ms")
+    assert kept == remade
+
+
+def test_a_first_pass_serves_only_the_skyline_and_grid_it_was_made_for(built):
+    from appliance.estimator import estimate
+
+    folder, _ = built
+    index = open_tiled(folder)
+    db = load_database(index.path(index.tiles[0]))
+    grid = skyline_grid(db)
+    sky, other = _skyline(*INTERIOR), _skyline(INTERIOR[0] + 0.01, INTERIOR[1])
+    args = (grid, sky.azimuth_deg, sky.elevation_deg, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    made = first_pass(*args)
+    given = estimate(*args, first=made)
+    fresh = estimate(*args)
+    assert (given.node, given.row, given.col, given.log_lower) == (fresh.node, fresh.row, fresh.col, fresh.log_lower)
+    assert np.array_equal(given.region_nodes, fresh.region_nodes)
+    with pytest.raises(ValueError, match="another grid, skyline or search"):
+        estimate(grid, other.azimuth_deg, other.elevation_deg, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg,
+                 first=made)
+    with pytest.raises(ValueError, match="another grid, skyline or search"):
+        estimate(*args[:4], None, first=made)  # no compass: another search

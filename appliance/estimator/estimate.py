@@ -443,6 +443,7 @@ def estimate(
     map_sigma_m: float = 0.0,
     position_prior: PositionPrior | None = None,
     rescore_floor: float | None = None,
+    first: FirstPass | None = None,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -457,16 +458,21 @@ def estimate(
     ``log_prior`` held in continuous form (a Gaussian in grid cells, e.g. a traverse's transported
     estimate): the exact fit between nodes weighs it, where the per-node prior cannot reach.
     ``rescore_floor`` is a first-pass lower log-posterior (unnormalised, nats) already reached on
-    another part of the same lattice (:func:`first_pass_best` on another tile): the nodes here are
+    another part of the same lattice (:attr:`FirstPass.best_lower` on another tile): the nodes here are
     rescored only if they come within reach of it too, as one search over both parts would do.
+    ``first`` is this skyline's :func:`first_pass` on this grid, made earlier (ValueError if it was
+    made for another skyline or other arguments); None makes it here.
     """
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
-    first = _first_pass(grid, meas, heading_tolerance_deg)
+    if first is None:
+        first = _scored_first_pass(grid, meas, heading_tolerance_deg)
+    elif not first.made_for(grid, meas, heading_tolerance_deg):
+        raise ValueError("the first pass given was made for another grid, skyline or search")
     lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
-    plausible = _plausible_nodes(first, meas, lp, rescore_floor)
-    rescored = _rescore(grid, meas, plausible.nodes, first.node_shifts)
+    plausible = _plausible_nodes(first, lp, rescore_floor)
+    rescored = _rescore(grid, meas, plausible.nodes, first.scores.node_shifts)
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
     region, rival = post.region, False
@@ -484,7 +490,7 @@ def estimate(
         region_nodes=region, region_area_m2=area, log_lower_map=post.node_lower, log_upper_map=post.node_upper,
         posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
         sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
-        candidates=plausible.scored_nodes * first.node_shifts.shape[1],
+        candidates=plausible.scored_nodes * first.scores.node_shifts.shape[1],
         elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
         log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
         log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
@@ -555,7 +561,45 @@ class _FirstPass:
     node_shifts: np.ndarray  # (n_nodes, n_fine_shifts) azimuth steps
 
 
-def first_pass_best(
+@dataclass(frozen=True)
+class FirstPass:
+    """One skyline's first pass over every node of a grid, with each node's bounds: where
+    :func:`estimate` starts.  Made once, it serves the rounds of a tiled search that all start
+    there (the pruning floor over every tile, each tile's grid search, its refinement)."""
+
+    grid_id: int  # id() of the grid's codes it was made on
+    meas: _Measurement
+    heading_tolerance_deg: float | None
+    scores: _FirstPass
+    node_lower: np.ndarray  # (n_nodes,) first-pass lower log-likelihood, nats, normaliser included
+    node_upper: np.ndarray  # (n_nodes,) and upper
+    scored_nodes: int  # nodes with a finite first-pass score
+
+    @property
+    def best_lower(self) -> float:
+        """The best lower log-posterior (unnormalised, nats, uniform prior) of any node: what
+        :func:`estimate` prunes its rescoring against.  Over the tiles of one lattice the largest of
+        these is the ``rescore_floor`` that makes each tile's search rescore the nodes a search of
+        the whole lattice would."""
+        return float(np.max(self.node_lower))
+
+    @property
+    def nbytes(self) -> int:
+        s = self.scores
+        return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + self.node_lower.nbytes
+                   + self.node_upper.nbytes)
+
+    def made_for(self, grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> bool:
+        a, b = self.meas, meas
+        return (self.grid_id == id(grid.codes) and self.node_lower.size == grid.codes.shape[0]
+                and self.heading_tolerance_deg == heading_tolerance_deg
+                and np.array_equal(a.elevation_deg, b.elevation_deg, equal_nan=True)
+                and np.array_equal(a.weight, b.weight)
+                and (a.sigma_lo_deg, a.sigma_hi_deg, a.occlusion_weight, a.map_sigma_m)
+                == (b.sigma_lo_deg, b.sigma_hi_deg, b.occlusion_weight, b.map_sigma_m))
+
+
+def first_pass(
     grid: SkylineGrid,
     azimuth_deg: np.ndarray,
     elevation_deg: np.ndarray,
@@ -565,15 +609,18 @@ def first_pass_best(
     occlusion_weight: float = 0.0,
     map_sigma_m: float = 0.0,
     min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
-) -> float:
-    """The best first-pass lower log-posterior (unnormalised, nats, uniform prior) of any node of
-    ``grid``: what :func:`estimate` prunes its rescoring against.  Over the tiles of one lattice
-    the largest of these is the ``rescore_floor`` that makes each tile's search rescore the nodes a
-    search of the whole lattice would."""
+) -> FirstPass:
+    """The skyline's first pass over every node of ``grid`` (arguments as :func:`estimate`'s), to
+    give :func:`estimate` later or to read its :attr:`FirstPass.best_lower`."""
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
-    node_lo, _, _ = _first_pass_bounds(_first_pass(grid, meas, heading_tolerance_deg), meas)
-    return float(np.max(node_lo))
+    return _scored_first_pass(grid, meas, heading_tolerance_deg)
+
+
+def _scored_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> FirstPass:
+    scores = _first_pass(grid, meas, heading_tolerance_deg)
+    lo, up, scored = _first_pass_bounds(scores, meas)
+    return FirstPass(id(grid.codes), meas, heading_tolerance_deg, scores, lo, up, scored)
 
 
 def _first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> _FirstPass:
@@ -635,11 +682,11 @@ def _first_pass_bounds(first: _FirstPass, meas: _Measurement) -> tuple[np.ndarra
     return c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty, int(np.isfinite(cmin).sum())
 
 
-def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray, floor: float | None) -> _Plausible:
+def _plausible_nodes(first: FirstPass, lp: np.ndarray, floor: float | None) -> _Plausible:
     """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
     within RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound
     reached elsewhere on the lattice), at least MIN_RESCORE of them."""
-    c_lo, c_up, scored = _first_pass_bounds(first, meas)
+    c_lo, c_up, scored = first.node_lower, first.node_upper, first.scored_nodes
     n_nodes = c_lo.size
     node_lo = c_lo + lp
     node_up = c_up + lp
