@@ -581,12 +581,13 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     First every tile's best first-pass lower bound, the largest of which each tile's rescoring is
     then pruned against, as one search of the whole lattice would prune (a tile of sea or of
     valleys that do not match rescores a handful of nodes, not all of them).  Then two rounds:
-    every tile on its grid alone, combined; then the exact refinement, only on the
-    tiles holding a node of the combined region.  The refinement moves a tile's answer between its
-    nodes and adds the cells of its fits, but changes none of the posteriors the combination
-    weighs, so a tile no node of which reaches the best's lower posterior cannot change the answer;
-    skipping its refinement (most of a hopeless tile's time: it finds no fit to stop at) costs
-    nothing.  With a ``distributed.Client`` every tile is one task of each round on its cluster,
+    every tile on its grid alone, combined; then the exact refinement, only on the best tile.  The
+    refinement moves a tile's answer between its nodes and adds the cells of its fits to its
+    region, but changes none of the posteriors the combination weighs: the best tile stays the
+    best, and the combination takes the answer and the region's own cells from the best tile
+    only (every other tile's part of the region comes from its grid posteriors).  Refining the
+    other tiles (most of a hopeless tile's time: it finds no fit to stop at) would change nothing.
+    With a ``distributed.Client`` every tile is one task of each round on its cluster,
     each worker mapping its own tile; without one the tiles are searched here, one after the other.
     The combination is the same either way, so the answer is too."""
     t0 = time.perf_counter()
@@ -596,11 +597,10 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     floor = max(floors, default=-math.inf)
     first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor,
                  placed=placed)
-    grid_only = combine(first, index.body)
-    contenders = {c.tile for c in grid_only.region} | {grid_only.tile} | set(grid_only.overflowed)
-    refined = _run(index, search_tile, [t for t in tiles if t.file in contenders], client, skyline, params, source,
+    best = combine(first, index.body).tile
+    refined = _run(index, search_tile, [t for t in tiles if t.file == best], client, skyline, params, source,
                    True, rescore_floor=floor, placed=placed)
-    outcomes = refined + [o for o in first if o.file not in contenders]
+    outcomes = refined + [o for o in first if o.file != best]
     return combine(outcomes, index.body, time.perf_counter() - t0)
 
 

@@ -293,9 +293,9 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
         tiled_search.combine([failed], "earth")
 
 
-def test_refining_only_the_contending_tiles_gives_the_answer_of_refining_all(built):
-    """The second round refines only the tiles holding a node of the region; refining every tile
-    must not change the combined answer."""
+def test_refining_only_the_best_tile_gives_the_answer_of_refining_all(built):
+    """The second round refines only the best tile; refining every tile must not change the
+    combined answer."""
     folder, _ = built
     index = open_tiled(folder)
     for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
