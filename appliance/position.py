@@ -7,10 +7,12 @@ JSON record that ``viper estimate --json`` prints.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
+from pyproj import CRS
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import (
@@ -132,8 +134,17 @@ def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
 
 
 def crs_name(db: SkylineDatabase) -> str:
-    epsg = db.grid.crs.to_epsg()
-    return f"EPSG:{epsg}" if epsg else db.grid.crs.to_proj4()
+    """The grid's CRS as EPSG:n where it has a code, else its PROJ string."""
+    return _crs_label(db.grid.crs_wkt)
+
+
+@functools.lru_cache(maxsize=512)
+def _crs_label(crs_wkt: str) -> str:
+    # looking a custom CRS up in the EPSG catalogue takes tens of ms: once per CRS (a whole-body
+    # database has a few hundred facets, each on its own projection)
+    crs = CRS.from_wkt(crs_wkt)
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg else crs.to_proj4()
 
 
 def place(db: SkylineDatabase, result: EstimateResult, source: str = "") -> Position:

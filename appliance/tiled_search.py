@@ -304,9 +304,8 @@ def _tile_first_pass(folder: str, tile: TileEntry, skyline: Skyline, params: Sea
                            params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
                            params.map_sigma_m)
     _first_passes[key] = first
-    held = sum(f.nbytes for f in _first_passes.values())
-    while len(_first_passes) > 1 and held > FIRST_PASS_BYTES:
-        held -= _first_passes.pop(next(iter(_first_passes))).nbytes
+    while len(_first_passes) > 1 and sum(f.nbytes for f in _first_passes.values()) > FIRST_PASS_BYTES:
+        del _first_passes[next(iter(_first_passes))]
     return db, grid, first
 
 
@@ -532,6 +531,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
     notes: list[str] = []
     rival = False
     overflowed: list[str] = []
+    area = 0.0
     reach_m = SAME_ANSWER_CELLS * max(best.cell_size_m)
     b_body = body_named(body)
     for i, o in enumerate(ok):
@@ -549,12 +549,13 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                                       others(ev_lo, i))[0]
         if o.left_max_log_upper > -math.inf and left >= best_lower:
             overflowed.append(o.file)
-        for v in sorted(nodes):
-            lon, lat = lonlat[v]
-            region.append(RegionCell(o.file, v, lon, lat))
-            if o is not best and geodesic_distance_m(best.lat, best.lon, lat, lon, b_body) > reach_m:
-                rival = True
-    area = sum(math.exp(o.log_cell_area) * sum(1 for c in region if c.tile == o.file) for o in ok)
+        cells = [RegionCell(o.file, v, *lonlat[v]) for v in sorted(nodes)]
+        region += cells
+        area += math.exp(o.log_cell_area) * len(cells)
+        if cells and o is not best and not rival:
+            lon, lat = np.array([(c.lon, c.lat) for c in cells]).T
+            _, _, dist = b_body.geod.inv(np.full(lon.size, best.lon), np.full(lat.size, best.lat), lon, lat)
+            rival = bool(np.any(np.asarray(dist) > reach_m))
     notes += [n for n in best.record.get("notes", []) if not n.startswith("ambiguous")]
     if best.ambiguous:
         notes += [n for n in best.record.get("notes", []) if n.startswith("ambiguous")]

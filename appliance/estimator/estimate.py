@@ -583,7 +583,7 @@ class FirstPass:
         the whole lattice would."""
         return float(np.max(self.node_lower))
 
-    @property
+    @cached_property
     def nbytes(self) -> int:
         s = self.scores
         return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + self.node_lower.nbytes
