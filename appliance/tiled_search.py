@@ -304,8 +304,9 @@ def _tile_first_pass(folder: str, tile: TileEntry, skyline: Skyline, params: Sea
                            params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
                            params.map_sigma_m)
     _first_passes[key] = first
-    while len(_first_passes) > 1 and sum(f.nbytes for f in _first_passes.values()) > FIRST_PASS_BYTES:
-        del _first_passes[next(iter(_first_passes))]
+    held = sum(f.nbytes for f in _first_passes.values())
+    while len(_first_passes) > 1 and held > FIRST_PASS_BYTES:
+        held -= _first_passes.pop(next(iter(_first_passes))).nbytes
     return db, grid, first
 
 
