@@ -287,6 +287,12 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
     res = tiled_search.combine([weak, best], "earth")
     assert res.tile == "a.viperdb" and not res.ambiguous and res.status() == "ok"
     assert [c.tile for c in res.region] == ["a.viperdb"]
+    # as likely but within two cells (200 m) of the best: the same place, not a rival
+    near = _made_up_tile("b.viperdb", 0.001, -11.0, -9.0)
+    res = tiled_search.combine([best, near], "earth")
+    assert {c.tile for c in res.region} == {"a.viperdb", "b.viperdb"}
+    assert not any("holds a place" in n for n in res.notes)
+    assert res.region_area_m2 == pytest.approx(2 * 100.0 * 100.0)
     failed = tiled_search.TileOutcome("c.viperdb", "no candidate node has terrain along the measured azimuths")
     assert tiled_search.combine([best, failed], "earth").tiles_failed == ("c.viperdb",)
     with pytest.raises(EstimationError):
