@@ -232,12 +232,41 @@ class _RefineContext:
         return (float(c_row), float(c_col)), (c_row - dn / g.dy_m, c_col + de / g.dx_m), sh * step, sh * step + dphi
 
     def fit_from_linear(self, cand: int) -> Fit | None:
+        _, moved, _, phi = self._start(cand)
+        return self._fit(cand, moved, phi)
+
+    def _fit(self, cand: int, start: tuple[float, float], phi: float) -> Fit | None:
+        """The exact fit from ``start`` (fractional row, col) and heading ``phi`` (deg) near node ``cand``.
+
+        With a position prior the fit minimises the skyline's cost plus the prior's.  The prior pulls
+        from the first step, while the annealing still lets the skyline steer only loosely, and can
+        lead the fit into another basin than the skyline's own between two nodes: the fit is also
+        made without the prior, then polished under it from there, and the one of lower total cost
+        kept."""
         g = self.grid
         assert g.terrain is not None
-        _, moved, _, phi = self._start(cand)
         c_row, c_col = divmod(cand, g.n_cols)
-        return refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, moved,
-                            self.sigma, self.bounds, self.model, self.position_prior)
+
+        def fit(at: tuple[float, float], heading: float, prior: PositionPrior | None) -> Fit | None:
+            assert g.terrain is not None
+            return refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, heading, self.height_m,
+                                at, self.sigma, self.bounds, self.model, prior)
+
+        pulled = fit(start, phi, self.position_prior)
+        if self.position_prior is None:
+            return pulled
+        free = fit(start, phi, None)
+        if free is None:
+            return pulled
+        polished = fit((free.row, free.col), free.heading_deg, self.position_prior)
+        fits = [f for f in (pulled, polished) if f is not None]
+        return min(fits, key=self._posterior_cost, default=None)
+
+    def _posterior_cost(self, fit: Fit) -> float:
+        """What a fit under the position prior minimises (chi-square units): the skyline's cost at
+        sigma plus the prior's Mahalanobis term."""
+        assert self.position_prior is not None
+        return fit.ssd / (self.sigma * self.sigma) + self.position_prior.cost(np.array([fit.row, fit.col]))
 
     def look_at(self, fit: Fit) -> float:
         """The cost of a look from where a fit ended (what other looks must come near to rival it)."""
@@ -273,9 +302,7 @@ class _RefineContext:
             if cand in refined:
                 continue
             refined.append(cand)
-            c_row, c_col = divmod(cand, g.n_cols)
-            fit = refine_exact(g.terrain, g.dx_m, g.dy_m, self.m, c_row, c_col, g.n_cols, phi, self.height_m, start,
-                               self.sigma, self.bounds, self.model, self.position_prior)
+            fit = self._fit(cand, start, phi)
             if fit is not None:
                 fits.append(fit)
         return fits
