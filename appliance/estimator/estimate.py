@@ -42,6 +42,7 @@ from appliance.estimator.search import (
     box_decimate,
     decimated,
     ssd_coarse,
+    ssd_coarse_best,
     ssd_for_shifts,
 )
 
@@ -318,8 +319,8 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
     return chosen
 
 
-#: Nodes per block of the every-heading first pass: (block x headings) scores stay small.
-HEADING_BLOCK_NODES = 16384
+#: Nodes per call of the every-heading first pass (each call is one parallel region).
+HEADING_BLOCK_NODES = 1 << 20
 
 
 def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarray, w_grid: np.ndarray,
@@ -334,28 +335,25 @@ def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarra
     scale = n_az / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n_az, 1)
     tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
     codes_c, partial = grid.coarse
-    shifts = np.arange(m_dec.size)
     best = np.empty(n_nodes, dtype=np.float32)
     best_occ = np.empty(n_nodes, dtype=np.float32)
     best_arg = np.empty(n_nodes, dtype=np.int64)
     pen = np.empty(n_nodes)
-    occ = np.empty((min(HEADING_BLOCK_NODES, n_nodes), shifts.size), dtype=np.float32)
+    w_dec0 = np.nan_to_num(w_dec)
     for lo in range(0, n_nodes, HEADING_BLOCK_NODES):
         hi = min(lo + HEADING_BLOCK_NODES, n_nodes)
         block_tau = None if tau_c is None else (tau_c[0][lo:hi], tau_c[1], tau_c[2])
-        o = occ[: hi - lo]
-        ssd, p = ssd_coarse((codes_c[lo:hi], partial[lo:hi]), grid.offset_deg[lo:hi], grid.step_deg[lo:hi], m_dec,
-                            shifts, block_tau, np.nan_to_num(w_dec), cap, o)
-        k = np.argmin(_capped(ssd, o, cap), axis=1)
-        rows = np.arange(hi - lo)
-        best[lo:hi], best_occ[lo:hi], best_arg[lo:hi] = ssd[rows, k], o[rows, k], k
-        pen[lo:hi] = p
+        best[lo:hi], best_occ[lo:hi], best_arg[lo:hi], pen[lo:hi] = ssd_coarse_best(
+            (codes_c[lo:hi], partial[lo:hi]), grid.offset_deg[lo:hi], grid.step_deg[lo:hi], m_dec, block_tau, w_dec0,
+            cap)
     # the coarse heading is good to half a run: rescore a band of fine shifts around it
     half = COARSE_STRIDE // 2 + 1
     band = np.arange(-half, half + 1)
     node_shifts = (best_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
-    return ((best * np.float32(scale))[:, None], (best_occ * np.float32(scale))[:, None], pen * scale,
-            node_shifts)
+    best *= np.float32(scale)
+    best_occ *= np.float32(scale)
+    pen *= scale
+    return best[:, None], best_occ[:, None], pen, node_shifts
 
 
 def _argmin_columns(a: np.ndarray) -> np.ndarray:

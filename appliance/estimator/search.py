@@ -247,6 +247,169 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                     occ_out[i, k] = occ * n_meas / cnt
 
 
+#: Shifts of the every-heading kernel are scored in runs of this many (the vector width times the
+#: unroll of the compiled loop), so no run ends in a scalar remainder.
+SHIFT_RUN = 32
+
+
+@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
+                     w: np.ndarray, out: np.ndarray, occ_out: np.ndarray, arg_out: np.ndarray, T: np.ndarray,
+                     w_lut: np.ndarray, p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float,
+                     rank_cap: bool) -> None:
+    """Every circular shift k = 0 .. d-1 of each node's decimated codes scored as in
+    :func:`_ssd_coarse`, keeping only the best: arg_out[i] = the k of least out + cap * occ (the first
+    of equal ones), out[i] and occ_out[i] its residual sum (deg^2) and occluded weight, pen[i] the
+    node's log-normaliser at shift 0; the cap enters the ranking only with ``rank_cap``.
+
+    All shifts are scored at once: for each measured azimuth t, the terms of every shift are added
+    to per-shift sums held in a contiguous scratch row (the node's codes and weights laid out twice
+    around the circle), so the compiled loop runs along the shifts with no reduction and each
+    shift's sum is taken in azimuth order."""
+    n, d = C.shape
+    n_meas = 0.0
+    for t in range(d):
+        n_meas += w[t]
+    k_pad = ((d + SHIFT_RUN - 1) // SHIFT_RUN) * SHIFT_RUN
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    cap32 = np.float32(cap)
+    for b in numba.prange(n_blocks):
+        ww = np.empty(d, dtype=np.float32)
+        mt = np.empty(d, dtype=np.float32)
+        cf = np.empty(d + k_pad, dtype=np.float32)
+        vf = np.empty(d + k_pad, dtype=np.float32)
+        acc = np.empty(k_pad, dtype=np.float32)
+        occ = np.empty(k_pad, dtype=np.float32)
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            o = offset[i]
+            pen[i] = 0.0
+            if math.isnan(o):
+                out[i] = np.inf
+                occ_out[i] = 0.0
+                arg_out[i] = 0
+                continue
+            if use_tau:
+                p = 0.0
+                trow = T[i]
+                for t in range(d):
+                    ww[t] = w_lut[trow[t]]
+                    p += w[t] * p_lut[trow[t]]
+                pen[i] = p
+            else:
+                for t in range(d):
+                    ww[t] = 1.0
+            st = step[i]
+            inv = np.float32(1.0 / st)
+            for t in range(d):
+                mt[t] = (m[t] - o) * inv
+            scale = np.float32(st * st)
+            cap_c = np.float32(cap / (st * st))
+            row = C[i]
+            if not partial[i]:
+                for j in range(d):
+                    cf[j] = np.float32(row[j])
+                    vf[j] = ww[j]
+                for j in range(d, d + k_pad):
+                    cf[j] = cf[j - d]
+                    vf[j] = vf[j - d]
+                for k in range(k_pad):
+                    acc[k] = 0.0
+                    occ[k] = 0.0
+                for t in range(d):
+                    wt = w[t]
+                    if wt == 0:
+                        continue
+                    mtt = mt[t]
+                    c_t = cf[t : t + k_pad]
+                    v_t = vf[t : t + k_pad]
+                    if rank_cap:
+                        for k in range(k_pad):
+                            e = mtt - c_t[k]
+                            q = v_t[k] * e * e
+                            hidden = e > 0 and q > cap_c
+                            acc[k] += wt * (np.float32(0.0) if hidden else q)
+                            occ[k] += wt if hidden else np.float32(0.0)
+                    else:
+                        # no finite cap: nothing is an occluder
+                        for k in range(k_pad):
+                            e = mtt - c_t[k]
+                            acc[k] += wt * (v_t[k] * e * e)
+                best_k = 0
+                best = np.float32(np.inf)
+                for k in range(d):
+                    s = acc[k] * scale
+                    r = s + occ[k] * cap32 if rank_cap else s
+                    if r < best:
+                        best = r
+                        best_k = k
+                arg_out[i] = best_k
+                out[i] = acc[best_k] * scale
+                occ_out[i] = occ[best_k]
+            else:
+                best_k = 0
+                best = np.float32(np.inf)
+                best_s = np.float32(np.inf)
+                best_o = np.float32(0.0)
+                for sh in range(d):
+                    a = np.float32(0.0)
+                    oc = np.float32(0.0)
+                    cnt = 0.0
+                    for t in range(d):
+                        ts = (t + sh) % d
+                        c = row[ts]
+                        if w[t] > 0 and c != MISSING_CODE:
+                            e = mt[t] - np.float32(c)
+                            q = ww[ts] * e * e
+                            if e > 0 and q > cap_c:
+                                oc += w[t]
+                            else:
+                                a += w[t] * q
+                            cnt += w[t]
+                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+                        s = np.float32(np.inf)
+                        oc = np.float32(0.0)
+                    else:
+                        s = a * scale * n_meas / cnt
+                        oc = oc * n_meas / cnt
+                    r = s + oc * cap32 if rank_cap else s
+                    if r < best or (sh == 0):
+                        best = r
+                        best_k = sh
+                        best_s = s
+                        best_o = oc
+                arg_out[i] = best_k
+                out[i] = best_s
+                occ_out[i] = best_o
+
+
+def ssd_coarse_best(
+    coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
+    measured_dec: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    weights_dec: np.ndarray | None = None, cap_deg2: float = math.inf,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every node's best circular shift (decimated steps) on decimated skylines: its SSD (deg^2),
+    occluded weight, the shift, and the node's log-normaliser.  The same scores as
+    :func:`ssd_coarse` over every shift followed by the least of ``ssd + cap_deg2 * occluded`` per
+    node, without the (n_nodes, n_shifts) array; sums may differ from it in the last bits (their
+    terms are added in azimuth order)."""
+    C, partial = coarse
+    valid = np.isfinite(measured_dec)
+    m = np.where(valid, measured_dec, 0.0).astype(np.float32)
+    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
+    n = C.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    occ = np.empty(n, dtype=np.float32)
+    arg = np.empty(n, dtype=np.int64)
+    pen = np.empty(n, dtype=np.float32)
+    if tau is None:
+        T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
+    else:
+        (T, w_lut, p_lut), use = tau, True
+    _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, w_lut, p_lut, use, pen,
+                     float(min(cap_deg2, 1e30)), math.isfinite(cap_deg2))
+    return out, occ, arg, pen
+
+
 def ssd_coarse(
     coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
     measured_dec: np.ndarray, shifts: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
