@@ -32,6 +32,7 @@ from appliance.estimator.exact import Fit, Model, PositionPrior, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import (
+    best_column_bounds,
     mixture_log_likelihood,
     mixture_log_likelihood_bounds,
     occlusion_cap_deg2,
@@ -619,28 +620,26 @@ class _Plausible:
     scored_nodes: int  # nodes with a finite first-pass score
 
 
-def _first_pass_bounds(first: _FirstPass, meas: _Measurement) -> tuple[np.ndarray, np.ndarray, int]:
-    """Each node's first-pass lower and upper log-likelihood (nats, normaliser included) and the
-    count of nodes scored.  Both likelihood bounds fall as the residual grows, so each node's best
-    first-pass shift decides for the node (an occluded measurement counting the cap there)."""
+def _first_pass_bounds(first: _FirstPass, meas: _Measurement,
+                       lp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Each node's first-pass lower and upper log-likelihood (nats, normaliser included; plus the
+    log prior ``lp`` when given) and the count of nodes scored.  Both likelihood bounds fall as the
+    residual grows, so each node's best first-pass shift decides for the node (an occluded
+    measurement counting the cap there)."""
     n_nodes = first.ssd.shape[0]
-    k_first = _argmin_columns(_capped(first.ssd, first.occluded, meas.cap_deg2))
-    rows = np.arange(n_nodes)
-    cmin = first.ssd[rows, k_first].astype(np.float64)
-    cocc = first.occluded[rows, k_first].astype(np.float64)
-    c_lo, c_up = mixture_log_likelihood_bounds(cmin, meas.n_eff, cocc, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                                               meas.occlusion_weight)
-    return c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty, int(np.isfinite(cmin).sum())
+    prior = np.zeros(1) if lp is None else lp
+    if lp is None:
+        prior = np.broadcast_to(prior, (n_nodes,))
+    return best_column_bounds(first.ssd, first.occluded, first.penalty, prior, meas.cap_deg2, meas.n_eff,
+                              meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
 
 
 def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray, floor: float | None) -> _Plausible:
     """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
     within RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound
     reached elsewhere on the lattice), at least MIN_RESCORE of them."""
-    c_lo, c_up, scored = _first_pass_bounds(first, meas)
-    n_nodes = c_lo.size
-    node_lo = c_lo + lp
-    node_up = c_up + lp
+    node_lo, node_up, scored = _first_pass_bounds(first, meas, lp)
+    n_nodes = node_lo.size
     best_lo = float(np.max(node_lo)) if floor is None else max(float(np.max(node_lo)), floor)
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
