@@ -725,23 +725,27 @@ def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, resco
     best_lower_log = float(post.log_lower.ravel()[best_flat])
     log_sum_up = float(np.logaddexp.reduce((up_r + lp_r).ravel()))
     log_sum_lo = float(np.logaddexp.reduce((lo_r + lp_r).ravel()))
-    node_lower = plausible.log_lower - log_sum_up
+    # the first-pass lower bounds become the normalised map in place
+    node_lower = plausible.log_lower
+    node_lower -= log_sum_up
     node_upper = plausible.log_upper - log_sum_lo
     node_lower[rescore] = np.max(post.log_lower, axis=1)
     node_upper[rescore] = np.max(post.log_upper, axis=1)
     region = np.nonzero(node_upper >= best_lower_log)[0]
-    node_up_unnormalised = plausible.log_upper.copy()
+    # the first-pass upper bounds are not needed past this point: their array takes the rescored values
+    node_up_unnormalised = plausible.log_upper
     node_up_unnormalised[rescore] = np.max(up_r + lp_r, axis=1)
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
+    # (nil at the nodes not rescored)
     mid = 0.5 * (sig_lo + sig_hi)
-    node_mid = np.full(node_lower.size, -np.inf)
     ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
-    node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
-    log_sum_mid = float(np.logaddexp.reduce(node_mid[rescore]))
-    node_mid -= log_sum_mid
+    node_mid_r = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
+    log_sum_mid = float(np.logaddexp.reduce(node_mid_r))
+    posterior_mid = np.zeros(node_lower.size)
+    posterior_mid[rescore] = np.exp(node_mid_r - log_sum_mid)
     return _Posteriors(best_r, best_k, int(rescore[best_r]), best_lower_log,
-                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, np.exp(node_mid),
+                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, posterior_mid,
                        log_sum_lo, log_sum_up, log_sum_mid, float((lo_r + lp_r)[best_r, best_k]),
                        float((up_r + lp_r)[best_r, best_k]), node_up_unnormalised)
 
