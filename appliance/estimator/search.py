@@ -315,7 +315,25 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 for k in range(k_pad):
                     acc[k] = 0.0
                     occ[k] = 0.0
-                for t in range(d):
+                t_start = 0
+                if not rank_cap:
+                    # no finite cap, nothing is an occluder: two azimuths per pass over the shifts,
+                    # each shift's sum still taken in azimuth order
+                    for t in range(0, d - 1, 2):
+                        w0 = w[t]
+                        w1 = w[t + 1]
+                        m0 = mt[t]
+                        m1 = mt[t + 1]
+                        c_0 = cf[t : t + k_pad]
+                        v_0 = vf[t : t + k_pad]
+                        c_1 = cf[t + 1 : t + 1 + k_pad]
+                        v_1 = vf[t + 1 : t + 1 + k_pad]
+                        for k in range(k_pad):
+                            e0 = m0 - c_0[k]
+                            e1 = m1 - c_1[k]
+                            acc[k] = (acc[k] + w0 * (v_0[k] * e0 * e0)) + w1 * (v_1[k] * e1 * e1)
+                    t_start = d - d % 2
+                for t in range(t_start, d):
                     wt = w[t]
                     if wt == 0:
                         continue
@@ -330,7 +348,6 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                             acc[k] += wt * (np.float32(0.0) if hidden else q)
                             occ[k] += wt if hidden else np.float32(0.0)
                     else:
-                        # no finite cap: nothing is an occluder
                         for k in range(k_pad):
                             e = mtt - c_t[k]
                             acc[k] += wt * (v_t[k] * e * e)
