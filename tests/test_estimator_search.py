@@ -246,3 +246,37 @@ def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
     assert np.allclose(best[fin], ref[rows, k][fin], rtol=2e-5)
     assert np.allclose(occ[fin], ref_occ[rows, k][fin], rtol=2e-5, atol=1e-6)
     assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)
+
+
+@pytest.mark.parametrize("cap", [math.inf, 2.0])
+@pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-3, 5), np.arange(90)])
+def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
+    from appliance.estimator.search import ssd_coarse
+
+    rng = np.random.default_rng(8)
+    n, d = 200, 90
+    C = rng.integers(0, 255, (n, d)).astype(np.uint8)
+    C[:5, rng.choice(d, 4, replace=False)] = 255
+    C[5:8, : d // 5] = 255
+    off = rng.uniform(-2, 2, n).astype(np.float32)
+    off[8] = np.nan
+    step = rng.uniform(0.02, 0.1, n).astype(np.float32)
+    partial = np.zeros(n, dtype=bool)
+    partial[:9] = True
+    T = rng.integers(0, 120, (n, d)).astype(np.uint8)
+    w_lut = rng.uniform(0.2, 1.0, 256).astype(np.float32)
+    p_lut = rng.uniform(0.0, 2.0, 256).astype(np.float32)
+    m = off[30] + step[30] * np.roll(C[30], 2).astype(np.float64) + rng.normal(0, 0.2, d)
+    m[rng.choice(d, 6, replace=False)] = np.nan
+    w = np.where(np.isfinite(m), rng.uniform(0.5, 1.0, d), 0.0)
+    occ = np.empty((n, shifts.size), dtype=np.float32)
+    got, pen = ssd_coarse((C, partial), off, step, m, shifts, (T, w_lut, p_lut), w, cap, occ)
+    m0 = np.nan_to_num(m).astype(np.float32).astype(float)
+    ref, ref_occ, ref_pen = _every_shift_reference(C, off.astype(float), step.astype(float), m0,
+                                                   w.astype(np.float32).astype(float), T, w_lut, p_lut, cap)
+    cols = shifts % d
+    assert np.array_equal(np.isfinite(got), np.isfinite(ref[:, cols]))
+    fin = np.isfinite(got)
+    assert np.allclose(got[fin], ref[:, cols][fin], rtol=2e-5)
+    assert np.allclose(occ[fin], ref_occ[:, cols][fin], rtol=2e-5, atol=1e-6)
+    assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)

@@ -165,86 +165,132 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
     node's log-normaliser at shift 0.  A measurement above the model whose weighted square passes
-    ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k]."""
+    ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k].
+
+    Nodes are taken in blocks, their scratch rows made once per block.  A node with terrain
+    everywhere is decoded once into float rows laid out around the circle (codes and weights,
+    padded by the largest turn each way), and three shifts are scored per pass over the azimuths."""
     n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
     for t in range(d):
         n_meas += w[t]
-    for i in numba.prange(n):
-        o = offset[i]
-        pen[i] = 0.0
-        if math.isnan(o):
-            for k in range(n_shift):
-                out[i, k] = np.inf
-                occ_out[i, k] = 0.0
-            continue
-        ww = np.empty(d, dtype=np.float32)
-        if use_tau:
-            p = 0.0
-            trow = T[i]
-            for t in range(d):
-                ww[t] = w_lut[trow[t]]
-                p += w[t] * p_lut[trow[t]]
-            pen[i] = p
-        else:
-            for t in range(d):
-                ww[t] = 1.0
-        st = step[i]
-        inv = np.float32(1.0 / st)
+    # each shift as the nearest turn either way, and the padding those turns need around the circle
+    turn = np.empty(n_shift, dtype=np.int64)
+    pad_lo = 0
+    pad_hi = 0
+    for k in range(n_shift):
+        v = shifts[k] % d
+        if v > d // 2:
+            v -= d
+        turn[k] = v
+        pad_lo = max(pad_lo, -v)
+        pad_hi = max(pad_hi, v)
+    n_ext = pad_lo + d + pad_hi
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    for b in numba.prange(n_blocks):
         mt = np.empty(d, dtype=np.float32)
-        for t in range(d):
-            mt[t] = (m[t] - o) * inv
-        scale = np.float32(st * st)
-        cap_c = np.float32(cap / (st * st))
-        row = C[i]
-        for k in range(n_shift):
-            sh = shifts[k] % d
-            acc = np.float32(0.0)
-            occ = np.float32(0.0)
-            if not partial[i]:
-                # row slices, indexed by range variables: contiguous and vectorisable
-                head = row[sh:]
-                tail = row[:sh]
-                v_head = ww[sh:]
-                v_tail = ww[:sh]
-                m_head = mt[: d - sh]
-                w_head = w[: d - sh]
-                m_tail = mt[d - sh :]
-                w_tail = w[d - sh :]
-                for t in range(d - sh):
-                    e = m_head[t] - np.float32(head[t])
-                    q = v_head[t] * e * e
-                    hidden = e > 0 and q > cap_c
-                    acc += w_head[t] * (np.float32(0.0) if hidden else q)
-                    occ += w_head[t] if hidden else np.float32(0.0)
-                for t in range(sh):
-                    e = m_tail[t] - np.float32(tail[t])
-                    q = v_tail[t] * e * e
-                    hidden = e > 0 and q > cap_c
-                    acc += w_tail[t] * (np.float32(0.0) if hidden else q)
-                    occ += w_tail[t] if hidden else np.float32(0.0)
-                out[i, k] = acc * scale
-                occ_out[i, k] = occ
-            else:
-                cnt = 0.0
-                for t in range(d):
-                    ts = (t + sh) % d
-                    c = row[ts]
-                    if w[t] > 0 and c != MISSING_CODE:
-                        e = mt[t] - np.float32(c)
-                        q = ww[ts] * e * e
-                        if e > 0 and q > cap_c:
-                            occ += w[t]
-                        else:
-                            acc += w[t] * q
-                        cnt += w[t]
-                if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+        cf = np.empty(n_ext, dtype=np.float32)
+        vf = np.empty(n_ext, dtype=np.float32)
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            o = offset[i]
+            pen[i] = 0.0
+            if math.isnan(o):
+                for k in range(n_shift):
                     out[i, k] = np.inf
                     occ_out[i, k] = 0.0
-                else:
-                    out[i, k] = acc * scale * n_meas / cnt
-                    occ_out[i, k] = occ * n_meas / cnt
+                continue
+            ww = vf[pad_lo : pad_lo + d]
+            if use_tau:
+                p = 0.0
+                trow = T[i]
+                for t in range(d):
+                    ww[t] = w_lut[trow[t]]
+                    p += w[t] * p_lut[trow[t]]
+                pen[i] = p
+            else:
+                for t in range(d):
+                    ww[t] = 1.0
+            st = step[i]
+            inv = np.float32(1.0 / st)
+            for t in range(d):
+                mt[t] = (m[t] - o) * inv
+            scale = np.float32(st * st)
+            cap_c = np.float32(cap / (st * st))
+            row = C[i]
+            if not partial[i]:
+                cc = cf[pad_lo : pad_lo + d]
+                for t in range(d):
+                    cc[t] = np.float32(row[t])
+                for j in range(pad_lo):
+                    cf[j] = cf[j + d]
+                    vf[j] = vf[j + d]
+                for j in range(pad_lo + d, n_ext):
+                    cf[j] = cf[j - d]
+                    vf[j] = vf[j - d]
+                for k0 in range(0, n_shift, 3):
+                    # three shifts per pass (a last group of fewer repeats its last shift)
+                    k1 = min(k0 + 1, n_shift - 1)
+                    k2 = min(k0 + 2, n_shift - 1)
+                    c0 = cf[pad_lo + turn[k0] :]
+                    c1 = cf[pad_lo + turn[k1] :]
+                    c2 = cf[pad_lo + turn[k2] :]
+                    v0 = vf[pad_lo + turn[k0] :]
+                    v1 = vf[pad_lo + turn[k1] :]
+                    v2 = vf[pad_lo + turn[k2] :]
+                    a0 = np.float32(0.0)
+                    a1 = np.float32(0.0)
+                    a2 = np.float32(0.0)
+                    o0 = np.float32(0.0)
+                    o1 = np.float32(0.0)
+                    o2 = np.float32(0.0)
+                    for t in range(d):
+                        mm = mt[t]
+                        wt = w[t]
+                        e = mm - c0[t]
+                        q = v0[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a0 += wt * (np.float32(0.0) if h else q)
+                        o0 += wt if h else np.float32(0.0)
+                        e = mm - c1[t]
+                        q = v1[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a1 += wt * (np.float32(0.0) if h else q)
+                        o1 += wt if h else np.float32(0.0)
+                        e = mm - c2[t]
+                        q = v2[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a2 += wt * (np.float32(0.0) if h else q)
+                        o2 += wt if h else np.float32(0.0)
+                    out[i, k0] = a0 * scale
+                    occ_out[i, k0] = o0
+                    out[i, k1] = a1 * scale
+                    occ_out[i, k1] = o1
+                    out[i, k2] = a2 * scale
+                    occ_out[i, k2] = o2
+            else:
+                for k in range(n_shift):
+                    sh = shifts[k] % d
+                    acc = np.float32(0.0)
+                    occ = np.float32(0.0)
+                    cnt = 0.0
+                    for t in range(d):
+                        ts = (t + sh) % d
+                        c = row[ts]
+                        if w[t] > 0 and c != MISSING_CODE:
+                            e = mt[t] - np.float32(c)
+                            q = ww[ts] * e * e
+                            if e > 0 and q > cap_c:
+                                occ += w[t]
+                            else:
+                                acc += w[t] * q
+                            cnt += w[t]
+                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+                        out[i, k] = np.inf
+                        occ_out[i, k] = 0.0
+                    else:
+                        out[i, k] = acc * scale * n_meas / cnt
+                        occ_out[i, k] = occ * n_meas / cnt
 
 
 #: Shifts of the every-heading kernel are scored in runs of this many (the vector width times the
