@@ -55,7 +55,8 @@ def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(mo
     valid = np.isfinite(m)
     w = valid.astype(float)
     monkeypatch.setattr(est, "HEADING_BLOCK_NODES", 5)  # 42 nodes in blocks of 5
-    score, _, _, shifts = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3, math.inf, 0.0)
+    score, _, _, band, centre, n_az = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3,
+                                                                   math.inf, 0.0)
     m_dec = est.box_decimate(m, est.COARSE_STRIDE)
     w_dec = np.nan_to_num(est.box_decimate(np.where(valid, w, np.nan), est.COARSE_STRIDE))
     occ = np.empty((g.codes.shape[0], m_dec.size), dtype=np.float32)
@@ -65,8 +66,8 @@ def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(mo
     assert np.allclose(score[:, 0], direct.min(axis=1) * scale, rtol=1e-5)
     # the band to rescore is centred on the best coarse heading
     best = np.argmin(direct, axis=1) * est.COARSE_STRIDE
-    centre = shifts[:, shifts.shape[1] // 2]
-    assert np.array_equal(centre, best % N_AZ)
+    assert np.array_equal(centre % n_az, best % N_AZ)
+    assert np.array_equal(band, np.arange(-band.size // 2 + 1, band.size // 2 + 1))
 
 
 def test_node_and_heading_recovered_with_a_compass():

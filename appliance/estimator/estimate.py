@@ -326,10 +326,11 @@ HEADING_BLOCK_NODES = 1 << 20
 
 def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarray, w_grid: np.ndarray,
                               n_eff: float, sig_ref: float, cap: float, map_sigma_m: float,
-                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """No compass: every node scored at every heading of the first pass (whole runs of
     COARSE_STRIDE azimuths), keeping its best; returns the first pass's (scores, occluded weights,
-    log-normalisers) and, per node, the band of fine shifts around its best heading to rescore."""
+    log-normalisers), the band of fine shifts to rescore around each node's best heading, that
+    heading (azimuth steps) and the count of azimuths."""
     n_nodes, n_az = grid.codes.shape
     m_dec = box_decimate(m, COARSE_STRIDE)
     w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
@@ -350,11 +351,10 @@ def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarra
     # the coarse heading is good to half a run: rescore a band of fine shifts around it
     half = COARSE_STRIDE // 2 + 1
     band = np.arange(-half, half + 1)
-    node_shifts = (best_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
     best *= np.float32(scale)
     best_occ *= np.float32(scale)
     pen *= scale
-    return best[:, None], best_occ[:, None], pen, node_shifts
+    return best[:, None], best_occ[:, None], pen, band, best_arg * COARSE_STRIDE, n_az
 
 
 def _argmin_columns(a: np.ndarray) -> np.ndarray:
@@ -465,7 +465,7 @@ def estimate(
     first = _first_pass(grid, meas, heading_tolerance_deg)
     lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
     plausible = _plausible_nodes(first, meas, lp, rescore_floor)
-    rescored = _rescore(grid, meas, plausible.nodes, first.node_shifts)
+    rescored = _rescore(grid, meas, plausible.nodes, first.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
     region, rival = post.region, False
@@ -483,7 +483,7 @@ def estimate(
         region_nodes=region, region_area_m2=area, log_lower_map=post.node_lower, log_upper_map=post.node_upper,
         posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
         sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
-        candidates=plausible.scored_nodes * first.node_shifts.shape[1],
+        candidates=plausible.scored_nodes * first.band.size,
         elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
         log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
         log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
@@ -551,7 +551,16 @@ class _FirstPass:
     ssd: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weighted residual sums, deg^2
     occluded: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weight of the occluded measurements
     penalty: np.ndarray  # (n_nodes,) float64 log-normalisers
-    node_shifts: np.ndarray  # (n_nodes, n_fine_shifts) azimuth steps
+    band: np.ndarray  # (n_fine_shifts,) azimuth steps around each node's centre
+    centre: np.ndarray | None  # (n_nodes,) azimuth steps each node's band is centred on; None = 0 for all
+    n_azimuths: int
+
+    def shifts(self, rows: np.ndarray) -> np.ndarray:
+        """The fine shifts (azimuth steps) nodes ``rows`` are rescored at, (len(rows), n_fine_shifts);
+        made for those rows only."""
+        if self.centre is None:
+            return np.repeat(self.band[None, :], len(rows), axis=0)
+        return (self.centre[rows, None] + self.band[None, :]) % self.n_azimuths
 
 
 def first_pass_best(
@@ -607,7 +616,7 @@ def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance
     coarse *= np.float32(scale)
     coarse_occ *= np.float32(scale)
     coarse_pen = coarse_pen.astype(np.float64) * scale
-    return _FirstPass(coarse, coarse_occ, coarse_pen, np.broadcast_to(base_shifts, (n_nodes, base_shifts.size)))
+    return _FirstPass(coarse, coarse_occ, coarse_pen, base_shifts, None, grid.n_azimuths)
 
 
 @dataclass(frozen=True)
@@ -659,7 +668,7 @@ class _Rescored:
     moves: np.ndarray  # (n_r, 4) linearised moves: east m, north m, heading deg, eye m (0 with no parallax)
 
 
-def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, node_shifts: np.ndarray) -> _Rescored:
+def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts: np.ndarray) -> _Rescored:
     """Step 2, the second pass: the plausible nodes at every azimuth and every shift of their band;
     with parallax, each node's best shift then moved by its own first-order parallax within its cell
     (east, north in m, heading in deg, eye in m)."""
@@ -668,15 +677,15 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, node_sh
     if grid.distance_codes is not None:
         tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2,
                        meas.sigma_ref_deg, meas.map_sigma_m)
-    occ_r32 = np.empty((rescore.size, node_shifts.shape[1]), dtype=np.float32)
-    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
+    occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
+    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
     ssd_r = ssd_r.astype(np.float64)
     occ_r = occ_r32.astype(np.float64)
     pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
-    shifts_r = np.asarray(node_shifts[rescore])
+    shifts_r = np.asarray(shifts)
     moves_r = np.zeros((rescore.size, 4))
     if grid.has_parallax:
         # each node's skyline moved by its own first-order parallax within its cell: the grid's
