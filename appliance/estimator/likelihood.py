@@ -172,6 +172,8 @@ def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarr
     n_rows, n_cols = ssd.shape
     s2_lo = sigma_lo * sigma_lo
     s2_hi = sigma_hi * sigma_hi
+    log_lo = math.log(sigma_lo)
+    log_hi = math.log(sigma_hi)
     scored = 0
     for i in numba.prange(n_rows):
         k = 0
@@ -191,7 +193,9 @@ def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarr
             const = 0.0
         star = math.sqrt(max(c, 0.0) / max(n_i, 1.0))
         s_best = min(max(star, sigma_lo), sigma_hi)
-        up = -0.5 * n_i * (LOG_2PI + 2.0 * math.log(s_best)) - c / (2.0 * (s_best * s_best))
+        # at either end of the interval its logarithm is known (most nodes lie far off)
+        log_s = log_hi if s_best == sigma_hi else (log_lo if s_best == sigma_lo else math.log(s_best))
+        up = -0.5 * n_i * (LOG_2PI + 2.0 * log_s) - c / (2.0 * (s_best * s_best))
         ll_lo = -0.5 * n_i * (LOG_2PI + math.log(s2_lo)) - c / (2.0 * s2_lo)
         ll_hi = -0.5 * n_i * (LOG_2PI + math.log(s2_hi)) - c / (2.0 * s2_hi)
         lo = min(ll_lo, ll_hi)
