@@ -463,7 +463,9 @@ def estimate(
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
     first = _first_pass(grid, meas, heading_tolerance_deg)
-    lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
+    # a uniform prior is a read-only view of one zero, not an array of the grid's size
+    lp = (np.broadcast_to(0.0, (grid.codes.shape[0],)) if log_prior is None
+          else np.asarray(log_prior, dtype=np.float64))
     plausible = _plausible_nodes(first, meas, lp, rescore_floor)
     rescored = _rescore(grid, meas, plausible.nodes, first.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
@@ -615,7 +617,8 @@ def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance
                                     coarse_occ)
     coarse *= np.float32(scale)
     coarse_occ *= np.float32(scale)
-    coarse_pen = coarse_pen.astype(np.float64) * scale
+    coarse_pen = coarse_pen.astype(np.float64)
+    coarse_pen *= scale
     return _FirstPass(coarse, coarse_occ, coarse_pen, base_shifts, None, grid.n_azimuths)
 
 
