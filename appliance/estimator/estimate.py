@@ -321,7 +321,7 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
 
 
 #: Nodes per call of the every-heading first pass (each call is one parallel region).
-HEADING_BLOCK_NODES = 1 << 20
+HEADING_BLOCK_NODES = 1 << 24
 
 
 def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarray, w_grid: np.ndarray,

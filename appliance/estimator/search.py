@@ -6,10 +6,9 @@ For a candidate node and a heading correction of k azimuth steps, the residual s
 
 m on the database's azimuth grid (w = 0 where m is missing).  With a compass k spans a few steps
 around zero: a compiled loop over nodes (numba, both cores) decodes each node's uint8 skyline
-once and scores every shift on contiguous memory.  With no compass all shifts are scored at once
-as a circular cross-correlation by FFT:
-
-    SSD(k) = sum w m^2 - 2 (wm * s)(k) + (w * s^2)(k).
+once and scores every shift on contiguous memory.  With no compass every shift of a node is
+scored at once, the terms of each measured azimuth added to per-shift sums along a contiguous
+row, and only the node's best shift is kept.
 
 A database azimuth with no terrain (code 255) at a node is left out of that node's sum and the
 sum rescaled to the measured count; a node missing more than a tenth of them is not a candidate.
