@@ -83,3 +83,27 @@ def test_prior_enters_both_bounds():
     tilted = posterior_bounds(lo, up, np.log(np.array([0.9, 0.1])))
     assert math.isclose(flat.lower[0], flat.lower[1])
     assert tilted.lower[0] > flat.lower[0] > tilted.lower[1]
+
+
+def test_best_column_bounds_equal_the_numpy_form_bit_for_bit():
+    from appliance.estimator.likelihood import best_column_bounds, mixture_log_likelihood_bounds, occlusion_cap_deg2
+
+    rng = np.random.default_rng(5)
+    n_rows = 3000
+    for cols, weight in ((1, 0.0), (3, 0.0), (3, 0.2), (7, 0.05)):
+        ssd = rng.gamma(2.0, 40.0, (n_rows, cols)).astype(np.float32)
+        ssd[rng.random((n_rows, cols)) < 0.02] = np.inf  # nodes that cannot be candidates
+        ssd[::97] = ssd[::97, :1]  # ties: the first column wins
+        occ = (rng.random((n_rows, cols)) * 5).astype(np.float32)
+        pen = rng.normal(0, 3, n_rows)
+        lp = rng.normal(0, 1, n_rows)
+        cap = occlusion_cap_deg2(weight, 0.55)
+        lo, up, scored = best_column_bounds(ssd, occ, pen, lp, cap, 80.0, 0.3, 0.8, weight)
+        ranked = ssd if not math.isfinite(cap) else ssd + occ * cap
+        k = np.argmin(ranked, axis=1)
+        rows = np.arange(n_rows)
+        c, o = ssd[rows, k].astype(np.float64), occ[rows, k].astype(np.float64)
+        ref_lo, ref_up = mixture_log_likelihood_bounds(c, 80.0, o, 0.3, 0.8, weight)
+        assert np.array_equal(lo, ref_lo - 0.5 * pen + lp)
+        assert np.array_equal(up, ref_up - 0.5 * pen + lp)
+        assert scored == int(np.isfinite(c).sum())

@@ -55,7 +55,8 @@ def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(mo
     valid = np.isfinite(m)
     w = valid.astype(float)
     monkeypatch.setattr(est, "HEADING_BLOCK_NODES", 5)  # 42 nodes in blocks of 5
-    score, _, _, shifts = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3, math.inf, 0.0)
+    score, _, _, band, centre, n_az = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3,
+                                                                   math.inf, 0.0)
     m_dec = est.box_decimate(m, est.COARSE_STRIDE)
     w_dec = np.nan_to_num(est.box_decimate(np.where(valid, w, np.nan), est.COARSE_STRIDE))
     occ = np.empty((g.codes.shape[0], m_dec.size), dtype=np.float32)
@@ -65,8 +66,8 @@ def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(mo
     assert np.allclose(score[:, 0], direct.min(axis=1) * scale, rtol=1e-5)
     # the band to rescore is centred on the best coarse heading
     best = np.argmin(direct, axis=1) * est.COARSE_STRIDE
-    centre = shifts[:, shifts.shape[1] // 2]
-    assert np.array_equal(centre, best % N_AZ)
+    assert np.array_equal(centre % n_az, best % N_AZ)
+    assert np.array_equal(band, np.arange(-band.size // 2 + 1, band.size // 2 + 1))
 
 
 def test_node_and_heading_recovered_with_a_compass():
@@ -174,3 +175,109 @@ def test_the_column_argmin_is_numpys_first_minimum():
     a = rng.integers(0, 4, size=(1000, 3)).astype(np.float32)  # many ties
     a[rng.choice(1000, 50), rng.integers(0, 3, 50)] = np.inf
     assert np.array_equal(est._argmin_columns(a), np.argmin(a, axis=1))
+
+
+def _every_shift_reference(C, off, step, m, w, T, w_lut, p_lut, cap):
+    """Every node at every circular shift, in float64 numpy: the residual sums (deg^2) and occluded
+    weights as the first pass defines them, and the log-normalisers."""
+    n, d = C.shape
+    ssd = np.full((n, d), np.inf)
+    occ = np.zeros((n, d))
+    pen = np.zeros(n)
+    n_meas = w.sum()
+    for i in range(n):
+        if np.isnan(off[i]):
+            continue
+        v = w_lut[T[i]].astype(float)
+        pen[i] = np.sum(w * p_lut[T[i]])
+        mt = (m - off[i]) / step[i]
+        for k in range(d):
+            idx = (np.arange(d) + k) % d
+            c = C[i, idx].astype(float)
+            ok = (c != 255) & (w > 0)
+            e = mt - c
+            q = v[idx] * e * e
+            hidden = ok & (e > 0) & (q > cap / step[i] ** 2)
+            used = ok & ~hidden
+            cnt = w[ok].sum()
+            if cnt < 0.9 * n_meas or cnt == 0:
+                continue
+            ssd[i, k] = np.sum((w * q)[used]) * step[i] ** 2 * n_meas / cnt
+            occ[i, k] = w[hidden].sum() * n_meas / cnt
+    return ssd, occ, pen
+
+
+@pytest.mark.parametrize("cap", [math.inf, 2.0])
+def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
+    from appliance.estimator.search import ssd_coarse_best
+
+    rng = np.random.default_rng(7)
+    n, d = 300, 90
+    C = rng.integers(0, 255, (n, d)).astype(np.uint8)
+    C[:5, rng.choice(d, 4, replace=False)] = 255  # lacking terrain somewhere, still candidates
+    C[5:8, : d // 5] = 255  # lacking too much: not candidates
+    off = rng.uniform(-2, 2, n).astype(np.float32)
+    off[8] = np.nan
+    step = rng.uniform(0.02, 0.1, n).astype(np.float32)
+    partial = np.zeros(n, dtype=bool)
+    partial[:8] = True
+    partial[8] = True
+    T = rng.integers(0, 120, (n, d)).astype(np.uint8)
+    w_lut = rng.uniform(0.2, 1.0, 256).astype(np.float32)
+    p_lut = rng.uniform(0.0, 2.0, 256).astype(np.float32)
+    m = (off[20] + step[20] * np.roll(C[20], -7).astype(np.float64) + rng.normal(0, 0.2, d))
+    m[rng.choice(d, 6, replace=False)] = np.nan
+    w = np.where(np.isfinite(m), rng.uniform(0.5, 1.0, d), 0.0)
+    best, occ, arg, pen = ssd_coarse_best((C, partial), off, step, m, (T, w_lut, p_lut), w, cap)
+    m0 = np.nan_to_num(m).astype(np.float32).astype(float)
+    ref, ref_occ, ref_pen = _every_shift_reference(C, off.astype(float), step.astype(float), m0,
+                                                   w.astype(np.float32).astype(float), T, w_lut, p_lut, cap)
+    ranked = ref + (ref_occ * cap if math.isfinite(cap) else 0.0)
+    k = np.argmin(ranked, axis=1)
+    rows = np.arange(n)
+    assert np.array_equal(np.isfinite(best), np.isfinite(ref[rows, k]))
+    fin = np.isfinite(best)
+    assert fin.sum() > n - 10
+    # the chosen shift is the reference's wherever the reference's best stands clear of its second
+    second = np.sort(ranked, axis=1)[:, 1]
+    with np.errstate(invalid="ignore"):
+        clear = fin & (second - ranked[rows, k] > 1e-4 * np.abs(ranked[rows, k]))
+    assert clear.sum() > n - 20
+    assert np.array_equal(arg[clear], k[clear])
+    assert np.allclose(best[fin], ref[rows, k][fin], rtol=2e-5)
+    assert np.allclose(occ[fin], ref_occ[rows, k][fin], rtol=2e-5, atol=1e-6)
+    assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)
+
+
+@pytest.mark.parametrize("cap", [math.inf, 2.0])
+@pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-3, 5), np.arange(90)])
+def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
+    from appliance.estimator.search import ssd_coarse
+
+    rng = np.random.default_rng(8)
+    n, d = 200, 90
+    C = rng.integers(0, 255, (n, d)).astype(np.uint8)
+    C[:5, rng.choice(d, 4, replace=False)] = 255
+    C[5:8, : d // 5] = 255
+    off = rng.uniform(-2, 2, n).astype(np.float32)
+    off[8] = np.nan
+    step = rng.uniform(0.02, 0.1, n).astype(np.float32)
+    partial = np.zeros(n, dtype=bool)
+    partial[:9] = True
+    T = rng.integers(0, 120, (n, d)).astype(np.uint8)
+    w_lut = rng.uniform(0.2, 1.0, 256).astype(np.float32)
+    p_lut = rng.uniform(0.0, 2.0, 256).astype(np.float32)
+    m = off[30] + step[30] * np.roll(C[30], 2).astype(np.float64) + rng.normal(0, 0.2, d)
+    m[rng.choice(d, 6, replace=False)] = np.nan
+    w = np.where(np.isfinite(m), rng.uniform(0.5, 1.0, d), 0.0)
+    occ = np.empty((n, shifts.size), dtype=np.float32)
+    got, pen = ssd_coarse((C, partial), off, step, m, shifts, (T, w_lut, p_lut), w, cap, occ)
+    m0 = np.nan_to_num(m).astype(np.float32).astype(float)
+    ref, ref_occ, ref_pen = _every_shift_reference(C, off.astype(float), step.astype(float), m0,
+                                                   w.astype(np.float32).astype(float), T, w_lut, p_lut, cap)
+    cols = shifts % d
+    assert np.array_equal(np.isfinite(got), np.isfinite(ref[:, cols]))
+    fin = np.isfinite(got)
+    assert np.allclose(got[fin], ref[:, cols][fin], rtol=2e-5)
+    assert np.allclose(occ[fin], ref_occ[:, cols][fin], rtol=2e-5, atol=1e-6)
+    assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)

@@ -32,6 +32,7 @@ from appliance.estimator.exact import Fit, Model, PositionPrior, Terrain
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import (
+    best_column_bounds,
     mixture_log_likelihood,
     mixture_log_likelihood_bounds,
     occlusion_cap_deg2,
@@ -42,6 +43,7 @@ from appliance.estimator.search import (
     box_decimate,
     decimated,
     ssd_coarse,
+    ssd_coarse_best,
     ssd_for_shifts,
 )
 
@@ -345,44 +347,41 @@ def _distinct_nodes(nodes: np.ndarray, score: np.ndarray, n_cols: int, count: in
     return chosen
 
 
-#: Nodes per block of the every-heading first pass: (block x headings) scores stay small.
-HEADING_BLOCK_NODES = 16384
+#: Nodes per call of the every-heading first pass (each call is one parallel region).
+HEADING_BLOCK_NODES = 1 << 24
 
 
 def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarray, w_grid: np.ndarray,
                               n_eff: float, sig_ref: float, cap: float, map_sigma_m: float,
-                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """No compass: every node scored at every heading of the first pass (whole runs of
     COARSE_STRIDE azimuths), keeping its best; returns the first pass's (scores, occluded weights,
-    log-normalisers) and, per node, the band of fine shifts around its best heading to rescore."""
+    log-normalisers), the band of fine shifts to rescore around each node's best heading, that
+    heading (azimuth steps) and the count of azimuths."""
     n_nodes, n_az = grid.codes.shape
     m_dec = box_decimate(m, COARSE_STRIDE)
     w_dec = box_decimate(np.where(valid, w_grid, np.nan), COARSE_STRIDE)
     scale = n_az / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n_az, 1)
     tau_c = (grid.coarse_tau2(map_sigma_m), *parallax.tau2_tables(sig_ref)) if grid.has_parallax else None
     codes_c, partial = grid.coarse
-    shifts = np.arange(m_dec.size)
     best = np.empty(n_nodes, dtype=np.float32)
     best_occ = np.empty(n_nodes, dtype=np.float32)
     best_arg = np.empty(n_nodes, dtype=np.int64)
     pen = np.empty(n_nodes)
-    occ = np.empty((min(HEADING_BLOCK_NODES, n_nodes), shifts.size), dtype=np.float32)
+    w_dec0 = np.nan_to_num(w_dec)
     for lo in range(0, n_nodes, HEADING_BLOCK_NODES):
         hi = min(lo + HEADING_BLOCK_NODES, n_nodes)
         block_tau = None if tau_c is None else (tau_c[0][lo:hi], tau_c[1], tau_c[2])
-        o = occ[: hi - lo]
-        ssd, p = ssd_coarse((codes_c[lo:hi], partial[lo:hi]), grid.offset_deg[lo:hi], grid.step_deg[lo:hi], m_dec,
-                            shifts, block_tau, np.nan_to_num(w_dec), cap, o)
-        k = np.argmin(_capped(ssd, o, cap), axis=1)
-        rows = np.arange(hi - lo)
-        best[lo:hi], best_occ[lo:hi], best_arg[lo:hi] = ssd[rows, k], o[rows, k], k
-        pen[lo:hi] = p
+        best[lo:hi], best_occ[lo:hi], best_arg[lo:hi], pen[lo:hi] = ssd_coarse_best(
+            (codes_c[lo:hi], partial[lo:hi]), grid.offset_deg[lo:hi], grid.step_deg[lo:hi], m_dec, block_tau, w_dec0,
+            cap)
     # the coarse heading is good to half a run: rescore a band of fine shifts around it
     half = COARSE_STRIDE // 2 + 1
     band = np.arange(-half, half + 1)
-    node_shifts = (best_arg[:, None] * COARSE_STRIDE + band[None, :]) % n_az
-    return ((best * np.float32(scale))[:, None], (best_occ * np.float32(scale))[:, None], pen * scale,
-            node_shifts)
+    best *= np.float32(scale)
+    best_occ *= np.float32(scale)
+    pen *= scale
+    return best[:, None], best_occ[:, None], pen, band, best_arg * COARSE_STRIDE, n_az
 
 
 def _argmin_columns(a: np.ndarray) -> np.ndarray:
@@ -497,9 +496,11 @@ def estimate(
         first = _scored_first_pass(grid, meas, heading_tolerance_deg)
     elif not first.made_for(grid, meas, heading_tolerance_deg):
         raise ValueError("the first pass given was made for another grid, skyline or search")
-    lp = np.zeros(grid.codes.shape[0]) if log_prior is None else np.asarray(log_prior, dtype=np.float64)
-    plausible = _plausible_nodes(first, lp, rescore_floor)
-    rescored = _rescore(grid, meas, plausible.nodes, first.scores.node_shifts)
+    # a uniform prior is a read-only view of one zero, not an array of the grid's size
+    lp = (np.broadcast_to(0.0, (grid.codes.shape[0],)) if log_prior is None
+          else np.asarray(log_prior, dtype=np.float64))
+    plausible = _plausible_nodes(first.scores, meas, lp, rescore_floor)
+    rescored = _rescore(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
     region, rival = post.region, False
@@ -517,7 +518,7 @@ def estimate(
         region_nodes=region, region_area_m2=area, log_lower_map=post.node_lower, log_upper_map=post.node_upper,
         posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
         sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
-        candidates=plausible.scored_nodes * first.scores.node_shifts.shape[1],
+        candidates=plausible.scored_nodes * first.scores.band.size,
         elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
         log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
         log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
@@ -585,40 +586,45 @@ class _FirstPass:
     ssd: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weighted residual sums, deg^2
     occluded: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weight of the occluded measurements
     penalty: np.ndarray  # (n_nodes,) float64 log-normalisers
-    node_shifts: np.ndarray  # (n_nodes, n_fine_shifts) azimuth steps
+    band: np.ndarray  # (n_fine_shifts,) azimuth steps around each node's centre
+    centre: np.ndarray | None  # (n_nodes,) azimuth steps each node's band is centred on; None = 0 for all
+    n_azimuths: int
+
+    def shifts(self, rows: np.ndarray) -> np.ndarray:
+        """The fine shifts (azimuth steps) nodes ``rows`` are rescored at, (len(rows), n_fine_shifts);
+        made for those rows only."""
+        if self.centre is None:
+            return np.repeat(self.band[None, :], len(rows), axis=0)
+        return (self.centre[rows, None] + self.band[None, :]) % self.n_azimuths
 
 
 @dataclass(frozen=True)
 class FirstPass:
-    """One skyline's first pass over every node of a grid, with each node's bounds: where
-    :func:`estimate` starts.  Made once, it serves the rounds of a tiled search that all start
-    there (the pruning floor over every tile, each tile's grid search, its refinement)."""
+    """One skyline's first pass over every node of a grid: where :func:`estimate` starts.  Made
+    once, it serves the rounds of a tiled search that all start there (the pruning floor over
+    every tile, each tile's grid search, its refinement)."""
 
     grid_id: int  # id() of the grid's codes it was made on
     meas: _Measurement
     heading_tolerance_deg: float | None
     scores: _FirstPass
-    node_lower: np.ndarray  # (n_nodes,) first-pass lower log-likelihood, nats, normaliser included
-    node_upper: np.ndarray  # (n_nodes,) and upper
-    scored_nodes: int  # nodes with a finite first-pass score
 
-    @property
+    @cached_property
     def best_lower(self) -> float:
         """The best lower log-posterior (unnormalised, nats, uniform prior) of any node: what
         :func:`estimate` prunes its rescoring against.  Over the tiles of one lattice the largest of
         these is the ``rescore_floor`` that makes each tile's search rescore the nodes a search of
         the whole lattice would."""
-        return float(np.max(self.node_lower))
+        return float(np.max(_first_pass_bounds(self.scores, self.meas)[0]))
 
     @cached_property
     def nbytes(self) -> int:
         s = self.scores
-        return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + self.node_lower.nbytes
-                   + self.node_upper.nbytes)
+        return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + (0 if s.centre is None else s.centre.nbytes))
 
     def made_for(self, grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> bool:
         a, b = self.meas, meas
-        return (self.grid_id == id(grid.codes) and self.node_lower.size == grid.codes.shape[0]
+        return (self.grid_id == id(grid.codes) and self.scores.ssd.shape[0] == grid.codes.shape[0]
                 and self.heading_tolerance_deg == heading_tolerance_deg
                 and np.array_equal(a.elevation_deg, b.elevation_deg, equal_nan=True)
                 and np.array_equal(a.weight, b.weight)
@@ -645,9 +651,7 @@ def first_pass(
 
 
 def _scored_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> FirstPass:
-    scores = _first_pass(grid, meas, heading_tolerance_deg)
-    lo, up, scored = _first_pass_bounds(scores, meas)
-    return FirstPass(id(grid.codes), meas, heading_tolerance_deg, scores, lo, up, scored)
+    return FirstPass(id(grid.codes), meas, heading_tolerance_deg, _first_pass(grid, meas, heading_tolerance_deg))
 
 
 def _first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> _FirstPass:
@@ -681,8 +685,9 @@ def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance
                                     coarse_occ)
     coarse *= np.float32(scale)
     coarse_occ *= np.float32(scale)
-    coarse_pen = coarse_pen.astype(np.float64) * scale
-    return _FirstPass(coarse, coarse_occ, coarse_pen, np.broadcast_to(base_shifts, (n_nodes, base_shifts.size)))
+    coarse_pen = coarse_pen.astype(np.float64)
+    coarse_pen *= scale
+    return _FirstPass(coarse, coarse_occ, coarse_pen, base_shifts, None, grid.n_azimuths)
 
 
 @dataclass(frozen=True)
@@ -695,28 +700,26 @@ class _Plausible:
     scored_nodes: int  # nodes with a finite first-pass score
 
 
-def _first_pass_bounds(first: _FirstPass, meas: _Measurement) -> tuple[np.ndarray, np.ndarray, int]:
-    """Each node's first-pass lower and upper log-likelihood (nats, normaliser included) and the
-    count of nodes scored.  Both likelihood bounds fall as the residual grows, so each node's best
-    first-pass shift decides for the node (an occluded measurement counting the cap there)."""
+def _first_pass_bounds(first: _FirstPass, meas: _Measurement,
+                       lp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Each node's first-pass lower and upper log-likelihood (nats, normaliser included; plus the
+    log prior ``lp`` when given) and the count of nodes scored.  Both likelihood bounds fall as the
+    residual grows, so each node's best first-pass shift decides for the node (an occluded
+    measurement counting the cap there)."""
     n_nodes = first.ssd.shape[0]
-    k_first = _argmin_columns(_capped(first.ssd, first.occluded, meas.cap_deg2))
-    rows = np.arange(n_nodes)
-    cmin = first.ssd[rows, k_first].astype(np.float64)
-    cocc = first.occluded[rows, k_first].astype(np.float64)
-    c_lo, c_up = mixture_log_likelihood_bounds(cmin, meas.n_eff, cocc, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                                               meas.occlusion_weight)
-    return c_lo - 0.5 * first.penalty, c_up - 0.5 * first.penalty, int(np.isfinite(cmin).sum())
+    prior = np.zeros(1) if lp is None else lp
+    if lp is None:
+        prior = np.broadcast_to(prior, (n_nodes,))
+    return best_column_bounds(first.ssd, first.occluded, first.penalty, prior, meas.cap_deg2, meas.n_eff,
+                              meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
 
 
-def _plausible_nodes(first: FirstPass, lp: np.ndarray, floor: float | None) -> _Plausible:
+def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray, floor: float | None) -> _Plausible:
     """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
     within RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound
     reached elsewhere on the lattice), at least MIN_RESCORE of them."""
-    c_lo, c_up, scored = first.node_lower, first.node_upper, first.scored_nodes
-    n_nodes = c_lo.size
-    node_lo = c_lo + lp
-    node_up = c_up + lp
+    node_lo, node_up, scored = _first_pass_bounds(first, meas, lp)
+    n_nodes = node_lo.size
     best_lo = float(np.max(node_lo)) if floor is None else max(float(np.max(node_lo)), floor)
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
     if rescore.size < MIN_RESCORE:
@@ -736,7 +739,7 @@ class _Rescored:
     moves: np.ndarray  # (n_r, 4) linearised moves: east m, north m, heading deg, eye m (0 with no parallax)
 
 
-def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, node_shifts: np.ndarray) -> _Rescored:
+def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts: np.ndarray) -> _Rescored:
     """Step 2, the second pass: the plausible nodes at every azimuth and every shift of their band;
     with parallax, each node's best shift then moved by its own first-order parallax within its cell
     (east, north in m, heading in deg, eye in m)."""
@@ -745,15 +748,15 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, node_sh
     if grid.distance_codes is not None:
         tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2,
                        meas.sigma_ref_deg, meas.map_sigma_m)
-    occ_r32 = np.empty((rescore.size, node_shifts.shape[1]), dtype=np.float32)
-    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, node_shifts[rescore], rows=rescore,
+    occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
+    ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
     ssd_r = ssd_r.astype(np.float64)
     occ_r = occ_r32.astype(np.float64)
     pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
-    shifts_r = np.asarray(node_shifts[rescore])
+    shifts_r = np.asarray(shifts)
     moves_r = np.zeros((rescore.size, 4))
     if grid.has_parallax:
         # each node's skyline moved by its own first-order parallax within its cell: the grid's
@@ -802,23 +805,27 @@ def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, resco
     best_lower_log = float(post.log_lower.ravel()[best_flat])
     log_sum_up = float(np.logaddexp.reduce((up_r + lp_r).ravel()))
     log_sum_lo = float(np.logaddexp.reduce((lo_r + lp_r).ravel()))
-    node_lower = plausible.log_lower - log_sum_up
+    # the first-pass lower bounds become the normalised map in place
+    node_lower = plausible.log_lower
+    node_lower -= log_sum_up
     node_upper = plausible.log_upper - log_sum_lo
     node_lower[rescore] = np.max(post.log_lower, axis=1)
     node_upper[rescore] = np.max(post.log_upper, axis=1)
     region = np.nonzero(node_upper >= best_lower_log)[0]
-    node_up_unnormalised = plausible.log_upper.copy()
+    # the first-pass upper bounds are not needed past this point: their array takes the rescored values
+    node_up_unnormalised = plausible.log_upper
     node_up_unnormalised[rescore] = np.max(up_r + lp_r, axis=1)
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
+    # (nil at the nodes not rescored)
     mid = 0.5 * (sig_lo + sig_hi)
-    node_mid = np.full(node_lower.size, -np.inf)
     ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
-    node_mid[rescore] = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
-    log_sum_mid = float(np.logaddexp.reduce(node_mid[rescore]))
-    node_mid -= log_sum_mid
+    node_mid_r = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
+    log_sum_mid = float(np.logaddexp.reduce(node_mid_r))
+    posterior_mid = np.zeros(node_lower.size)
+    posterior_mid[rescore] = np.exp(node_mid_r - log_sum_mid)
     return _Posteriors(best_r, best_k, int(rescore[best_r]), best_lower_log,
-                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, np.exp(node_mid),
+                       float(post.log_upper.ravel()[best_flat]), node_lower, node_upper, region, posterior_mid,
                        log_sum_lo, log_sum_up, log_sum_mid, float((lo_r + lp_r)[best_r, best_k]),
                        float((up_r + lp_r)[best_r, best_k]), node_up_unnormalised)
 

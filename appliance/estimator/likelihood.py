@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -159,3 +160,78 @@ def mixture_log_likelihood_bounds(ssd: np.ndarray, n: float, occluded: np.ndarra
     n_g, const = _occlusion_split(n, occluded, weight)
     lo, up = log_likelihood_bounds(ssd, n_g, sigma_lo, sigma_hi)
     return lo + const, up + const
+
+
+@numba.njit(cache=True, parallel=True)
+def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarray, log_prior: np.ndarray,
+                        cap32: np.float32, rank_cap: bool, n: float, sigma_lo: float, sigma_hi: float,
+                        log_occ: float, log_clear: float, mixture: bool, lower: np.ndarray,
+                        upper: np.ndarray) -> int:
+    """The loop behind :func:`best_column_bounds`, written to round as its numpy form does (no
+    fast-math: the same operations in the same order)."""
+    n_rows, n_cols = ssd.shape
+    s2_lo = sigma_lo * sigma_lo
+    s2_hi = sigma_hi * sigma_hi
+    log_lo = math.log(sigma_lo)
+    log_hi = math.log(sigma_hi)
+    scored = 0
+    for i in numba.prange(n_rows):
+        k = 0
+        best = ssd[i, 0] + occluded[i, 0] * cap32 if rank_cap else ssd[i, 0]
+        for j in range(1, n_cols):
+            v = ssd[i, j] + occluded[i, j] * cap32 if rank_cap else ssd[i, j]
+            if v < best:
+                best = v
+                k = j
+        c = np.float64(ssd[i, k])
+        o = np.float64(occluded[i, k])
+        if mixture:
+            n_i = max(n - o, 1.0)
+            const = o * log_occ + n_i * log_clear
+        else:
+            n_i = n
+            const = 0.0
+        star = math.sqrt(max(c, 0.0) / max(n_i, 1.0))
+        s_best = min(max(star, sigma_lo), sigma_hi)
+        # at either end of the interval its logarithm is known (most nodes lie far off)
+        log_s = log_hi if s_best == sigma_hi else (log_lo if s_best == sigma_lo else math.log(s_best))
+        up = -0.5 * n_i * (LOG_2PI + 2.0 * log_s) - c / (2.0 * (s_best * s_best))
+        ll_lo = -0.5 * n_i * (LOG_2PI + math.log(s2_lo)) - c / (2.0 * s2_lo)
+        ll_hi = -0.5 * n_i * (LOG_2PI + math.log(s2_hi)) - c / (2.0 * s2_hi)
+        lo = min(ll_lo, ll_hi)
+        if math.isnan(ll_lo) or math.isnan(ll_hi):
+            lo = np.nan
+        if mixture:
+            lo = lo + const
+            up = up + const
+        half = 0.5 * penalty[i]
+        lower[i] = (lo - half) + log_prior[i]
+        upper[i] = (up - half) + log_prior[i]
+        if math.isfinite(c):
+            scored += 1
+    return scored
+
+
+def best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarray, log_prior: np.ndarray,
+                       cap_deg2: float, n: float, sigma_lo: float, sigma_hi: float,
+                       weight: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """For each row of residual sums ``ssd`` (deg^2, float32, one column per heading) and occluded
+    weights: the column of least ``ssd + cap_deg2 * occluded`` (the first of equal ones; the sum
+    alone when the cap is infinite), and that column's lower and upper log-likelihood over sigma in
+    [sigma_lo, sigma_hi] deg (:func:`mixture_log_likelihood_bounds`, ``n`` samples, occlusion
+    ``weight``), less half the row's log-normaliser ``penalty``, plus its ``log_prior`` (nats).
+    Also the count of rows whose chosen sum is finite.  Rounds as the numpy form does: one pass
+    over the rows, no temporaries of their size."""
+    if not 0 < sigma_lo <= sigma_hi:
+        raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
+    rows = ssd.shape[0]
+    lower = np.empty(rows)
+    upper = np.empty(rows)
+    mixture = weight > 0.0
+    log_occ = math.log(weight / OCCLUDER_SPAN_DEG) if mixture else 0.0
+    log_clear = math.log1p(-weight) if mixture else 0.0
+    scored = _best_column_bounds(ssd, occluded, np.asarray(penalty, dtype=np.float64),
+                                 np.asarray(log_prior, dtype=np.float64), np.float32(cap_deg2),
+                                 math.isfinite(cap_deg2), float(n), float(sigma_lo), float(sigma_hi), log_occ,
+                                 log_clear, mixture, lower, upper)
+    return lower, upper, int(scored)

@@ -6,10 +6,9 @@ For a candidate node and a heading correction of k azimuth steps, the residual s
 
 m on the database's azimuth grid (w = 0 where m is missing).  With a compass k spans a few steps
 around zero: a compiled loop over nodes (numba, both cores) decodes each node's uint8 skyline
-once and scores every shift on contiguous memory.  With no compass all shifts are scored at once
-as a circular cross-correlation by FFT:
-
-    SSD(k) = sum w m^2 - 2 (wm * s)(k) + (w * s^2)(k).
+once and scores every shift on contiguous memory.  With no compass every shift of a node is
+scored at once, the terms of each measured azimuth added to per-shift sums along a contiguous
+row, and only the node's best shift is kept.
 
 A database azimuth with no terrain (code 255) at a node is left out of that node's sum and the
 sum rescaled to the measured count; a node missing more than a tenth of them is not a candidate.
@@ -165,86 +164,312 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
     node's log-normaliser at shift 0.  A measurement above the model whose weighted square passes
-    ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k]."""
+    ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k].
+
+    Nodes are taken in blocks, their scratch rows made once per block.  A node with terrain
+    everywhere is decoded once into float rows laid out around the circle (codes and weights,
+    padded by the largest turn each way), and three shifts are scored per pass over the azimuths."""
     n, d = C.shape
     n_shift = shifts.size
     n_meas = 0.0
     for t in range(d):
         n_meas += w[t]
-    for i in numba.prange(n):
-        o = offset[i]
-        pen[i] = 0.0
-        if math.isnan(o):
-            for k in range(n_shift):
-                out[i, k] = np.inf
-                occ_out[i, k] = 0.0
-            continue
-        ww = np.empty(d, dtype=np.float32)
-        if use_tau:
-            p = 0.0
-            trow = T[i]
-            for t in range(d):
-                ww[t] = w_lut[trow[t]]
-                p += w[t] * p_lut[trow[t]]
-            pen[i] = p
-        else:
-            for t in range(d):
-                ww[t] = 1.0
-        st = step[i]
-        inv = np.float32(1.0 / st)
+    # each shift as the nearest turn either way, and the padding those turns need around the circle
+    turn = np.empty(n_shift, dtype=np.int64)
+    pad_lo = 0
+    pad_hi = 0
+    for k in range(n_shift):
+        v = shifts[k] % d
+        if v > d // 2:
+            v -= d
+        turn[k] = v
+        pad_lo = max(pad_lo, -v)
+        pad_hi = max(pad_hi, v)
+    n_ext = pad_lo + d + pad_hi
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    for b in numba.prange(n_blocks):
         mt = np.empty(d, dtype=np.float32)
-        for t in range(d):
-            mt[t] = (m[t] - o) * inv
-        scale = np.float32(st * st)
-        cap_c = np.float32(cap / (st * st))
-        row = C[i]
-        for k in range(n_shift):
-            sh = shifts[k] % d
-            acc = np.float32(0.0)
-            occ = np.float32(0.0)
-            if not partial[i]:
-                # row slices, indexed by range variables: contiguous and vectorisable
-                head = row[sh:]
-                tail = row[:sh]
-                v_head = ww[sh:]
-                v_tail = ww[:sh]
-                m_head = mt[: d - sh]
-                w_head = w[: d - sh]
-                m_tail = mt[d - sh :]
-                w_tail = w[d - sh :]
-                for t in range(d - sh):
-                    e = m_head[t] - np.float32(head[t])
-                    q = v_head[t] * e * e
-                    hidden = e > 0 and q > cap_c
-                    acc += w_head[t] * (np.float32(0.0) if hidden else q)
-                    occ += w_head[t] if hidden else np.float32(0.0)
-                for t in range(sh):
-                    e = m_tail[t] - np.float32(tail[t])
-                    q = v_tail[t] * e * e
-                    hidden = e > 0 and q > cap_c
-                    acc += w_tail[t] * (np.float32(0.0) if hidden else q)
-                    occ += w_tail[t] if hidden else np.float32(0.0)
-                out[i, k] = acc * scale
-                occ_out[i, k] = occ
-            else:
-                cnt = 0.0
-                for t in range(d):
-                    ts = (t + sh) % d
-                    c = row[ts]
-                    if w[t] > 0 and c != MISSING_CODE:
-                        e = mt[t] - np.float32(c)
-                        q = ww[ts] * e * e
-                        if e > 0 and q > cap_c:
-                            occ += w[t]
-                        else:
-                            acc += w[t] * q
-                        cnt += w[t]
-                if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+        cf = np.empty(n_ext, dtype=np.float32)
+        vf = np.empty(n_ext, dtype=np.float32)
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            o = offset[i]
+            pen[i] = 0.0
+            if math.isnan(o):
+                for k in range(n_shift):
                     out[i, k] = np.inf
                     occ_out[i, k] = 0.0
-                else:
-                    out[i, k] = acc * scale * n_meas / cnt
-                    occ_out[i, k] = occ * n_meas / cnt
+                continue
+            ww = vf[pad_lo : pad_lo + d]
+            if use_tau:
+                p = 0.0
+                trow = T[i]
+                for t in range(d):
+                    ww[t] = w_lut[trow[t]]
+                    p += w[t] * p_lut[trow[t]]
+                pen[i] = p
+            else:
+                for t in range(d):
+                    ww[t] = 1.0
+            st = step[i]
+            inv = np.float32(1.0 / st)
+            for t in range(d):
+                mt[t] = (m[t] - o) * inv
+            scale = np.float32(st * st)
+            cap_c = np.float32(cap / (st * st))
+            row = C[i]
+            if not partial[i]:
+                cc = cf[pad_lo : pad_lo + d]
+                for t in range(d):
+                    cc[t] = np.float32(row[t])
+                for j in range(pad_lo):
+                    cf[j] = cf[j + d]
+                    vf[j] = vf[j + d]
+                for j in range(pad_lo + d, n_ext):
+                    cf[j] = cf[j - d]
+                    vf[j] = vf[j - d]
+                for k0 in range(0, n_shift, 3):
+                    # three shifts per pass (a last group of fewer repeats its last shift)
+                    k1 = min(k0 + 1, n_shift - 1)
+                    k2 = min(k0 + 2, n_shift - 1)
+                    c0 = cf[pad_lo + turn[k0] :]
+                    c1 = cf[pad_lo + turn[k1] :]
+                    c2 = cf[pad_lo + turn[k2] :]
+                    v0 = vf[pad_lo + turn[k0] :]
+                    v1 = vf[pad_lo + turn[k1] :]
+                    v2 = vf[pad_lo + turn[k2] :]
+                    a0 = np.float32(0.0)
+                    a1 = np.float32(0.0)
+                    a2 = np.float32(0.0)
+                    o0 = np.float32(0.0)
+                    o1 = np.float32(0.0)
+                    o2 = np.float32(0.0)
+                    for t in range(d):
+                        mm = mt[t]
+                        wt = w[t]
+                        e = mm - c0[t]
+                        q = v0[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a0 += wt * (np.float32(0.0) if h else q)
+                        o0 += wt if h else np.float32(0.0)
+                        e = mm - c1[t]
+                        q = v1[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a1 += wt * (np.float32(0.0) if h else q)
+                        o1 += wt if h else np.float32(0.0)
+                        e = mm - c2[t]
+                        q = v2[t] * e * e
+                        h = e > 0 and q > cap_c
+                        a2 += wt * (np.float32(0.0) if h else q)
+                        o2 += wt if h else np.float32(0.0)
+                    out[i, k0] = a0 * scale
+                    occ_out[i, k0] = o0
+                    out[i, k1] = a1 * scale
+                    occ_out[i, k1] = o1
+                    out[i, k2] = a2 * scale
+                    occ_out[i, k2] = o2
+            else:
+                for k in range(n_shift):
+                    sh = shifts[k] % d
+                    acc = np.float32(0.0)
+                    occ = np.float32(0.0)
+                    cnt = 0.0
+                    for t in range(d):
+                        ts = (t + sh) % d
+                        c = row[ts]
+                        if w[t] > 0 and c != MISSING_CODE:
+                            e = mt[t] - np.float32(c)
+                            q = ww[ts] * e * e
+                            if e > 0 and q > cap_c:
+                                occ += w[t]
+                            else:
+                                acc += w[t] * q
+                            cnt += w[t]
+                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+                        out[i, k] = np.inf
+                        occ_out[i, k] = 0.0
+                    else:
+                        out[i, k] = acc * scale * n_meas / cnt
+                        occ_out[i, k] = occ * n_meas / cnt
+
+
+#: Shifts of the every-heading kernel are scored in runs of this many (the vector width times the
+#: unroll of the compiled loop), so no run ends in a scalar remainder.
+SHIFT_RUN = 32
+
+
+@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
+                     w: np.ndarray, out: np.ndarray, occ_out: np.ndarray, arg_out: np.ndarray, T: np.ndarray,
+                     w_lut: np.ndarray, p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float,
+                     rank_cap: bool) -> None:
+    """Every circular shift k = 0 .. d-1 of each node's decimated codes scored as in
+    :func:`_ssd_coarse`, keeping only the best: arg_out[i] = the k of least out + cap * occ (the first
+    of equal ones), out[i] and occ_out[i] its residual sum (deg^2) and occluded weight, pen[i] the
+    node's log-normaliser at shift 0; the cap enters the ranking only with ``rank_cap``.
+
+    All shifts are scored at once: for each measured azimuth t, the terms of every shift are added
+    to per-shift sums held in a contiguous scratch row (the node's codes and weights laid out twice
+    around the circle), so the compiled loop runs along the shifts with no reduction and each
+    shift's sum is taken in azimuth order."""
+    n, d = C.shape
+    n_meas = 0.0
+    for t in range(d):
+        n_meas += w[t]
+    k_pad = ((d + SHIFT_RUN - 1) // SHIFT_RUN) * SHIFT_RUN
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    cap32 = np.float32(cap)
+    for b in numba.prange(n_blocks):
+        ww = np.empty(d, dtype=np.float32)
+        mt = np.empty(d, dtype=np.float32)
+        cf = np.empty(d + k_pad, dtype=np.float32)
+        vf = np.empty(d + k_pad, dtype=np.float32)
+        acc = np.empty(k_pad, dtype=np.float32)
+        occ = np.empty(k_pad, dtype=np.float32)
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            o = offset[i]
+            pen[i] = 0.0
+            if math.isnan(o):
+                out[i] = np.inf
+                occ_out[i] = 0.0
+                arg_out[i] = 0
+                continue
+            if use_tau:
+                p = 0.0
+                trow = T[i]
+                for t in range(d):
+                    ww[t] = w_lut[trow[t]]
+                    p += w[t] * p_lut[trow[t]]
+                pen[i] = p
+            else:
+                for t in range(d):
+                    ww[t] = 1.0
+            st = step[i]
+            inv = np.float32(1.0 / st)
+            for t in range(d):
+                mt[t] = (m[t] - o) * inv
+            scale = np.float32(st * st)
+            cap_c = np.float32(cap / (st * st))
+            row = C[i]
+            if not partial[i]:
+                for j in range(d):
+                    cf[j] = np.float32(row[j])
+                    vf[j] = ww[j]
+                for j in range(d, d + k_pad):
+                    cf[j] = cf[j - d]
+                    vf[j] = vf[j - d]
+                for k in range(k_pad):
+                    acc[k] = 0.0
+                    occ[k] = 0.0
+                t_start = 0
+                if not rank_cap:
+                    # no finite cap, nothing is an occluder: two azimuths per pass over the shifts,
+                    # each shift's sum still taken in azimuth order
+                    for t in range(0, d - 1, 2):
+                        w0 = w[t]
+                        w1 = w[t + 1]
+                        m0 = mt[t]
+                        m1 = mt[t + 1]
+                        c_0 = cf[t : t + k_pad]
+                        v_0 = vf[t : t + k_pad]
+                        c_1 = cf[t + 1 : t + 1 + k_pad]
+                        v_1 = vf[t + 1 : t + 1 + k_pad]
+                        for k in range(k_pad):
+                            e0 = m0 - c_0[k]
+                            e1 = m1 - c_1[k]
+                            acc[k] = (acc[k] + w0 * (v_0[k] * e0 * e0)) + w1 * (v_1[k] * e1 * e1)
+                    t_start = d - d % 2
+                for t in range(t_start, d):
+                    wt = w[t]
+                    if wt == 0:
+                        continue
+                    mtt = mt[t]
+                    c_t = cf[t : t + k_pad]
+                    v_t = vf[t : t + k_pad]
+                    if rank_cap:
+                        for k in range(k_pad):
+                            e = mtt - c_t[k]
+                            q = v_t[k] * e * e
+                            hidden = e > 0 and q > cap_c
+                            acc[k] += wt * (np.float32(0.0) if hidden else q)
+                            occ[k] += wt if hidden else np.float32(0.0)
+                    else:
+                        for k in range(k_pad):
+                            e = mtt - c_t[k]
+                            acc[k] += wt * (v_t[k] * e * e)
+                best_k = 0
+                best = np.float32(np.inf)
+                for k in range(d):
+                    s = acc[k] * scale
+                    r = s + occ[k] * cap32 if rank_cap else s
+                    if r < best:
+                        best = r
+                        best_k = k
+                arg_out[i] = best_k
+                out[i] = acc[best_k] * scale
+                occ_out[i] = occ[best_k]
+            else:
+                best_k = 0
+                best = np.float32(np.inf)
+                best_s = np.float32(np.inf)
+                best_o = np.float32(0.0)
+                for sh in range(d):
+                    a = np.float32(0.0)
+                    oc = np.float32(0.0)
+                    cnt = 0.0
+                    for t in range(d):
+                        ts = (t + sh) % d
+                        c = row[ts]
+                        if w[t] > 0 and c != MISSING_CODE:
+                            e = mt[t] - np.float32(c)
+                            q = ww[ts] * e * e
+                            if e > 0 and q > cap_c:
+                                oc += w[t]
+                            else:
+                                a += w[t] * q
+                            cnt += w[t]
+                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+                        s = np.float32(np.inf)
+                        oc = np.float32(0.0)
+                    else:
+                        s = a * scale * n_meas / cnt
+                        oc = oc * n_meas / cnt
+                    r = s + oc * cap32 if rank_cap else s
+                    if r < best or (sh == 0):
+                        best = r
+                        best_k = sh
+                        best_s = s
+                        best_o = oc
+                arg_out[i] = best_k
+                out[i] = best_s
+                occ_out[i] = best_o
+
+
+def ssd_coarse_best(
+    coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
+    measured_dec: np.ndarray, tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    weights_dec: np.ndarray | None = None, cap_deg2: float = math.inf,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every node's best circular shift (decimated steps) on decimated skylines: its SSD (deg^2),
+    occluded weight, the shift, and the node's log-normaliser.  The same scores as
+    :func:`ssd_coarse` over every shift followed by the least of ``ssd + cap_deg2 * occluded`` per
+    node, without the (n_nodes, n_shifts) array; sums may differ from it in the last bits (their
+    terms are added in azimuth order)."""
+    C, partial = coarse
+    valid = np.isfinite(measured_dec)
+    m = np.where(valid, measured_dec, 0.0).astype(np.float32)
+    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
+    n = C.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    occ = np.empty(n, dtype=np.float32)
+    arg = np.empty(n, dtype=np.int64)
+    pen = np.empty(n, dtype=np.float32)
+    if tau is None:
+        T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
+    else:
+        (T, w_lut, p_lut), use = tau, True
+    _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, w_lut, p_lut, use, pen,
+                     float(min(cap_deg2, 1e30)), math.isfinite(cap_deg2))
+    return out, occ, arg, pen
 
 
 def ssd_coarse(
