@@ -403,13 +403,18 @@ def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
 
 
 def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
-              sig_hi: float, occlusion_weight: float) -> tuple[Fit, list[Fit]]:
+              sig_hi: float, occlusion_weight: float,
+              position_prior: PositionPrior | None = None) -> tuple[Fit, list[Fit]]:
     """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
-    node), and the fits at other places whose upper bound reaches it (rivals)."""
+    node, or the ``position_prior`` where there is one: the same belief, held between nodes), and
+    the fits at other places whose upper bound reaches it (rivals)."""
     ssd = np.array([f.ssd * n / max(f.n, 1) for f in fits])
     occ = np.array([f.occluded * n / max(f.n, 1) for f in fits])
     lo, up = mixture_log_likelihood_bounds(ssd, n, occ, sig_lo, sig_hi, occlusion_weight)
-    lp = np.array([log_prior[_nearest_node(grid, f.row, f.col)] for f in fits])
+    if position_prior is not None:
+        lp = np.array([-0.5 * position_prior.cost(np.array([f.row, f.col])) for f in fits])
+    else:
+        lp = np.array([log_prior[_nearest_node(grid, f.row, f.col)] for f in fits])
     lo, up = lo + lp, up + lp
     k = int(np.argmax(lo))
     best = fits[k]
@@ -874,7 +879,7 @@ def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _R
     if not fits:
         return answer, post.region, False, []
     best_fit, rivals = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                                 meas.occlusion_weight)
+                                 meas.occlusion_weight, position_prior)
     notes: list[str] = []
     if best_fit.occluded > 0.05 * best_fit.n:
         notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
