@@ -232,3 +232,28 @@ def test_bad_traverse_options_are_one_line_and_non_zero(capsys, tmp_path, argv, 
     code = main([*argv, "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and fragment in err[0]
+
+
+def test_capture_runs_a_rovers_traverse_from_the_command_line(tmp_path, capsys, window_db):
+    """`viper capture` with `[traverse] stops = 2` on the simulated platform: one log holding both
+    stops, the second fused with the first, as the daemon's sessions run it."""
+    cfg = tmp_path / "rover.toml"
+    cfg.write_text(
+        '[platform]\nkind = "sim"\n'
+        f'[session]\ndatabase = "{window_db.path}"\ntruth_duration_s = 10.0\nsettle_s = 0.2\n'
+        "[devices.camera]\nwidth = 320\nheight = 240\n"
+        "[traverse]\nstops = 2\n"
+        "[sim]\ntime_rate = 50.0\n"
+    )
+    logs = tmp_path / "logs"
+    code = main(["capture", "--config", str(cfg), "--log-dir", str(logs), "--seed", "3"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    (log,) = logs.glob("*.mcap")
+    assert f"log: {log}" in out
+    stops = [json.loads(m.data) for _, ch, m in _messages(log) if ch.topic == t.TRAVERSE_STOP]
+    assert [s["stop"] for s in stops] == [0, 1]
+    assert [s["fused"] for s in stops] == [False, True]
+    assert stops[1]["odometry"]["stop_id"] == 1
+    # within two of the database's 75 m x 92 m cells of the GPS truth
+    assert all(s["position"] is not None and s["position"]["error_m"] < 150.0 for s in stops)
