@@ -167,16 +167,6 @@ def test_fusion_resolves_what_one_panorama_cannot():
     assert fused.log_lower_map[first] - fused.log_lower_map[first + 20] > 15.0
 
 
-def test_the_column_argmin_is_numpys_first_minimum():
-    import importlib
-
-    est = importlib.import_module("appliance.estimator.estimate")
-    rng = np.random.default_rng(5)
-    a = rng.integers(0, 4, size=(1000, 3)).astype(np.float32)  # many ties
-    a[rng.choice(1000, 50), rng.integers(0, 3, 50)] = np.inf
-    assert np.array_equal(est._argmin_columns(a), np.argmin(a, axis=1))
-
-
 def _every_shift_reference(C, off, step, m, w, T, w_lut, p_lut, cap):
     """Every node at every circular shift, in float64 numpy: the residual sums (deg^2) and occluded
     weights as the first pass defines them, and the log-normalisers."""

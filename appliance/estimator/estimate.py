@@ -384,19 +384,6 @@ def _every_heading_first_pass(grid: SkylineGrid, m: np.ndarray, valid: np.ndarra
     return best[:, None], best_occ[:, None], pen, band, best_arg * COARSE_STRIDE, n_az
 
 
-def _argmin_columns(a: np.ndarray) -> np.ndarray:
-    """np.argmin(a, axis=1) for a tall array of a few columns (the first of equal minima), column by
-    column: numpy's reduction along a short row is several times slower."""
-    best = a[:, 0].copy()
-    arg = np.zeros(a.shape[0], dtype=np.int64)
-    for k in range(1, a.shape[1]):
-        col = a[:, k]
-        better = col < best
-        np.copyto(best, col, where=better)
-        arg[better] = k
-    return arg
-
-
 def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
     """Residual sums with each occluded measurement counting the cap: what ranks headings."""
     return ssd if not math.isfinite(cap) else ssd + occluded * cap
