@@ -17,6 +17,7 @@ sum rescaled to the measured count; a node missing more than a tenth of them is 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -157,6 +158,59 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[n
     return out, partial
 
 
+@numba.njit(cache=True, fastmath=FAST_FINITE)
+def _node_weights(trow: np.ndarray, w: np.ndarray, w_lut: np.ndarray, p_lut: np.ndarray, use_tau: bool,
+                  ww: np.ndarray) -> float:
+    """A node's parallax weight per decimated azimuth into ``ww`` (1 without ``use_tau``), from its
+    tau^2 codes ``trow``, and its log-normaliser at shift 0 (0 without ``use_tau``)."""
+    d = ww.size
+    p = 0.0
+    if use_tau:
+        for t in range(d):
+            ww[t] = w_lut[trow[t]]
+            p += w[t] * p_lut[trow[t]]
+    else:
+        for t in range(d):
+            ww[t] = 1.0
+    return p
+
+
+@numba.njit(cache=True, fastmath=FAST_FINITE)
+def _code_units(m: np.ndarray, offset: float, step: float, cap: float, mt: np.ndarray) -> tuple[np.float32, np.float32]:
+    """The measurements in a node's code units into ``mt``; the factor back to deg^2 and the
+    occlusion cap in code units."""
+    inv = np.float32(1.0 / step)
+    for t in range(m.size):
+        mt[t] = (m[t] - offset) * inv
+    return np.float32(step * step), np.float32(cap / (step * step))
+
+
+@numba.njit(cache=True, fastmath=FAST_FINITE)
+def _gappy_shift(row: np.ndarray, ww: np.ndarray, mt: np.ndarray, w: np.ndarray, sh: int, cap_c: np.float32,
+                 scale: np.float32, n_meas: float) -> tuple[np.float32, np.float32]:
+    """One shift of a node lacking terrain somewhere: the residual sum (deg^2) and the occluded
+    weight over the azimuths it has, rescaled to the measured weight ``n_meas``; inf (and 0) when it
+    lacks more than MAX_MISSING_FRACTION of them."""
+    d = row.size
+    acc = np.float32(0.0)
+    occ = np.float32(0.0)
+    cnt = 0.0
+    for t in range(d):
+        ts = (t + sh) % d
+        c = row[ts]
+        if w[t] > 0 and c != MISSING_CODE:
+            e = mt[t] - np.float32(c)
+            q = ww[ts] * e * e
+            if e > 0 and q > cap_c:
+                occ += w[t]
+            else:
+                acc += w[t] * q
+            cnt += w[t]
+    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
+        return np.float32(np.inf), np.float32(0.0)
+    return acc * scale * n_meas / cnt, occ * n_meas / cnt
+
+
 @numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                 w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
@@ -200,22 +254,8 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                     occ_out[i, k] = 0.0
                 continue
             ww = vf[pad_lo : pad_lo + d]
-            if use_tau:
-                p = 0.0
-                trow = T[i]
-                for t in range(d):
-                    ww[t] = w_lut[trow[t]]
-                    p += w[t] * p_lut[trow[t]]
-                pen[i] = p
-            else:
-                for t in range(d):
-                    ww[t] = 1.0
-            st = step[i]
-            inv = np.float32(1.0 / st)
-            for t in range(d):
-                mt[t] = (m[t] - o) * inv
-            scale = np.float32(st * st)
-            cap_c = np.float32(cap / (st * st))
+            pen[i] = _node_weights(T[i if use_tau else 0], w, w_lut, p_lut, use_tau, ww)
+            scale, cap_c = _code_units(m, o, step[i], cap, mt)
             row = C[i]
             if not partial[i]:
                 cc = cf[pad_lo : pad_lo + d]
@@ -269,27 +309,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                     occ_out[i, k2] = o2
             else:
                 for k in range(n_shift):
-                    sh = shifts[k] % d
-                    acc = np.float32(0.0)
-                    occ = np.float32(0.0)
-                    cnt = 0.0
-                    for t in range(d):
-                        ts = (t + sh) % d
-                        c = row[ts]
-                        if w[t] > 0 and c != MISSING_CODE:
-                            e = mt[t] - np.float32(c)
-                            q = ww[ts] * e * e
-                            if e > 0 and q > cap_c:
-                                occ += w[t]
-                            else:
-                                acc += w[t] * q
-                            cnt += w[t]
-                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
-                        out[i, k] = np.inf
-                        occ_out[i, k] = 0.0
-                    else:
-                        out[i, k] = acc * scale * n_meas / cnt
-                        occ_out[i, k] = occ * n_meas / cnt
+                    out[i, k], occ_out[i, k] = _gappy_shift(row, ww, mt, w, shifts[k] % d, cap_c, scale, n_meas)
 
 
 #: Shifts of the every-heading kernel are scored in runs of this many (the vector width times the
@@ -333,22 +353,8 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 occ_out[i] = 0.0
                 arg_out[i] = 0
                 continue
-            if use_tau:
-                p = 0.0
-                trow = T[i]
-                for t in range(d):
-                    ww[t] = w_lut[trow[t]]
-                    p += w[t] * p_lut[trow[t]]
-                pen[i] = p
-            else:
-                for t in range(d):
-                    ww[t] = 1.0
-            st = step[i]
-            inv = np.float32(1.0 / st)
-            for t in range(d):
-                mt[t] = (m[t] - o) * inv
-            scale = np.float32(st * st)
-            cap_c = np.float32(cap / (st * st))
+            pen[i] = _node_weights(T[i if use_tau else 0], w, w_lut, p_lut, use_tau, ww)
+            scale, cap_c = _code_units(m, o, step[i], cap, mt)
             row = C[i]
             if not partial[i]:
                 for j in range(d):
@@ -413,26 +419,7 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 best_s = np.float32(np.inf)
                 best_o = np.float32(0.0)
                 for sh in range(d):
-                    a = np.float32(0.0)
-                    oc = np.float32(0.0)
-                    cnt = 0.0
-                    for t in range(d):
-                        ts = (t + sh) % d
-                        c = row[ts]
-                        if w[t] > 0 and c != MISSING_CODE:
-                            e = mt[t] - np.float32(c)
-                            q = ww[ts] * e * e
-                            if e > 0 and q > cap_c:
-                                oc += w[t]
-                            else:
-                                a += w[t] * q
-                            cnt += w[t]
-                    if cnt < (1.0 - MAX_MISSING_FRACTION) * n_meas or cnt == 0:
-                        s = np.float32(np.inf)
-                        oc = np.float32(0.0)
-                    else:
-                        s = a * scale * n_meas / cnt
-                        oc = oc * n_meas / cnt
+                    s, oc = _gappy_shift(row, ww, mt, w, sh, cap_c, scale, n_meas)
                     r = s + oc * cap32 if rank_cap else s
                     if r < best or (sh == 0):
                         best = r
@@ -442,6 +429,19 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 arg_out[i] = best_k
                 out[i] = best_s
                 occ_out[i] = best_o
+
+
+def _coarse_inputs(measured_dec: np.ndarray, weights_dec: np.ndarray | None,
+                   tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
+    """The first-pass kernels' inputs: the decimated measurements (0 where missing) and their
+    weights (0 where missing) in float32, the tau^2 codes with their weight and normaliser tables,
+    and whether to use them (placeholders without ``tau``)."""
+    valid = np.isfinite(measured_dec)
+    m = np.where(valid, measured_dec, 0.0).astype(np.float32)
+    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
+    if tau is None:
+        return m, w, np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
+    return (m, w, *tau, True)
 
 
 def ssd_coarse_best(
@@ -455,18 +455,12 @@ def ssd_coarse_best(
     node, without the (n_nodes, n_shifts) array; sums may differ from it in the last bits (their
     terms are added in azimuth order)."""
     C, partial = coarse
-    valid = np.isfinite(measured_dec)
-    m = np.where(valid, measured_dec, 0.0).astype(np.float32)
-    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
+    m, w, T, w_lut, p_lut, use = _coarse_inputs(measured_dec, weights_dec, tau)
     n = C.shape[0]
     out = np.empty(n, dtype=np.float32)
     occ = np.empty(n, dtype=np.float32)
     arg = np.empty(n, dtype=np.int64)
     pen = np.empty(n, dtype=np.float32)
-    if tau is None:
-        T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
-    else:
-        (T, w_lut, p_lut), use = tau, True
     _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, w_lut, p_lut, use, pen,
                      float(min(cap_deg2, 1e30)), math.isfinite(cap_deg2))
     return out, occ, arg, pen
@@ -483,15 +477,9 @@ def ssd_coarse(
     weighs the measured azimuths (default 1); ``cap_deg2`` is the occlusion cap, and ``occluded``
     (same shape as the result) receives the weight of the measurements taken for occluders."""
     C, partial = coarse
-    valid = np.isfinite(measured_dec)
-    m = np.where(valid, measured_dec, 0.0).astype(np.float32)
-    w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
+    m, w, T, w_lut, p_lut, use = _coarse_inputs(measured_dec, weights_dec, tau)
     out = np.empty((C.shape[0], len(shifts)), dtype=np.float32)
     pen = np.empty(C.shape[0], dtype=np.float32)
-    if tau is None:
-        T, w_lut, p_lut, use = np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
-    else:
-        (T, w_lut, p_lut), use = tau, True
     occ = np.empty_like(out) if occluded is None else occluded
     _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
                 use, pen, float(min(cap_deg2, 1e30)), occ)
