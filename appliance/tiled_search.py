@@ -178,11 +178,6 @@ def box_around(lat: float, lon: float, radius_m: float, body: str) -> Box:
     return lon - dlon, max(lat - dlat, -90.0), lon + dlon, min(lat + dlat, 90.0)
 
 
-def _lon_inside(lon: float, w: float, e: float) -> bool:
-    """Whether a longitude lies in [w, e], modulo 360."""
-    return e - w >= 360.0 or (lon - w) % 360.0 <= e - w
-
-
 def select_tiles(index: TiledIndex, box: Box | None = None) -> list[TileEntry]:
     """The tiles whose candidate area meets ``box`` (W, S, E, N; None: every tile)."""
     if box is None:
@@ -454,7 +449,7 @@ class TiledEstimate:
         m_lon = min(180.0, m / max(math.cos(math.radians(min(abs(lat) + m, 90.0))), 1e-9))
         for t in index.tiles:
             w, s, e, n = t.bounds_lonlat
-            if t.file not in self.tiles_searched or not (_lon_inside(lon, w - m_lon, e + m_lon)
+            if t.file not in self.tiles_searched or not (lon_overlap(lon, lon, w - m_lon, e + m_lon)
                                                          and s - m <= lat <= n + m):
                 continue
             grid = _open_tile(str(index.folder), t, None)[0].grid
