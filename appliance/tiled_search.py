@@ -26,6 +26,7 @@ Nothing here touches devices or logs: the module maps a folder and skylines to n
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -38,12 +39,15 @@ from typing import Any
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
-from appliance.errors import DatabaseError, EstimationError, InputError
+from appliance.errors import DatabaseError, DemError, EstimationError, InputError
 from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, FirstPass, SkylineGrid, first_pass
-from appliance.position import MAX_REGION_CELLS_IN_JSON, locate, skyline_grid
+from appliance.position import MAX_REGION_CELLS_IN_JSON, crs_name, locate, skyline_grid
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
+from appliance.terrain.dem import Dem
 from appliance.terrain.grid import lon_overlap
+from appliance.terrain.mosaic import open_map
+from appliance.verification import FitSettings, Place, distinct_places, fit_place
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -390,6 +394,28 @@ class RegionCell:
     node: int
     lon: float
     lat: float
+    #: its unnormalised upper posterior times its cell's area, what ranks the contending places (the
+    #: best tile's region nodes beyond its TOP_NODES: -inf)
+    log_upper_unnormalised: float = -math.inf
+
+
+@dataclass(frozen=True)
+class SurfaceFit:
+    """The answer fitted on the map's own surface (:mod:`appliance.verification`): where, in which
+    tile's grid coordinates, the compass's error, the fit's RMS residual and how many contending
+    places were fitted."""
+
+    lat: float
+    lon: float
+    x: float
+    y: float
+    crs: str
+    tile: str
+    node: int  # the node of that tile the fit started from
+    heading_correction_deg: float
+    rms_deg: float
+    places: int
+    grid_distance_m: float  # from the grid's best place
 
 
 @dataclass(frozen=True)
@@ -410,21 +436,24 @@ class TiledEstimate:
     body: str
     elapsed_s: float
     candidates: int
+    fit: SurfaceFit | None = None  # the answer fitted on the map's own surface, where the map was at hand
 
     @property
     def tile(self) -> str:
-        return self.best.file
+        return self.best.file if self.fit is None else self.fit.tile
 
     @property
     def lat(self) -> float:
-        return self.best.lat
+        return self.best.lat if self.fit is None else self.fit.lat
 
     @property
     def lon(self) -> float:
-        return self.best.lon
+        return self.best.lon if self.fit is None else self.fit.lon
 
     @property
     def heading_correction_deg(self) -> float:
+        if self.fit is not None:
+            return self.fit.heading_correction_deg
         return float(self.best.record["heading_correction_deg"])
 
     def truth_error_m(self, truth: tuple[float, float]) -> float:
@@ -479,13 +508,19 @@ class TiledEstimate:
             "ambiguous": self.ambiguous,
             "status": self.status(index, truth),
             "tile": self.tile,
-            "tile_node": self.best.node,
+            "tile_node": self.best.node if self.fit is None else self.fit.node,
             "tiles_searched": list(self.tiles_searched),
             "tile_share": {k: round(v, 6) for k, v in self.tile_share.items()},
             "candidates": self.candidates,
             "elapsed_ms": round(self.elapsed_s * 1e3, 2),
             "notes": list(self.notes),
         })
+        if self.fit is not None:
+            f = self.fit
+            out.update({"lat": round(f.lat, 8), "lon": round(f.lon, 8), "x": round(f.x, 3), "y": round(f.y, 3),
+                        "crs": f.crs, "heading_correction_deg": round(f.heading_correction_deg, 3),
+                        "rms_residual_deg": round(f.rms_deg, 4),
+                        "surface_fit": {"places": f.places, "grid_distance_m": round(f.grid_distance_m, 1)}})
         if truth is not None:
             out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(self.truth_error_m(truth), 2)}
         return out
@@ -536,6 +571,8 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
         keep = bound >= best_lower
         nodes = set(int(v) for v in o.top_nodes[keep])
         lonlat = {int(v): (float(p[0]), float(p[1])) for v, p in zip(o.top_nodes[keep], o.top_lonlat[keep])}
+        upper = {int(v): float(u) + o.log_cell_area for v, u in zip(o.top_nodes[keep],
+                                                                      o.top_log_upper_unnormalised[keep])}
         if o is best:
             for v, p in zip(o.region_nodes, o.region_lonlat):
                 lonlat.setdefault(int(v), (float(p[0]), float(p[1])))
@@ -545,7 +582,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                                       others(ev_lo, i))[0]
         if o.left_max_log_upper > -math.inf and left >= best_lower:
             overflowed.append(o.file)
-        cells = [RegionCell(o.file, v, *lonlat[v]) for v in sorted(nodes)]
+        cells = [RegionCell(o.file, v, *lonlat[v], upper.get(v, -math.inf)) for v in sorted(nodes)]
         region += cells
         area += math.exp(o.log_cell_area) * len(cells)
         if cells and o is not best and not rival:
@@ -571,8 +608,72 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                          sum(o.candidates for o in ok))
 
 
+#: Contending places fitted on a whole-body database's map (:func:`fit_on_surface`).  The place a
+#: skyline was seen from ranked first to seventh among the distinct places of the facets' region at
+#: most positions of the bench, but 17th and 20th at two places near 80 deg, where the region
+#: holds 20,000 cells.
+SURFACE_PLACES = 24
+
+
+def open_surface(index: TiledIndex) -> tuple[Dem | None, str | None]:
+    """The map a whole-body database was built from (its index's ``surface``), if it is still where
+    it was and unchanged: (map, None), else (None, why not).  (None, None) for a database that
+    records no map: a regional one, whose tiles lie on the map's own lattice."""
+    rec = index.raw.get("surface")
+    if rec is None:
+        return None, None
+    if not (isinstance(rec, dict) and isinstance(rec.get("path"), str) and isinstance(rec.get("sha256"), str)
+            and (rec.get("crs") is None or isinstance(rec.get("crs"), str))):
+        raise _bad(index.folder, f"{INDEX_NAME} has a malformed 'surface'")
+    path = Path(rec["path"])
+    if not path.is_file():
+        return None, f"its map {path} is not there"
+    try:
+        source = open_map([str(path)], None, rec.get("crs"))
+        if source.sha256 != rec["sha256"]:
+            return None, f"its map {path} has changed since the build"
+        return source.load(), None
+    except DemError as exc:
+        return None, f"its map {path} cannot be read ({exc})"
+
+
+def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline: Skyline,
+                   params: SearchParams) -> TiledEstimate | None:
+    """``est`` (the facets' grid answer) with its answer fitted on the map's own surface: the
+    contending places (the best, then the region's distinct places by upper posterior, at most
+    SURFACE_PLACES) each fitted between nodes on renders of the map, the best fit kept
+    (:mod:`appliance.verification`).  The posterior bounds and the region stay the grid's; a fit
+    farther than SAME_ANSWER_CELLS from the grid's best makes the answer ambiguous.  None where no
+    place can be fitted."""
+    spacing = max(est.best.cell_size_m)
+    ranked = [Place(est.best.file, est.best.node, est.best.lat, est.best.lon)]
+    ranked += [Place(c.tile, c.node, c.lat, c.lon) for c in sorted(est.region, key=lambda c: -c.log_upper_unnormalised)]
+    places = distinct_places(ranked, SURFACE_PLACES, SAME_ANSWER_CELLS * spacing, surface)
+    settings = FitSettings(index.height_m if params.height_m is None else params.height_m, index.n_azimuths,
+                           index.max_range_m, index.raw.get("refraction"), spacing, params.sigma_deg,
+                           params.heading_tolerance_deg, params.occlusion_weight, params.map_sigma_m)
+    fits = [f for f in (fit_place(surface, skyline, p, settings) for p in places) if f is not None]
+    if not fits:
+        return None
+    w = min(fits, key=lambda f: f.cost)
+    tile = next(t for t in index.tiles if t.file == w.place.tile)
+    db = _open_tile(str(index.folder), tile, None)[0]
+    x, y = db.grid.lonlat_to_xy(w.lon, w.lat)
+    off = geodesic_distance_m(est.best.lat, est.best.lon, w.lat, w.lon, body_named(index.body))
+    notes = list(est.notes) + [f"fitted on the map's own surface: {len(fits)} contending place(s), the best "
+                               f"{w.rms_deg:.2f} deg RMS"]
+    ambiguous = est.ambiguous
+    if off > SAME_ANSWER_CELLS * spacing:
+        ambiguous = True
+        notes.append(f"ambiguous: fitted on the map's own surface, the skyline lies {off / 1000:.1f} km from the "
+                     f"grid's best place (in {est.best.file})")
+    fit = SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
+                     w.heading_correction_deg, w.rms_deg, len(fits), off)
+    return dataclasses.replace(est, fit=fit, ambiguous=ambiguous, notes=notes)
+
+
 def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box: Box | None = None,
-                 client: Any = None, source: str = "") -> TiledEstimate:
+                 client: Any = None, source: str = "", surface: Dem | None = None) -> TiledEstimate:
     """Search the tiles that ``box`` meets (every tile with None) and combine them.
 
     First every tile's best first-pass lower bound, the largest of which each tile's rescoring is
@@ -586,7 +687,11 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     other tiles (most of a hopeless tile's time: it finds no fit to stop at) would change nothing.
     With a ``distributed.Client`` every tile is one task of each round on its cluster,
     each worker mapping its own tile; without one the tiles are searched here, one after the other.
-    The combination is the same either way, so the answer is too."""
+    The combination is the same either way, so the answer is too.
+
+    With the ``surface`` a whole-body database was built from (:func:`open_surface`), the answer is
+    fitted on that map itself instead of refined on the facets' resampled grid
+    (:func:`fit_on_surface`)."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
     placed: dict[str, str] = {}
@@ -594,7 +699,12 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     floor = max(floors, default=-math.inf)
     first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor,
                  placed=placed)
-    best = combine(first, index.body).tile
+    grid_answer = combine(first, index.body)
+    if surface is not None:
+        fitted = fit_on_surface(index, grid_answer, surface, skyline, params)
+        if fitted is not None:
+            return dataclasses.replace(fitted, elapsed_s=time.perf_counter() - t0)
+    best = grid_answer.tile
     refined = _run(index, search_tile, [t for t in tiles if t.file == best], client, skyline, params, source,
                    True, rescore_floor=floor, placed=placed)
     outcomes = refined + [o for o in first if o.file != best]

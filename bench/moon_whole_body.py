@@ -36,7 +36,7 @@ from appliance.terrain.database import load_database  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.terrain.mosaic import open_map  # noqa: E402
 from appliance.terrain.whole_body import build_whole_body, default_spacing_m  # noqa: E402
-from appliance.tiled_search import SearchParams, box_around, locate_tiled, open_tiled  # noqa: E402
+from appliance.tiled_search import SURFACE_PLACES, SearchParams, box_around, locate_tiled, open_surface, open_tiled  # noqa: E402
 
 LOLA = HERE.parent.parent / "shared" / "data" / "dem_planetary" / "LDEM_4.LBL"
 PARAMS = SearchParams((0.3, 1.2), 4.0)
@@ -66,6 +66,7 @@ def main() -> int:
     ap.add_argument("--max-range", type=float, default=150_000.0)
     ap.add_argument("--box-km", type=float, default=100.0)
     ap.add_argument("--seed", type=int, default=17)
+    ap.add_argument("--grid-only", action="store_true", help="answers on the facets' grid, not fitted on the map")
     args = ap.parse_args()
     from distributed import Client, LocalCluster
 
@@ -87,6 +88,9 @@ def main() -> int:
             write_text_atomic(stats_path, json.dumps(stats, indent=1))
         stats = json.loads(stats_path.read_text())
         index = open_tiled(folder)
+        surface, why_not = (None, "--grid-only") if args.grid_only else open_surface(index)
+        if surface is None:
+            print(f"answers stay on the facets' grid: {why_not}", flush=True)
         nodes = 0
         storage = 0
         for t in index.tiles:
@@ -102,7 +106,8 @@ def main() -> int:
         rows: list[dict] = []
 
         def write() -> None:
-            write_text_atomic(out, report(rows, index, nodes, storage, stats, spacing, args, load_before))
+            write_text_atomic(out, report(rows, index, nodes, storage, stats, spacing, args, load_before,
+                                          surface is not None))
 
         skies = [measured(dem, float(lat), float(lon), index.max_range_m, np.random.default_rng(args.seed * 1000 + k))
                  for k, (lat, lon) in enumerate(zip(lats, lons))]
@@ -112,7 +117,8 @@ def main() -> int:
             row: dict = {"lat": float(lat), "lon": float(lon), "relief": float(np.nanmax(sky.elevation_deg)
                                                                               - np.nanmin(sky.elevation_deg))}
             t0 = time.perf_counter()
-            r = locate_tiled(index, sky, PARAMS, box=box_around(float(lat), float(lon), args.box_km * 1e3, "moon"))
+            r = locate_tiled(index, sky, PARAMS, box=box_around(float(lat), float(lon), args.box_km * 1e3, "moon"),
+                             surface=surface)
             row["box"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
                           r.ambiguous, len(r.tiles_searched))
             rows.append(row)
@@ -122,7 +128,7 @@ def main() -> int:
             if k >= args.whole_positions:
                 break
             t0 = time.perf_counter()
-            r = locate_tiled(index, skies[k], PARAMS, client=client)
+            r = locate_tiled(index, skies[k], PARAMS, client=client, surface=surface)
             rows[k]["whole"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
                                 r.ambiguous, len(r.tiles_searched))
             print(k, "whole", [round(v, 2) if isinstance(v, float) else v for v in rows[k]["whole"]], flush=True)
@@ -131,7 +137,7 @@ def main() -> int:
 
 
 def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spacing: float,
-           args: argparse.Namespace, load_before: str) -> str:
+           args: argparse.Namespace, load_before: str, fitted: bool) -> str:
     cell2 = 2.0 * spacing
     lines = [
         "# The LOLA Moon as a whole-body tiled database",
@@ -158,6 +164,10 @@ def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spaci
         f"one-degree azimuths, compass error uniform within +-{COMPASS_DEG:.0f} deg, noise {NOISE_DEG} deg "
         f"(Gaussian); estimator sigma {PARAMS.sigma_deg}, heading tolerance {PARAMS.heading_tolerance_deg} deg. "
         f"Within two cells: geodesic error <= {cell2 / 1000:.2f} km (twice the facets' spacing).",
+        "",
+        ("Answers fitted on the map's own surface (up to "
+         f"{SURFACE_PLACES} contending places of the facets' region, appliance/verification.py)." if fitted else
+         "Answers on the facets' grid alone (refined on the facets' resampled surface), not fitted on the map."),
         "",
         f"Load before the estimates (uptime): {load_before}",
         "",

@@ -15,8 +15,8 @@ import pytest
 
 from appliance.bodies import MOON, geodesic_distance_m
 from appliance.cli.main import main
-from appliance.errors import InputError
-from appliance.skyline import Skyline
+from appliance.errors import DatabaseError, InputError
+from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline
@@ -29,7 +29,8 @@ from appliance.terrain.whole_body import (
     facets_meeting,
     plan_facets,
 )
-from appliance.tiled_search import SearchParams, locate_tiled, open_tiled, select_tiles
+from appliance.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
+from appliance.verification import Place, distinct_places
 from tests.conftest import data_file
 
 distributed = pytest.importorskip("distributed")
@@ -270,6 +271,95 @@ def test_estimate_in_the_cap_within_two_cells(moon, cap_db):
         res = locate_tiled(index, _read(db.azimuths_deg, db.skylines_deg(node), seed), PARAMS)
         assert res.truth_error_m((float(n_lat), float(n_lon))) <= 2.0 * db.grid.dx_m
         assert geodesic_distance_m(lat, lon, res.lat, res.lon, dem.body) <= 3.0 * db.grid.dx_m
+
+
+def test_index_records_the_map_for_fits_on_its_surface(moon, seam_db, tmp_path):
+    source, dem = moon
+    index = open_tiled(seam_db)
+    rec = index.raw["surface"]
+    assert rec["path"] == str(data_file(LOLA).resolve()) and rec["sha256"] == source.sha256
+    surface, why_not = open_surface(index)
+    assert why_not is None and surface is not None and surface.shape == dem.shape
+    # a map moved away or changed since the build: the search stays on the grid, and says why
+    moved = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m, index.body,
+                       {**index.raw, "surface": {**rec, "path": str(tmp_path / "gone.LBL")}})
+    assert open_surface(moved) == (None, f"its map {tmp_path / 'gone.LBL'} is not there")
+    changed = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m, index.body,
+                         {**index.raw, "surface": {**rec, "sha256": "0" * 64}})
+    surface, why_not = open_surface(changed)
+    assert surface is None and "has changed since the build" in str(why_not)
+    bad = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m, index.body,
+                     {**index.raw, "surface": {"path": 3}})
+    with pytest.raises(DatabaseError, match="malformed 'surface'"):
+        open_surface(bad)
+    regional = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m,
+                          index.body, {k: v for k, v in index.raw.items() if k != "surface"})
+    assert open_surface(regional) == (None, None)
+
+
+def test_fit_on_the_maps_surface_finds_the_renderers_skyline_in_the_cap(moon, cap_db):
+    """The exact renderer's skyline near 80 deg, where the cap's grid smooths the map's 1.3 km
+    east-west pixels and its own skylines stand 0.3-1 deg off the renderer's: fitted on the map
+    itself, the answer lands within two cells, the compass's error is recovered, and the fit's
+    residual is the noise's."""
+    _, dem = moon
+    index = open_tiled(cap_db)
+    surface, why_not = open_surface(index)
+    assert why_not is None
+    cell = load_database(index.path(index.tiles[0])).grid.dx_m
+    az = np.arange(360.0)
+    for lat, lon, seed in ((80.0, 200.3, 3), (79.6, 20.0, 4), (81.0, 300.0, 5)):
+        sky = _read(az, render_skyline(dem, lat, lon, HEIGHT_M, az, index.max_range_m).elevation_deg, seed)
+        err_deg = np.random.default_rng(seed).uniform(-4.0, 4.0)
+        res = locate_tiled(index, sky, PARAMS, surface=surface)
+        assert res.fit is not None
+        assert res.truth_error_m((lat, lon)) <= 2.0 * cell
+        assert abs(res.heading_correction_deg - err_deg) < 0.5
+        assert res.fit.rms_deg < 0.3
+        rec = res.to_json(index, (lat, lon))
+        assert (rec["lat"], rec["lon"]) == (round(res.lat, 8), round(res.lon, 8))
+        assert rec["surface_fit"]["places"] == res.fit.places >= 1
+        assert rec["status"] == ("ambiguous" if res.ambiguous else "ok")
+
+
+def test_estimate_command_fits_on_the_recorded_map_or_warns(moon, cap_db, tmp_path, capsys):
+    _, dem = moon
+    lat, lon = 80.0, 200.3
+    index = open_tiled(cap_db)
+    az = np.arange(360.0)
+    sky_path = tmp_path / "sky.csv"
+    write_skyline_csv(_read(az, render_skyline(dem, lat, lon, HEIGHT_M, az, index.max_range_m).elevation_deg, 3),
+                      sky_path)
+    assert main(["estimate", str(cap_db), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                 "--heading-tolerance", "4"]) == 0
+    fitted = json.loads(capsys.readouterr().out.strip())
+    assert "surface_fit" in fitted
+    assert geodesic_distance_m(lat, lon, fitted["lat"], fitted["lon"], dem.body) <= 2.0 * fitted["region"][
+        "cell_size_m"][0]
+    # the same database after its map went away: the grid's answer, with a warning
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for t in index.tiles:
+        (moved / t.file).symlink_to(index.path(t))
+    raw = dict(index.raw, surface={**index.raw["surface"], "path": str(tmp_path / "gone.LBL")})
+    (moved / "index.json").write_text(json.dumps(raw))
+    assert main(["estimate", str(moved), str(sky_path), "--json", "--sigma", "0.3,1.2",
+                 "--heading-tolerance", "4"]) == 0
+    out = capsys.readouterr()
+    grid = json.loads(out.out.strip())
+    assert "surface_fit" not in grid and "not fitted on the map's own surface" in out.err
+    assert f"{tmp_path / 'gone.LBL'} is not there" in out.err
+
+
+def test_distinct_places_keep_the_likeliest_of_each_neighbourhood(moon):
+    _, dem = moon
+    # along the equator, 1 deg of longitude is 30.3 km on the Moon
+    ranked = [Place("a", 0, 0.0, 10.0), Place("a", 1, 0.0, 10.1), Place("b", 2, 0.0, 12.0), Place("a", 3, 0.0, 9.95),
+              Place("b", 4, 0.0, 12.05), Place("c", 5, 0.0, 14.0)]
+    assert [p.node for p in distinct_places(ranked, 5, 5000.0, dem)] == [0, 2, 5]
+    assert [p.node for p in distinct_places(ranked, 2, 5000.0, dem)] == [0, 2]
+    assert [p.node for p in distinct_places(ranked, 9, 1000.0, dem)] == [0, 1, 2, 3, 4, 5]
+    assert distinct_places([], 3, 1000.0, dem) == []
 
 
 def test_whole_body_refusals(moon, tmp_path, capsys):

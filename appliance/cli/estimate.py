@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import math
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -172,7 +173,7 @@ def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[
                tolerance: float | None) -> int:
     """``viper estimate`` on a tiled database: every skyline searched over the tiles its search area
     meets (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
-    from appliance.tiled_search import SearchParams, box_around, locate_tiled, open_tiled
+    from appliance.tiled_search import SearchParams, box_around, locate_tiled, open_surface, open_tiled
 
     if args.fuse or args.report:
         raise InputError(f"{'--fuse' if args.fuse else '--report'} is not available with a tiled database; "
@@ -187,8 +188,12 @@ def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[
         box = box_around(lat, lon, radius_m, index.body)
     params = SearchParams(cfg.sigma_deg, tolerance, _checked_height(args.height), cfg.occlusion_weight,
                           cfg.map_vertical_sigma_m)
+    surface, why_not = open_surface(index)
+    if why_not is not None:
+        print(f"viper estimate: warning: {args.db}: estimates stay on the facets' grid, not fitted on the map's "
+              f"own surface: {why_not}", file=sys.stderr)
     with _dask_client(args.scheduler, args.workers) as client:
-        results = [locate_tiled(index, sky, params, box, client, name) for name, sky in skylines]
+        results = [locate_tiled(index, sky, params, box, client, name, surface) for name, sky in skylines]
     for i, (res, (name, _)) in enumerate(zip(results, skylines)):
         truth = truths[i] if truths else None
         record = res.to_json(index, truth)

@@ -41,6 +41,8 @@ ROBUST_SCALE = 3.0
 #: The parameters' spread (cells) when a fit starts, and its shrinking at every iteration.
 START_SPREAD_CELLS = 0.4
 ANNEAL = 0.1
+#: How far either side of its start heading a look scans (deg, in steps of 0.1).
+SCREEN_SCAN_DEG = 8.0
 #: How far (cells) a fit may wander from the node it started at.
 MAX_OFFSET_CELLS = 2.0
 
@@ -50,7 +52,12 @@ class Terrain:
     """The heights under a node grid, for exact renders between nodes.
 
     ``heights_m`` has the node grid's spacing; candidate node (0, 0) is its (row0, col0).
-    ``convergence_deg[node]`` is the true azimuth of grid north at the node."""
+    ``convergence_deg[node]`` is the true azimuth of grid north at the node.
+
+    With an ``outer`` grid (``outer_ratio`` times coarser, both grids centred on the same point,
+    each of odd size), this one is marched out to ``near_reach_m`` and the outer one beyond: fine
+    heights near the eye, where a camera close to the ground sees the slopes under it, and coarse
+    ones farther away, where a cell subtends little."""
 
     heights_m: np.ndarray
     row0: int
@@ -59,6 +66,16 @@ class Terrain:
     height_m: float
     r_eff_m: float
     reach_m: float
+    outer: Terrain | None = None
+    outer_ratio: float = 1.0
+    near_reach_m: float = math.inf
+
+    def outer_rc(self, row: float, col: float) -> tuple[float, float]:
+        """The outer grid's fractional (row, col) of this grid's (row, col) (heights' indices)."""
+        assert self.outer is not None
+        c_in = 0.5 * (self.heights_m.shape[0] - 1)
+        c_out = 0.5 * (self.outer.heights_m.shape[0] - 1)
+        return c_out + (row - c_in) / self.outer_ratio, c_out + (col - c_in) / self.outer_ratio
 
     @cached_property
     def block_max(self) -> np.ndarray:
@@ -164,8 +181,23 @@ def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, g
     far = np.empty(grid_azimuth_deg.size)
     if not math.isfinite(ground):
         return np.full(grid_azimuth_deg.size, np.nan), far, ground
-    march(Z, dx_m, dy_m, tr, tc, ground + height_m, np.radians(grid_azimuth_deg), dist, terrain.r_eff_m,
+    az = np.radians(grid_azimuth_deg)
+    outer = terrain.outer
+    if outer is None:
+        march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
+              tan, far)
+        return np.degrees(np.arctan(tan)), far, ground
+    march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
           terrain.block_max, BLOCK_CELLS, tan, far)
+    ratio = terrain.outer_ratio
+    beyond = outer.distances(min(dx_m, dy_m) * ratio)
+    tan_o = np.empty(az.size)
+    far_o = np.empty(az.size)
+    march(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
+          beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
+    take = np.isfinite(tan_o) & ~(tan >= tan_o)
+    tan = np.where(take, tan_o, tan)
+    far = np.where(take, far_o, far)
     return np.degrees(np.arctan(tan)), far, ground
 
 
@@ -216,7 +248,7 @@ def screen(
     filled = np.interp(az, az[ok_s], s[ok_s], period=360.0)
     dz = np.interp(az, az[ok_s], -DEG * np.cos(np.radians(s[ok_s])) ** 2 / d[ok_s], period=360.0)
     lo, hi = heading_bounds_deg
-    trial = heading_deg + np.arange(-8.0, 8.0 + 1e-9, 0.1)
+    trial = heading_deg + np.arange(-SCREEN_SCAN_DEG, SCREEN_SCAN_DEG + 1e-9, 0.1)
     trial = trial[(trial >= lo) & (trial <= hi)]
     if trial.size == 0:
         trial = np.array([min(max(heading_deg, lo), hi)])
@@ -276,6 +308,8 @@ def refine(
     heading_bounds_deg: tuple[float, float] = (-180.0, 180.0),
     model: Model | None = None,
     position_prior: PositionPrior | None = None,
+    max_offset_cells: float = MAX_OFFSET_CELLS,
+    start_spread_cells: float = START_SPREAD_CELLS,
 ) -> Fit | None:
     """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
     NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
@@ -284,7 +318,9 @@ def refine(
     the measurement weights, the occlusion cap and the map's vertical error; the fit's ``ssd`` is
     its cost (:meth:`Model.cost`).  A ``position_prior`` (a traverse's transported belief) adds its
     Mahalanobis term to what the fit minimises, so the answer between nodes weighs the odometry as
-    the grid's posterior does; ``ssd`` stays the measurements' own cost."""
+    the grid's posterior does; ``ssd`` stays the measurements' own cost.  The fit stays within
+    ``max_offset_cells`` of the node along each axis; ``start_spread_cells`` is the position's
+    spread when the annealing starts (below)."""
     mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
@@ -307,8 +343,8 @@ def refine(
         return float(mdl.cost(r, u)) * n_valid / ok.sum(), r, s, d, ok
 
     def clamp(q: np.ndarray) -> np.ndarray:
-        q[0] = min(max(q[0], node_row - MAX_OFFSET_CELLS), node_row + MAX_OFFSET_CELLS)
-        q[1] = min(max(q[1], node_col - MAX_OFFSET_CELLS), node_col + MAX_OFFSET_CELLS)
+        q[0] = min(max(q[0], node_row - max_offset_cells), node_row + max_offset_cells)
+        q[1] = min(max(q[1], node_col - max_offset_cells), node_col + max_offset_cells)
         q[2] = min(max(q[2], lo_h), hi_h)
         return q
 
@@ -323,7 +359,7 @@ def refine(
     # spread shrinks and every azimuth counts fully.  Cauchy weights keep a ridge that jumped to
     # another one near the eye from pulling the fit.
     eye2 = mdl.eye_sigma_m**2
-    spread = np.array([START_SPREAD_CELLS**2, START_SPREAD_CELLS**2, (0.5 * step) ** 2, eye2])
+    spread = np.array([start_spread_cells**2, start_spread_cells**2, (0.5 * step) ** 2, eye2])
     P = np.zeros((4, 4))
     P[3, 3] = 1.0 / eye2
     mu = np.zeros(4)

@@ -275,6 +275,8 @@ def build_whole_body(
         "refraction": refr,
         "body": dem.body.name.value,
         "sources": [{"name": n, "sha256": s} for n, s in source.sources],
+        # where the map itself stays, for the search's fits on its own surface (appliance.tiled_search)
+        "surface": {"path": str(Path(source.path).resolve()), "crs": source.crs, "sha256": source.sha256},
     }
     jobs = [TileJob(f.file, _lattice_entry(grids[f.file]), build_facet,
                     (source, str(out.resolve()), f, spacing, params)) for f in facets]

@@ -1,0 +1,285 @@
+"""Exact fits of a whole-body search's contending places on the source map's own surface.
+
+A whole-body database's facets resample the map onto their own grids
+(:mod:`appliance.terrain.whole_body`).  A camera 1.5 m above a map of 7.6 km pixels sees mostly the
+slopes under it, and the resampled surface's slopes differ from the map's: the facets' skylines
+stand 0.1-0.6 deg RMS off the map's own, and between nodes 3.8 km apart the skyline changes by more
+than the measurement's noise.  The grid search can then rank a place hundreds of km away above the
+place the skyline was seen from, both inside its region (neither ruled out).
+
+Each contending place is therefore fitted between nodes on renders of the map itself: a local
+grid around it in an azimuthal equidistant frame, a few cells per node spacing and per map pixel
+(:func:`local_cell_m`), whose bilinear surface follows the map's; a few looks around the node (one
+render each, every heading the compass allows), then the exact refinement
+(:func:`appliance.estimator.exact.refine`) from the best of them.  The place whose fit explains the
+skyline best is the answer.  The fits only choose among places the database could not rule out;
+the posterior bounds, the region and whether the answer is ambiguous stay the grid's.
+
+Nothing here touches devices or logs: a map, places and a skyline in, fits out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pyproj import Transformer
+
+from appliance.estimator.estimate import resample_to_grid
+from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Model, Terrain, refine, render, screen
+from appliance.estimator.likelihood import occlusion_cap_deg2
+from appliance.skyline import Skyline
+from appliance.terrain.dem import Dem
+from appliance.terrain.horizon import local_aeqd
+
+#: The local grid's cell: a quarter of the node spacing, and a quarter of the map's pixel where
+#: that is smaller (near the poles a longitude pixel narrows: 1.3 km at 80 deg on the LOLA map),
+#: but not below a sixteenth of the node spacing.  Sampled so, the map's bilinear surface read
+#: bilinearly again gives skylines within 0.01-0.1 deg of the map's own at most places (0.2-0.4
+#: deg where the eye's near slopes are steep; 0.15-0.2 deg at 80 deg with the node's quarter).
+FINE_PER_NODE = 4
+FINE_PER_PIXEL = 4
+MAX_FINE_PER_NODE = 16
+#: Where the pixel asks for a finer cell than the node's quarter, that cell holds out to NEAR_NODES
+#: node spacings from the eye and the node's quarter beyond (the heights' detail matters near at
+#: hand); each grid reaches MARGIN_NODES farther, for eyes off the place's node.
+NEAR_NODES = 10
+MARGIN_NODES = 2
+#: Looks around a place's node, in node spacings: a lattice LOOK_STEP_NODES apart out to
+#: LOOK_REACH_NODES along each axis (the place stands for every region cell within two spacings of
+#: it), then half that step around the best FITS_PER_PLACE of them.  From a start half a spacing
+#: off, a fit on a skyline seen 1.5 m above the ground can stall a kilometre short.
+LOOK_STEP_NODES = 0.5
+LOOK_REACH_NODES = 1.0
+#: Full fits per place, from its best-looking starts.
+FITS_PER_PLACE = 2
+#: How far (node spacings) a fit may wander from the place's node.
+MAX_OFFSET_NODES = 1.5
+
+
+@dataclass(frozen=True)
+class Place:
+    """A contending place of a search: its tile, node there and position."""
+
+    tile: str
+    node: int
+    lat: float
+    lon: float
+
+
+@dataclass(frozen=True)
+class PlaceFit:
+    """The exact fit of a skyline near ``place`` on the map's surface: where it ended, the heading
+    correction (deg, the compass's error), its cost (the residual sum at sigma's midpoint,
+    chi-square units) and RMS residual (deg)."""
+
+    place: Place
+    lat: float
+    lon: float
+    heading_correction_deg: float
+    cost: float
+    rms_deg: float
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """What every place's fit shares: the database's camera height, azimuths, reach and refraction,
+    and the search's sigma interval, heading tolerance, occlusion weight and map error."""
+
+    height_m: float
+    n_azimuths: int
+    reach_m: float
+    refraction: float | None
+    node_spacing_m: float
+    sigma_deg: tuple[float, float]
+    heading_tolerance_deg: float | None
+    occlusion_weight: float = 0.0
+    map_sigma_m: float = 0.0
+
+
+class LocalFrame:
+    """The azimuthal equidistant frame centred on (lat, lon) on the map's body: metres east (x) and
+    north (y) of the centre to lon/lat.  On a sphere in closed form; on an ellipsoid through PROJ."""
+
+    def __init__(self, dem: Dem, lat: float, lon: float) -> None:
+        self.lat0, self.lon0 = math.radians(lat), lon
+        ell = dem.crs.ellipsoid
+        a = ell.semi_major_metre if ell is not None else dem.body.semi_major_m
+        b = ell.semi_minor_metre if ell is not None else a
+        self.radius_m = a if a == b else None
+        self._proj = None if a == b else Transformer.from_crs(local_aeqd(dem, lat, lon), dem.crs.geodetic_crs,
+                                                              always_xy=True)
+
+    def lonlat(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self._proj is not None:
+            lon, lat = self._proj.transform(x, y)
+            return np.asarray(lon), np.asarray(lat)
+        assert self.radius_m is not None
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        rho = np.hypot(x, y)
+        c = rho / self.radius_m
+        sin_c, cos_c = np.sin(c), np.cos(c)
+        s0, c0 = math.sin(self.lat0), math.cos(self.lat0)
+        ratio = np.divide(y * sin_c, rho, out=np.zeros_like(rho), where=rho > 0)
+        lat = np.arcsin(np.clip(cos_c * s0 + ratio * c0, -1.0, 1.0))
+        lon = self.lon0 + np.degrees(np.arctan2(x * sin_c, rho * c0 * cos_c - y * s0 * sin_c))
+        return (lon + 180.0) % 360.0 - 180.0, np.degrees(lat)
+
+
+def _grid_heights(dem: Dem, frame: LocalFrame, cell_m: float, half: int) -> np.ndarray:
+    """The map's heights at the frame's nodes (i - half, half - j) * cell_m east and north."""
+    n = 2 * half + 1
+    k = (np.arange(n) - half) * cell_m
+    lon, lat = frame.lonlat(np.broadcast_to(k[None, :], (n, n)), np.broadcast_to(-k[:, None], (n, n)))
+    return dem.sample_lonlat(lon, lat)
+
+
+def local_terrain(dem: Dem, lat: float, lon: float, cell_m: float, reach_m: float, height_m: float, r_eff_m: float,
+                  margin_m: float, outer_cell_m: float | None = None,
+                  near_reach_m: float = math.inf) -> tuple[Terrain, LocalFrame]:
+    """The map's heights on a square grid of ``cell_m`` around (lat, lon), in the azimuthal
+    equidistant frame centred there (grid north is true north at the centre), out to ``reach_m``
+    and ``margin_m`` beyond (for eyes that far from the centre); the centre is node (n // 2, n // 2),
+    rows run south.  With ``outer_cell_m`` (coarser), the fine grid reaches ``near_reach_m`` only,
+    and an outer grid of that cell the rest (:class:`~appliance.estimator.exact.Terrain`).
+    Returns the terrain and its frame."""
+    frame = LocalFrame(dem, lat, lon)
+    if outer_cell_m is None or outer_cell_m <= cell_m or near_reach_m >= reach_m:
+        half = int(math.ceil((reach_m + margin_m) / cell_m))
+        heights = _grid_heights(dem, frame, cell_m, half)
+        return Terrain(heights, 0, 0, np.zeros(heights.size), height_m, r_eff_m, reach_m), frame
+    half_out = int(math.ceil((reach_m + margin_m) / outer_cell_m))
+    outer = Terrain(_grid_heights(dem, frame, outer_cell_m, half_out), 0, 0, np.zeros(1), height_m, r_eff_m,
+                    reach_m)
+    half = int(math.ceil((near_reach_m + margin_m) / cell_m))
+    heights = _grid_heights(dem, frame, cell_m, half)
+    return Terrain(heights, 0, 0, np.zeros(heights.size), height_m, r_eff_m, reach_m, outer, outer_cell_m / cell_m,
+                   near_reach_m), frame
+
+
+def pixel_m(dem: Dem, lat: float, lon: float) -> float:
+    """The ground size (m) of the map's pixel at (lat, lon): the shorter of its two sides."""
+    col, row = dem.xy_to_pixel(*dem.lonlat_to_xy(lon, lat))
+    c, r = float(np.floor(col)), float(np.floor(row))
+    x, y = dem.pixel_to_xy(np.array([c, c + 1.0, c]), np.array([r, r, r + 1.0]))
+    lo, la = dem.xy_to_lonlat(x, y)
+    _, _, d = dem.body.geod.inv(np.full(2, lo[0]), np.full(2, la[0]), lo[1:], la[1:])
+    return float(np.min(d))
+
+
+def local_cell_m(dem: Dem, lat: float, lon: float, node_spacing_m: float) -> float:
+    """The local grid's cell at (lat, lon) (FINE_PER_NODE, FINE_PER_PIXEL, MAX_FINE_PER_NODE)."""
+    fine = min(node_spacing_m / FINE_PER_NODE, pixel_m(dem, lat, lon) / FINE_PER_PIXEL)
+    return max(fine, node_spacing_m / MAX_FINE_PER_NODE)
+
+
+def _measurement(skyline: Skyline, n_az: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The skyline and its confidence on the azimuth grid (NaN where missing)."""
+    m = resample_to_grid(skyline.azimuth_deg, skyline.elevation_deg, n_az)
+    if skyline.confidence is None:
+        return m, None
+    w = resample_to_grid(skyline.azimuth_deg, np.where(np.isfinite(skyline.elevation_deg), skyline.confidence,
+                                                       np.nan), n_az)
+    m = np.where(np.isfinite(w) & (w > 0), m, np.nan)
+    return m, np.where(np.isfinite(m), w, 0.0)
+
+
+def _look_heading(terrain: Terrain, cell_m: float, m: np.ndarray, row: float, col: float, height_m: float,
+                  bounds: tuple[float, float]) -> float | None:
+    """The heading (deg, a whole azimuth step) within ``bounds`` whose shift of one render at
+    (row, col) fits ``m`` best; None where the render sees too little."""
+    n = m.size
+    step = 360.0 / n
+    s, _, _ = render(terrain, cell_m, cell_m, row, col, np.arange(n) * step, terrain.look_distances(cell_m), height_m)
+    if np.isfinite(s).sum() < 0.9 * n:
+        return None
+    lo, hi = bounds
+    shifts = np.arange(math.ceil(lo / step), math.floor(hi / step) + 1) if hi - lo < 360.0 else np.arange(n)
+    shifts = shifts if shifts.size else np.array([0])
+    idx = (np.arange(n)[None, :] + shifts[:, None]) % n
+    d = m[None, :] - s[idx]
+    ssd = np.nansum(d * d, axis=1)
+    return float(shifts[int(np.argmin(ssd))] * step)
+
+
+def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> PlaceFit | None:
+    """The exact fit of ``skyline`` near ``place`` on the map's own surface; None where the map
+    around it cannot be rendered (off the map, nodata) or the skyline fits nowhere near."""
+    n_az = settings.n_azimuths
+    m, w = _measurement(skyline, n_az)
+    n_valid = int(np.isfinite(m).sum())
+    if n_valid == 0:
+        return None
+    cell = local_cell_m(dem, place.lat, place.lon, settings.node_spacing_m)
+    per_node = settings.node_spacing_m / cell
+    body = dem.body
+    r_eff = body.effective_radius_m(settings.refraction)
+    node = settings.node_spacing_m
+    terrain, frame = local_terrain(dem, place.lat, place.lon, cell, settings.reach_m, settings.height_m, r_eff,
+                                   MARGIN_NODES * node, node / FINE_PER_NODE, NEAR_NODES * node)
+    n = terrain.heights_m.shape[1]
+    centre = n // 2
+    sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
+    model = Model(w, occlusion_cap_deg2(settings.occlusion_weight, sig_ref), settings.map_sigma_m)
+    tol = settings.heading_tolerance_deg
+    step = 360.0 / n_az
+    bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+    looks: list[tuple[float, float, float, float]] = []
+
+    def look(dr: float, dc: float) -> None:
+        row, col = centre + dr * per_node, centre + dc * per_node
+        # a look scans SCREEN_SCAN_DEG either side of its start: a compass's window needs no first guess
+        narrow = bounds[1] - bounds[0] <= 2.0 * SCREEN_SCAN_DEG
+        heading = 0.5 * (bounds[0] + bounds[1]) if narrow else _look_heading(terrain, cell, m, row, col,
+                                                                                settings.height_m, bounds)
+        if heading is not None:
+            cost, heading = screen(terrain, cell, cell, m, row, col, 0.0, heading, bounds, settings.height_m,
+                                   sig_ref, model)
+            if math.isfinite(cost):
+                looks.append((cost, dr, dc, heading))
+
+    k = int(round(LOOK_REACH_NODES / LOOK_STEP_NODES))
+    for dr in np.arange(-k, k + 1) * LOOK_STEP_NODES:
+        for dc in np.arange(-k, k + 1) * LOOK_STEP_NODES:
+            look(float(dr), float(dc))
+    half = 0.5 * LOOK_STEP_NODES
+    for _, dr0, dc0, _ in sorted(looks)[:FITS_PER_PLACE]:
+        for dr in (-half, 0.0, half):
+            for dc in (-half, 0.0, half):
+                if dr or dc:
+                    look(dr0 + dr, dc0 + dc)
+    looks.sort()
+    best = None
+    for _, dr, dc, heading in looks[:FITS_PER_PLACE]:
+        start = (centre + dr * per_node, centre + dc * per_node)
+        fit = refine(terrain, cell, cell, m, centre, centre, n, heading, settings.height_m, start, sig_ref, bounds,
+                     model, max_offset_cells=MAX_OFFSET_NODES * per_node,
+                     start_spread_cells=START_SPREAD_CELLS * per_node)
+        if fit is not None and (best is None or fit.ssd < best.ssd):
+            best = fit
+    if best is None:
+        return None
+    x, y = (best.col - centre) * cell, (centre - best.row) * cell
+    lon, lat = frame.lonlat(np.array([x, x]), np.array([y, y + cell]))
+    # the fit's heading is against the frame's grid north; the true azimuth of grid north there
+    gamma, _, _ = body.geod.inv(lon[0], lat[0], lon[1], lat[1])
+    heading = (best.heading_deg + float(gamma) + 180.0) % 360.0 - 180.0
+    return PlaceFit(place, float(lat[0]), float(lon[0]), heading, best.ssd / sig_ref**2, best.rms_deg)
+
+
+def distinct_places(ranked: list[Place], count: int, apart_m: float, dem: Dem) -> list[Place]:
+    """The first ``count`` places of ``ranked`` (most likely first) each more than ``apart_m`` from
+    every place kept before it."""
+    if not ranked:
+        return []
+    lat = np.array([p.lat for p in ranked])
+    lon = np.array([p.lon for p in ranked])
+    alive = np.ones(lat.size, dtype=bool)
+    kept: list[Place] = []
+    while len(kept) < count and alive.any():
+        k = int(np.argmax(alive))
+        kept.append(ranked[k])
+        _, _, d = dem.body.geod.inv(np.full(lat.size, lon[k]), np.full(lat.size, lat[k]), lon, lat)
+        alive &= np.asarray(d) > apart_m
+    return kept
