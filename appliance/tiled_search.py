@@ -47,7 +47,7 @@ from appliance.terrain.database import SkylineDatabase, load_database
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import lon_overlap
 from appliance.terrain.mosaic import open_map
-from appliance.verification import FitSettings, Place, distinct_places, fit_place
+from appliance.verification import FitSettings, Place, distinct_places, fit_places
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -652,7 +652,7 @@ def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline:
     settings = FitSettings(index.height_m if params.height_m is None else params.height_m, index.n_azimuths,
                            index.max_range_m, index.raw.get("refraction"), spacing, params.sigma_deg,
                            params.heading_tolerance_deg, params.occlusion_weight, params.map_sigma_m)
-    fits = [f for f in (fit_place(surface, skyline, p, settings) for p in places) if f is not None]
+    fits = fit_places(surface, skyline, places, settings)
     if not fits:
         return None
     w = min(fits, key=lambda f: f.cost)
@@ -660,15 +660,15 @@ def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline:
     db = _open_tile(str(index.folder), tile, None)[0]
     x, y = db.grid.lonlat_to_xy(w.lon, w.lat)
     off = geodesic_distance_m(est.best.lat, est.best.lon, w.lat, w.lon, body_named(index.body))
-    notes = list(est.notes) + [f"fitted on the map's own surface: {len(fits)} contending place(s), the best "
-                               f"{w.rms_deg:.2f} deg RMS"]
+    notes = list(est.notes) + [f"fitted on the map's own surface: {len(places)} contending place(s) looked at, "
+                               f"{len(fits)} fitted, the best {w.rms_deg:.2f} deg RMS"]
     ambiguous = est.ambiguous
     if off > SAME_ANSWER_CELLS * spacing:
         ambiguous = True
         notes.append(f"ambiguous: fitted on the map's own surface, the skyline lies {off / 1000:.1f} km from the "
                      f"grid's best place (in {est.best.file})")
     fit = SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
-                     w.heading_correction_deg, w.rms_deg, len(fits), off)
+                     w.heading_correction_deg, w.rms_deg, len(places), off)
     return dataclasses.replace(est, fit=fit, ambiguous=ambiguous, notes=notes)
 
 

@@ -10,10 +10,11 @@ place the skyline was seen from, both inside its region (neither ruled out).
 Each contending place is therefore fitted between nodes on renders of the map itself: a local
 grid around it in an azimuthal equidistant frame, a few cells per node spacing and per map pixel
 (:func:`local_cell_m`), whose bilinear surface follows the map's; a few looks around the node (one
-render each, every heading the compass allows), then the exact refinement
-(:func:`appliance.estimator.exact.refine`) from the best of them.  The place whose fit explains the
-skyline best is the answer.  The fits only choose among places the database could not rule out;
-the posterior bounds, the region and whether the answer is ambiguous stay the grid's.
+render each, every heading the compass allows) at every place, more at the places whose first looks
+come lowest, then the exact refinement (:func:`appliance.estimator.exact.refine`) from the best of
+them.  The place whose fit explains the skyline best is the answer.  The fits only choose among
+places the database could not rule out; the posterior bounds, the region and whether the answer is
+ambiguous stay the grid's.
 
 Nothing here touches devices or logs: a map, places and a skyline in, fits out.
 """
@@ -52,6 +53,10 @@ MARGIN_NODES = 2
 #: off, a fit on a skyline seen 1.5 m above the ground can stall a kilometre short.
 LOOK_STEP_NODES = 0.5
 LOOK_REACH_NODES = 1.0
+#: Every contending place first gets the lattice's looks within FIRST_LOOK_REACH_NODES of its node;
+#: the FULL_PLACES whose first looks come lowest get the rest of the looks and the fits.
+FIRST_LOOK_REACH_NODES = 0.5
+FULL_PLACES = 6
 #: Full fits per place, from its best-looking starts.
 FITS_PER_PLACE = 2
 #: How far (node spacings) a fit may wander from the place's node.
@@ -203,69 +208,103 @@ def _look_heading(terrain: Terrain, cell_m: float, m: np.ndarray, row: float, co
     return float(shifts[int(np.argmin(ssd))] * step)
 
 
-def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> PlaceFit | None:
-    """The exact fit of ``skyline`` near ``place`` on the map's own surface; None where the map
-    around it cannot be rendered (off the map, nodata) or the skyline fits nowhere near."""
-    n_az = settings.n_azimuths
-    m, w = _measurement(skyline, n_az)
-    n_valid = int(np.isfinite(m).sum())
-    if n_valid == 0:
-        return None
-    cell = local_cell_m(dem, place.lat, place.lon, settings.node_spacing_m)
-    per_node = settings.node_spacing_m / cell
-    body = dem.body
-    r_eff = body.effective_radius_m(settings.refraction)
-    node = settings.node_spacing_m
-    terrain, frame = local_terrain(dem, place.lat, place.lon, cell, settings.reach_m, settings.height_m, r_eff,
-                                   MARGIN_NODES * node, node / FINE_PER_NODE, NEAR_NODES * node)
-    n = terrain.heights_m.shape[1]
-    centre = n // 2
-    sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
-    model = Model(w, occlusion_cap_deg2(settings.occlusion_weight, sig_ref), settings.map_sigma_m)
-    tol = settings.heading_tolerance_deg
-    step = 360.0 / n_az
-    bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
-    looks: list[tuple[float, float, float, float]] = []
+class PlaceSearch:
+    """The search for a skyline's fit near one place on the map's own surface: its local terrain,
+    the looks made so far (cost, row and column offsets in node spacings, heading) and the fit."""
 
-    def look(dr: float, dc: float) -> None:
-        row, col = centre + dr * per_node, centre + dc * per_node
+    def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> None:
+        self.dem, self.place, self.settings = dem, place, settings
+        self.m, w = _measurement(skyline, settings.n_azimuths)
+        node = settings.node_spacing_m
+        self.cell = local_cell_m(dem, place.lat, place.lon, node)
+        self.per_node = node / self.cell
+        r_eff = dem.body.effective_radius_m(settings.refraction)
+        self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, settings.reach_m,
+                                                 settings.height_m, r_eff, MARGIN_NODES * node, node / FINE_PER_NODE,
+                                                 NEAR_NODES * node)
+        self.centre = self.terrain.heights_m.shape[1] // 2
+        self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
+        self.model = Model(w, occlusion_cap_deg2(settings.occlusion_weight, self.sig_ref), settings.map_sigma_m)
+        tol = settings.heading_tolerance_deg
+        step = 360.0 / settings.n_azimuths
+        self.bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+        self.looks: list[tuple[float, float, float, float]] = []
+
+    @property
+    def best_look(self) -> float:
+        """The lowest cost of the looks made so far (inf before any)."""
+        return min((v[0] for v in self.looks), default=math.inf)
+
+    def look(self, dr: float, dc: float) -> None:
+        """One look from ``dr``, ``dc`` node spacings south and east of the place's node: one render,
+        every heading the bounds allow (:func:`appliance.estimator.exact.screen`)."""
+        if not np.isfinite(self.m).any():
+            return
+        row, col = self.centre + dr * self.per_node, self.centre + dc * self.per_node
+        lo, hi = self.bounds
         # a look scans SCREEN_SCAN_DEG either side of its start: a compass's window needs no first guess
-        narrow = bounds[1] - bounds[0] <= 2.0 * SCREEN_SCAN_DEG
-        heading = 0.5 * (bounds[0] + bounds[1]) if narrow else _look_heading(terrain, cell, m, row, col,
-                                                                                settings.height_m, bounds)
+        heading = 0.5 * (lo + hi) if hi - lo <= 2.0 * SCREEN_SCAN_DEG else _look_heading(
+            self.terrain, self.cell, self.m, row, col, self.settings.height_m, self.bounds)
         if heading is not None:
-            cost, heading = screen(terrain, cell, cell, m, row, col, 0.0, heading, bounds, settings.height_m,
-                                   sig_ref, model)
+            cost, heading = screen(self.terrain, self.cell, self.cell, self.m, row, col, 0.0, heading, self.bounds,
+                                   self.settings.height_m, self.sig_ref, self.model)
             if math.isfinite(cost):
-                looks.append((cost, dr, dc, heading))
+                self.looks.append((cost, dr, dc, heading))
 
-    k = int(round(LOOK_REACH_NODES / LOOK_STEP_NODES))
-    for dr in np.arange(-k, k + 1) * LOOK_STEP_NODES:
-        for dc in np.arange(-k, k + 1) * LOOK_STEP_NODES:
-            look(float(dr), float(dc))
-    half = 0.5 * LOOK_STEP_NODES
-    for _, dr0, dc0, _ in sorted(looks)[:FITS_PER_PLACE]:
-        for dr in (-half, 0.0, half):
-            for dc in (-half, 0.0, half):
-                if dr or dc:
-                    look(dr0 + dr, dc0 + dc)
-    looks.sort()
-    best = None
-    for _, dr, dc, heading in looks[:FITS_PER_PLACE]:
-        start = (centre + dr * per_node, centre + dc * per_node)
-        fit = refine(terrain, cell, cell, m, centre, centre, n, heading, settings.height_m, start, sig_ref, bounds,
-                     model, max_offset_cells=MAX_OFFSET_NODES * per_node,
-                     start_spread_cells=START_SPREAD_CELLS * per_node)
-        if fit is not None and (best is None or fit.ssd < best.ssd):
-            best = fit
-    if best is None:
-        return None
-    x, y = (best.col - centre) * cell, (centre - best.row) * cell
-    lon, lat = frame.lonlat(np.array([x, x]), np.array([y, y + cell]))
-    # the fit's heading is against the frame's grid north; the true azimuth of grid north there
-    gamma, _, _ = body.geod.inv(lon[0], lat[0], lon[1], lat[1])
-    heading = (best.heading_deg + float(gamma) + 180.0) % 360.0 - 180.0
-    return PlaceFit(place, float(lat[0]), float(lon[0]), heading, best.ssd / sig_ref**2, best.rms_deg)
+    def look_around(self, reach_nodes: float, step_nodes: float) -> None:
+        """Looks on a lattice ``step_nodes`` apart out to ``reach_nodes`` along each axis (those not
+        made yet)."""
+        k = int(round(reach_nodes / step_nodes))
+        done = {(dr, dc) for _, dr, dc, _ in self.looks}
+        for dr in np.arange(-k, k + 1) * step_nodes:
+            for dc in np.arange(-k, k + 1) * step_nodes:
+                if (float(dr), float(dc)) not in done:
+                    self.look(float(dr), float(dc))
+
+    def fit(self) -> PlaceFit | None:
+        """The full search: the look lattice (LOOK_STEP_NODES out to LOOK_REACH_NODES), half that
+        step around the best FITS_PER_PLACE looks, then the exact refinement from the best of all.
+        None where the map around the place cannot be rendered or the skyline fits nowhere near."""
+        self.look_around(LOOK_REACH_NODES, LOOK_STEP_NODES)
+        half = 0.5 * LOOK_STEP_NODES
+        for _, dr0, dc0, _ in sorted(self.looks)[:FITS_PER_PLACE]:
+            for dr in (-half, 0.0, half):
+                for dc in (-half, 0.0, half):
+                    if dr or dc:
+                        self.look(dr0 + dr, dc0 + dc)
+        c, n, cell = self.centre, self.terrain.heights_m.shape[1], self.cell
+        best = None
+        for _, dr, dc, heading in sorted(self.looks)[:FITS_PER_PLACE]:
+            start = (c + dr * self.per_node, c + dc * self.per_node)
+            fit = refine(self.terrain, cell, cell, self.m, c, c, n, heading, self.settings.height_m, start,
+                         self.sig_ref, self.bounds, self.model, max_offset_cells=MAX_OFFSET_NODES * self.per_node,
+                         start_spread_cells=START_SPREAD_CELLS * self.per_node)
+            if fit is not None and (best is None or fit.ssd < best.ssd):
+                best = fit
+        if best is None:
+            return None
+        x, y = (best.col - c) * cell, (c - best.row) * cell
+        lon, lat = self.frame.lonlat(np.array([x, x]), np.array([y, y + cell]))
+        # the fit's heading is against the frame's grid north; the true azimuth of grid north there
+        gamma, _, _ = self.dem.body.geod.inv(lon[0], lat[0], lon[1], lat[1])
+        heading = (best.heading_deg + float(gamma) + 180.0) % 360.0 - 180.0
+        return PlaceFit(self.place, float(lat[0]), float(lon[0]), heading, best.ssd / self.sig_ref**2, best.rms_deg)
+
+
+def fit_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSettings) -> list[PlaceFit]:
+    """The fits of ``skyline`` near the ``places`` on the map's own surface: a first look at each
+    (FIRST_LOOK_STEP_NODES lattice within half a node spacing), then the full search
+    (:meth:`PlaceSearch.fit`) at the FULL_PLACES whose first looks come lowest."""
+    searches = [PlaceSearch(dem, skyline, p, settings) for p in places]
+    for s in searches:
+        s.look_around(FIRST_LOOK_REACH_NODES, LOOK_STEP_NODES)
+    ranked = sorted((s for s in searches if math.isfinite(s.best_look)), key=lambda s: s.best_look)
+    return [f for f in (s.fit() for s in ranked[:FULL_PLACES]) if f is not None]
+
+
+def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> PlaceFit | None:
+    """The full search for the fit of ``skyline`` near one ``place`` (:meth:`PlaceSearch.fit`)."""
+    return PlaceSearch(dem, skyline, place, settings).fit()
 
 
 def distinct_places(ranked: list[Place], count: int, apart_m: float, dem: Dem) -> list[Place]:
