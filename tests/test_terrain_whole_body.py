@@ -30,7 +30,7 @@ from appliance.terrain.whole_body import (
     plan_facets,
 )
 from appliance.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
-from appliance.verification import Place, distinct_places
+from appliance.verification import FitSettings, Place, distinct_places, fit_place
 from tests.conftest import data_file
 
 distributed = pytest.importorskip("distributed")
@@ -256,9 +256,9 @@ def test_estimate_in_the_cap_within_two_cells(moon, cap_db):
     """Near 80 deg, where the cap's grid north turns with longitude: a node's own skyline, read
     with compass error and noise, is found again at its place, on either side of lon 180.
 
-    (The exact renderer's skyline there is not: the cap's 3.8 km grid smooths the map's east-west
-    detail, 1.3 km pixels at 80 deg, and its skylines stand 0.3-1 deg RMS off the renderer's; the
-    bench reports what that does to the accuracy at high latitude.  Places whose horizon lies
+    (On the grid alone the exact renderer's skyline there is not: the cap's 3.8 km grid smooths the
+    map's east-west detail, 1.3 km pixels at 80 deg, and its skylines stand 0.3-1 deg RMS off the
+    renderer's; fitted on the map's own surface it is, test below.  Places whose horizon lies
     mostly within a cell, such as 79 N 135 E, are ambiguous by design: their skyline moves too
     much within a cell to single one out.)"""
     _, dem = moon
@@ -349,6 +349,23 @@ def test_estimate_command_fits_on_the_recorded_map_or_warns(moon, cap_db, tmp_pa
     grid = json.loads(out.out.strip())
     assert "surface_fit" not in grid and "not fitted on the map's own surface" in out.err
     assert f"{tmp_path / 'gone.LBL'} is not there" in out.err
+
+
+def test_fit_on_the_maps_surface_without_a_compass(moon):
+    """A skyline turned by 40 deg, with no compass to bound the heading: the fit near a place 2 km
+    off finds the position and the turn."""
+    _, dem = moon
+    lat, lon, turn = -15.06, 162.69, 40.0
+    az = np.arange(360.0)
+    truth = render_skyline(dem, lat, lon, HEIGHT_M, az, 150_000.0).elevation_deg
+    rng = np.random.default_rng(8)
+    sky = Skyline(az, np.interp((az + turn) % 360.0, az, truth, period=360.0) + rng.normal(0.0, 0.2, az.size))
+    settings = FitSettings(HEIGHT_M, 360, 150_000.0, 0.0, 3790.42, (0.3, 1.2), None)
+    start = Place("t", 0, lat + math.degrees(2000.0 / MOON.radius_m), lon)
+    fit = fit_place(dem, sky, start, settings)
+    assert fit is not None
+    assert geodesic_distance_m(lat, lon, fit.lat, fit.lon, dem.body) < 500.0
+    assert abs(fit.heading_correction_deg - turn) < 0.5 and fit.rms_deg < 0.3
 
 
 def test_distinct_places_keep_the_likeliest_of_each_neighbourhood(moon):

@@ -38,6 +38,10 @@ own grid's size and its box as ``bounds_lonlat``, whose W may be below 0 for a b
 (the search compares longitudes modulo 360).  Since every facet has its own grid, the combination
 over facets weighs each by its own cell area (:func:`appliance.tiled_search.combine`).
 
+The index also records where the map itself is, with its SHA-256 (``surface``): a search fits its
+contending places on the map's own surface while the map is there and unchanged
+(:func:`appliance.tiled_search.fit_on_surface`).
+
 A rerun into the same folder with the same parameters keeps the facets already built.
 """
 
