@@ -663,8 +663,11 @@ def _run(index: TiledIndex, task: Callable[..., Any], tiles: Sequence[TileEntry]
     folder = str(index.folder)
     kwargs["expect"] = (index.n_azimuths, index.height_m)
     if client is None:
-        threads = min(numba.get_num_threads() if TILE_THREADS is None else TILE_THREADS, len(tiles))
-        if threads <= 1:
+        numba_threads = numba.get_num_threads()  # which also starts the threading layer read below
+        threads = min(numba_threads if TILE_THREADS is None else TILE_THREADS, len(tiles))
+        # numba's own work queue (where neither OpenMP nor TBB is installed) aborts the process when
+        # two threads run parallel kernels at once: there the tiles go one after the other
+        if threads <= 1 or numba.threading_layer() == "workqueue":
             return [task(folder, t, skyline, params, *args, **kwargs) for t in tiles]
         return list(_tile_pool(threads).map(lambda t: task(folder, t, skyline, params, *args, **kwargs), tiles))
     placed = {} if placed is None else placed

@@ -467,7 +467,7 @@ def test_tiles_searched_on_threads_give_the_records_of_one_tile_after_the_other(
         assert len(made) == 2 * len(index.tiles) == 2 * len({g for g, _, _ in made})
         assert len(tiled_search._first_passes) == 2 * len(index.tiles)
         on_pool = {name.startswith("viper-tile") and n == 1 for _, name, n in made}
-        assert on_pool == {threads > 1}
+        assert on_pool == {threads > 1 and numba.threading_layer() != "workqueue"}
     assert records[3] == records[1]
 
 
