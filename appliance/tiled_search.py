@@ -30,12 +30,15 @@ import dataclasses
 import hashlib
 import json
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
@@ -239,6 +242,7 @@ class TileOutcome:
     left_max_log_upper_unnormalised: float = -math.inf  # and the highest unnormalised one
     candidates: int = 0
     elapsed_s: float = 0.0
+    has_region: bool = True  # False: the search left the region out (search_tile's ``region``)
 
 
 #: Candidate nodes of the tiles a process keeps mapped between searches (checksums verified once,
@@ -246,22 +250,35 @@ class TileOutcome:
 #: per-node arrays besides the mapped files.
 OPEN_TILE_NODES = 16_000_000
 _open_tiles: dict[tuple[str, int, int], tuple[SkylineDatabase, SkylineGrid]] = {}
+#: Guards the per-process caches (_open_tiles, _first_passes): the tiles of an in-process search
+#: run on several threads at once.  Held only to look up, insert and evict, never while a tile
+#: is loaded or scored.
+_cache_lock = threading.Lock()
 
 
-def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None) -> tuple[SkylineDatabase, SkylineGrid]:
+def _open_tile(folder: str, tile: TileEntry, expect: tuple[int, float] | None,
+               key: tuple[str, int, int] | None = None) -> tuple[SkylineDatabase, SkylineGrid]:
     """A tile's database and search grid, memory-mapped (on a Dask worker the worker maps its own
     tile) and kept for the next search of this process while the file stays the same (path, size,
-    modification time).  ``expect`` (the index's azimuth count and camera height) refuses a tile
-    built otherwise: likelihoods over other azimuths or heights cannot be weighed together."""
+    modification time: ``key``, :func:`_tile_key`, when the caller has it already).  ``expect``
+    (the index's azimuth count and camera height) refuses a tile built otherwise: likelihoods over
+    other azimuths or heights cannot be weighed together."""
     path = Path(folder) / tile.file
-    key = _tile_key(path)
-    if key not in _open_tiles:
+    key = _tile_key(path) if key is None else key
+    with _cache_lock:
+        held = _open_tiles.get(key)
+    if held is None:
         db = load_database(path)
-        held = sum(d.grid.n_nodes for d, _ in _open_tiles.values())
-        while _open_tiles and held + db.grid.n_nodes > OPEN_TILE_NODES:
-            held -= _open_tiles.pop(next(iter(_open_tiles)))[0].grid.n_nodes
-        _open_tiles[key] = (db, skyline_grid(db))
-    db, grid = _open_tiles[key]
+        made = (db, skyline_grid(db))
+        with _cache_lock:
+            # another thread may have mapped the same file meanwhile: keep the first
+            held = _open_tiles.get(key)
+            if held is None:
+                nodes = sum(d.grid.n_nodes for d, _ in _open_tiles.values())
+                while _open_tiles and nodes + db.grid.n_nodes > OPEN_TILE_NODES:
+                    nodes -= _open_tiles.pop(next(iter(_open_tiles)))[0].grid.n_nodes
+                held = _open_tiles[key] = made
+    db, grid = held
     if expect is not None and (db.n_azimuths != expect[0] or not math.isclose(db.height_m, expect[1])):
         raise DatabaseError(f"{path}: {db.n_azimuths} azimuths at {db.height_m} m, but "
                             f"the tiled index says {expect[0]} at {expect[1]} m; rebuild the tile")
@@ -295,17 +312,20 @@ def _tile_first_pass(folder: str, tile: TileEntry, skyline: Skyline, params: Sea
                      expect: tuple[int, float] | None) -> tuple[SkylineDatabase, SkylineGrid, FirstPass]:
     """The tile's database, grid and the skyline's first pass on it: made once per process and
     search, then kept (within FIRST_PASS_BYTES) for the next round of the same search."""
-    db, grid = _open_tile(folder, tile, expect)
-    key = (_tile_key(Path(folder) / tile.file), _skyline_digest(skyline), params)
-    first = _first_passes.pop(key, None)
+    tile_key = _tile_key(Path(folder) / tile.file)
+    db, grid = _open_tile(folder, tile, expect, key=tile_key)
+    key = (tile_key, _skyline_digest(skyline), params)
+    with _cache_lock:
+        first = _first_passes.pop(key, None)
     if first is None or first.grid_id != id(grid.codes):  # the tile was mapped again since
         first = first_pass(grid, skyline.azimuth_deg, skyline.elevation_deg, params.sigma_deg,
                            params.heading_tolerance_deg, skyline.confidence, params.occlusion_weight,
                            params.map_sigma_m)
-    _first_passes[key] = first
-    held = sum(f.nbytes for f in _first_passes.values())
-    while len(_first_passes) > 1 and held > FIRST_PASS_BYTES:
-        held -= _first_passes.pop(next(iter(_first_passes))).nbytes
+    with _cache_lock:
+        _first_passes[key] = first
+        held = sum(f.nbytes for f in _first_passes.values())
+        while len(_first_passes) > 1 and held > FIRST_PASS_BYTES:
+            held -= _first_passes.pop(next(iter(_first_passes))).nbytes
     return db, grid, first
 
 
@@ -321,11 +341,17 @@ def tile_floor(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPar
 
 def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams,
                 source: str = "", refine: bool = True, expect: tuple[int, float] | None = None,
-                rescore_floor: float | None = None) -> TileOutcome:
+                rescore_floor: float | None = None, region: bool = True) -> TileOutcome:
     """The ordinary estimate on one tile, with the exact refinement or without (``refine``), its
     rescoring pruned against ``rescore_floor`` (the best first-pass lower bound over every tile
     searched, :func:`tile_floor`).  A tile where the skyline cannot be placed at all (no terrain
-    along its azimuths) is reported as such; the other tiles may still place it."""
+    along its azimuths) is reported as such; the other tiles may still place it.
+
+    ``region`` False leaves the tile's own region (its nodes and their lon/lat) out of the outcome:
+    the combination reads it from the best tile only, and a round that only picks the best tile
+    (:func:`best_tile`) needs none.  A tile the skyline does not single a place out on (sea, a
+    plain) holds a region of most of its nodes, whose projection to lon/lat costs more than the
+    tile's search on the grid."""
     t0 = time.perf_counter()
     try:
         db, grid, first = _tile_first_pass(folder, tile, skyline, params, expect)
@@ -344,8 +370,9 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
     top = top[np.argsort(-up_un[top], kind="stable")]
     left = np.ones(up.size, dtype=bool)
     left[top] = False
-    left_max = float(up[left].max()) if left.any() else -math.inf
-    left_max_un = float(up_un[left].max()) if left.any() else -math.inf
+    # the largest of the nodes not sent, read in place (no copy of the tile's other nodes)
+    left_max = float(np.max(up, where=left, initial=-math.inf)) if k < up.size else -math.inf
+    left_max_un = float(np.max(up_un, where=left, initial=-math.inf)) if k < up.size else -math.inf
 
     def lonlat(nodes: np.ndarray) -> np.ndarray:
         if nodes.size == 0:
@@ -353,14 +380,14 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
         lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(nodes))
         return np.column_stack([np.atleast_1d(lon), np.atleast_1d(lat)]).astype(np.float64)
 
-    region = np.asarray(r.region_nodes, dtype=np.int64)
+    nodes = np.asarray(r.region_nodes, dtype=np.int64) if region else np.zeros(0, np.int64)
     g = db.grid
     return TileOutcome(
         tile.file, None, pos.to_json(db, max_cells=0), r.node, pos.lat, pos.lon, r.log_lower,
         math.log(r.upper) if r.upper > 0 else -math.inf, r.log_lower_unnormalised, r.log_upper_unnormalised,
         r.log_evidence_lower, r.log_evidence_upper, r.log_evidence_mid, math.log(g.dx_m * g.dy_m),
-        (g.dx_m, g.dy_m), r.ambiguous, region, lonlat(region), top.astype(np.int64), up[top], up_un[top],
-        lonlat(top), left_max, left_max_un, r.candidates, time.perf_counter() - t0)
+        (g.dx_m, g.dy_m), r.ambiguous, nodes, lonlat(nodes), top.astype(np.int64), up[top], up_un[top],
+        lonlat(top), left_max, left_max_un, r.candidates, time.perf_counter() - t0, region)
 
 
 def _log_sum(values: Sequence[float]) -> float:
@@ -526,23 +553,21 @@ class TiledEstimate:
         return out
 
 
-def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) -> TiledEstimate:
-    """Normalise the tiles' searches over all of them: the best candidate, its posterior bounds, the
-    region across tiles and whether the answer is ambiguous (module docstring)."""
+def _placed(outcomes: Sequence[TileOutcome]) -> tuple[list[TileOutcome], list[TileOutcome]]:
+    """Every outcome in tile order, and those that placed the skyline; EstimationError if none did."""
     outcomes = sorted(outcomes, key=lambda o: o.file)
     ok = [o for o in outcomes if o.error is None]
-    failed = tuple(o.file for o in outcomes if o.error is not None)
     if not ok:
         raise EstimationError(f"no searched tile can place the skyline ({outcomes[0].error})" if outcomes
                               else "no tile was searched")
+    return outcomes, ok
+
+
+def _global_bounds(ok: Sequence[TileOutcome]) -> tuple[list[float], list[float]]:
+    """Each tile's best candidate's lower and upper log-posterior over all the tiles."""
     # unnormalised sums weighed by each tile's cell area: the prior is uniform per unit area
     ev_lo = [o.log_evidence_lower + o.log_cell_area for o in ok]
     ev_up = [o.log_evidence_upper + o.log_cell_area for o in ok]
-    ev_mid = [o.log_evidence_mid + o.log_cell_area for o in ok]
-
-    def others(values: list[float], i: int) -> float:
-        return _log_sum([v for j, v in enumerate(values) if j != i])
-
     g_lower, g_upper = [], []
     for i, o in enumerate(ok):
         # within the tile, log_lower = lo - log(a + rest of the tiles' uppers): recover that
@@ -550,10 +575,36 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
         lo, up = o.lo_unnormalised + o.log_cell_area, o.up_unnormalised + o.log_cell_area
         den_lo = lo - o.log_lower
         den_up = up - o.log_upper
-        g_lower.append(lo - float(np.logaddexp(den_lo, others(ev_up, i))))
-        g_upper.append(min(up - float(np.logaddexp(den_up, others(ev_lo, i))), 0.0))
+        g_lower.append(lo - float(np.logaddexp(den_lo, _others(ev_up, i))))
+        g_upper.append(min(up - float(np.logaddexp(den_up, _others(ev_lo, i))), 0.0))
+    return g_lower, g_upper
+
+
+def _others(values: list[float], i: int) -> float:
+    return _log_sum([v for j, v in enumerate(values) if j != i])
+
+
+def best_tile(outcomes: Sequence[TileOutcome]) -> str:
+    """The tile :func:`combine` finds the best candidate in, without combining the regions (which
+    the outcomes may leave out)."""
+    _, ok = _placed(outcomes)
+    g_lower, _ = _global_bounds(ok)
+    return ok[int(np.argmax(g_lower))].file
+
+
+def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) -> TiledEstimate:
+    """Normalise the tiles' searches over all of them: the best candidate, its posterior bounds, the
+    region across tiles and whether the answer is ambiguous (module docstring).  The region's own
+    cells come from the best tile's outcome only, which must carry them (``has_region``)."""
+    outcomes, ok = _placed(outcomes)
+    failed = tuple(o.file for o in outcomes if o.error is not None)
+    ev_lo = [o.log_evidence_lower + o.log_cell_area for o in ok]
+    ev_mid = [o.log_evidence_mid + o.log_cell_area for o in ok]
+    g_lower, g_upper = _global_bounds(ok)
     b = int(np.argmax(g_lower))
     best = ok[b]
+    if not best.has_region:
+        raise ValueError(f"the best tile's outcome ({best.file}) was searched without its region")
     best_lower = g_lower[b]
     total_mid = _log_sum(ev_mid)
     share = {o.file: math.exp(ev_mid[i] - total_mid) for i, o in enumerate(ok)}
@@ -567,7 +618,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
     b_body = body_named(body)
     for i, o in enumerate(ok):
         bound = global_log_upper_bound(o.top_log_upper, o.top_log_upper_unnormalised + o.log_cell_area,
-                                       others(ev_lo, i))
+                                       _others(ev_lo, i))
         keep = bound >= best_lower
         nodes = set(int(v) for v in o.top_nodes[keep])
         lonlat = {int(v): (float(p[0]), float(p[1])) for v, p in zip(o.top_nodes[keep], o.top_lonlat[keep])}
@@ -579,7 +630,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
             nodes |= set(int(v) for v in o.region_nodes)
         left = global_log_upper_bound(np.array([o.left_max_log_upper]),
                                       np.array([o.left_max_log_upper_unnormalised + o.log_cell_area]),
-                                      others(ev_lo, i))[0]
+                                      _others(ev_lo, i))[0]
         if o.left_max_log_upper > -math.inf and left >= best_lower:
             overflowed.append(o.file)
         cells = [RegionCell(o.file, v, *lonlat[v], upper.get(v, -math.inf)) for v in sorted(nodes)]
@@ -686,27 +737,32 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
     only (every other tile's part of the region comes from its grid posteriors).  Refining the
     other tiles (most of a hopeless tile's time: it finds no fit to stop at) would change nothing.
     With a ``distributed.Client`` every tile is one task of each round on its cluster,
-    each worker mapping its own tile; without one the tiles are searched here, one after the other.
-    The combination is the same either way, so the answer is too.
+    each worker mapping its own tile; without one the tiles are searched here, side by side on a
+    thread per core (:func:`_tile_pool`).  The combination is the same either way, so the answer
+    is too.
 
     With the ``surface`` a whole-body database was built from (:func:`open_surface`), the answer is
-    fitted on that map itself instead of refined on the facets' resampled grid
-    (:func:`fit_on_surface`)."""
+    fitted on that map itself (:func:`fit_on_surface`) instead of refined on the facets' resampled
+    grid."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
     placed: dict[str, str] = {}
     floors = _run(index, tile_floor, tiles, client, skyline, params, placed=placed)
     floor = max(floors, default=-math.inf)
     first = _run(index, search_tile, tiles, client, skyline, params, source, False, rescore_floor=floor,
-                 placed=placed)
-    grid_answer = combine(first, index.body)
+                 region=False, placed=placed)
+    best = best_tile(first)
+    best_tiles = [t for t in tiles if t.file == best]
     if surface is not None:
-        fitted = fit_on_surface(index, grid_answer, surface, skyline, params)
+        # the best tile's region without its refinement: the fits on the map replace that
+        grid = _run(index, search_tile, best_tiles, client, skyline, params, source, False, rescore_floor=floor,
+                    placed=placed)
+        fitted = fit_on_surface(index, combine(grid + [o for o in first if o.file != best], index.body), surface,
+                                skyline, params)
         if fitted is not None:
             return dataclasses.replace(fitted, elapsed_s=time.perf_counter() - t0)
-    best = grid_answer.tile
-    refined = _run(index, search_tile, [t for t in tiles if t.file == best], client, skyline, params, source,
-                   True, rescore_floor=floor, placed=placed)
+    refined = _run(index, search_tile, best_tiles, client, skyline, params, source, True, rescore_floor=floor,
+                   placed=placed)
     outcomes = refined + [o for o in first if o.file != best]
     return combine(outcomes, index.body, time.perf_counter() - t0)
 
@@ -714,14 +770,20 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, box:
 def _run(index: TiledIndex, task: Callable[..., Any], tiles: Sequence[TileEntry], client: Any, skyline: Skyline,
          params: SearchParams, *args: Any, placed: dict[str, str] | None = None, **kwargs: Any) -> list[Any]:
     """``task(folder, tile, skyline, params, *args, expect=..., **kwargs)`` for every tile, in
-    order: here one after the other, or one task per tile on the ``client``'s cluster.  On a
-    cluster, ``placed`` maps a tile to the worker that first ran one of its tasks, which then
-    holds the tile's first pass: the tile's later tasks ask for that worker (any other may still
-    take them, making the first pass again)."""
+    order: here on the threads of :func:`_tile_pool`, or one task per tile on the ``client``'s
+    cluster.  On a cluster, ``placed`` maps a tile to the worker that first ran one of its tasks,
+    which then holds the tile's first pass: the tile's later tasks ask for that worker (any other
+    may still take them, making the first pass again)."""
     folder = str(index.folder)
     kwargs["expect"] = (index.n_azimuths, index.height_m)
     if client is None:
-        return [task(folder, t, skyline, params, *args, **kwargs) for t in tiles]
+        numba_threads = numba.get_num_threads()  # which also starts the threading layer read below
+        threads = min(numba_threads if TILE_THREADS is None else TILE_THREADS, len(tiles))
+        # numba's own work queue (where neither OpenMP nor TBB is installed) aborts the process when
+        # two threads run parallel kernels at once: there the tiles go one after the other
+        if threads <= 1 or numba.threading_layer() == "workqueue":
+            return [task(folder, t, skyline, params, *args, **kwargs) for t in tiles]
+        return list(_tile_pool(threads).map(lambda t: task(folder, t, skyline, params, *args, **kwargs), tiles))
     placed = {} if placed is None else placed
     futures = []
     for t in tiles:
@@ -733,3 +795,28 @@ def _run(index: TiledIndex, task: Callable[..., Any], tiles: Sequence[TileEntry]
         if held.get(f.key):
             placed.setdefault(t.file, held[f.key][0])
     return out
+
+
+#: Threads an in-process search runs its tiles on; None: numba's thread count (one per core,
+#: unless NUMBA_NUM_THREADS or numba.set_num_threads say otherwise), 1: one tile after the other.
+TILE_THREADS: int | None = None
+_tile_pools: dict[int, ThreadPoolExecutor] = {}
+_pool_lock = threading.Lock()
+
+
+def _tile_pool(threads: int) -> ThreadPoolExecutor:
+    """Threads that search the tiles of an in-process search side by side, as many as the compiled
+    kernels would use (numba's thread count), each running those kernels on its own thread only.
+
+    Run one after the other, every kernel call on every tile forks its loop over the cores and
+    joins it again: tens of fork-joins per search, each as slow as its slowest share, so that
+    beside another busy process half of each call waits for the core the other holds.  Whole
+    tiles taken by whichever thread is free balance themselves instead, and the kernels release
+    the GIL (``nogil``).  Each tile is still searched by one thread from start to end with the
+    same compiled code, and its results are returned in tile order: the same answers."""
+    with _pool_lock:
+        pool = _tile_pools.get(threads)
+        if pool is None:
+            pool = _tile_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="viper-tile",
+                                                             initializer=numba.set_num_threads, initargs=(1,))
+        return pool

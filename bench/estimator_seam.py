@@ -47,7 +47,8 @@ from appliance.tiled_search import (  # noqa: E402
     SearchParams,
     TiledEstimate,
     TiledIndex,
-    combine,
+    _run,
+    best_tile,
     locate_tiled,
     open_tiled,
     search_tile,
@@ -154,12 +155,11 @@ def run(index: TiledIndex, skies: list[Skyline], truths: list[tuple[float, float
 
 
 def profile(index: TiledIndex, skies: list[Skyline], params: SearchParams) -> dict[str, float]:
-    """Where an in-process estimate's time goes: locate_tiled's rounds, tile by tile (medians); the
-    floors make each tile's first pass, which the later rounds reuse."""
+    """Where an in-process estimate's time goes: locate_tiled's rounds, run over the tiles as the
+    search runs them (tiled_search._run: side by side on a thread per core), medians; the floors
+    make each tile's first pass, which the later rounds reuse."""
     from appliance.terrain.database import load_database
 
-    folder = str(index.folder)
-    expect = (index.n_azimuths, index.height_m)
     rows: dict[str, list[float]] = {"load": [], "floor": [], "grid": [], "refine": [], "combine": [],
                                     "n_refined": []}
     for sky in skies:
@@ -168,19 +168,17 @@ def profile(index: TiledIndex, skies: list[Skyline], params: SearchParams) -> di
             load_database(index.path(tile))
         rows["load"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        floor = max(tile_floor(folder, tile, sky, params, expect) for tile in index.tiles)
+        floor = max(_run(index, tile_floor, index.tiles, None, sky, params))
         rows["floor"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        first = [search_tile(folder, tile, sky, params, refine=False, expect=expect, rescore_floor=floor)
-                 for tile in index.tiles]
+        first = _run(index, search_tile, index.tiles, None, sky, params, "", False, rescore_floor=floor, region=False)
         rows["grid"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        best = combine(first, index.body).tile
+        best = best_tile(first)
         rows["combine"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        for tile in index.tiles:
-            if tile.file == best:
-                search_tile(folder, tile, sky, params, refine=True, expect=expect, rescore_floor=floor)
+        _run(index, search_tile, [t for t in index.tiles if t.file == best], None, sky, params, "", True,
+             rescore_floor=floor)
         rows["refine"].append(time.perf_counter() - t)
         rows["n_refined"].append(1)
     return {k: float(np.median(v)) for k, v in rows.items()}

@@ -6,7 +6,9 @@ import json
 import math
 import os
 import shutil
+import threading
 
+import numba
 import numpy as np
 import pytest
 
@@ -436,3 +438,55 @@ def test_a_first_pass_serves_only_the_skyline_and_grid_it_was_made_for(built):
                  first=made)
     with pytest.raises(ValueError, match="another grid, skyline or search"):
         estimate(*args[:4], None, first=made)  # no compass: another search
+
+
+def test_tiles_searched_on_threads_give_the_records_of_one_tile_after_the_other(built, monkeypatch):
+    """In process the tiles are searched on a pool of threads, each running the compiled kernels on
+    its own thread: the records are those of the tiles searched one after the other in this thread,
+    and each tile's first pass is still made once per search."""
+    folder, _ = built
+    index = open_tiled(folder)
+    made: list[tuple[int, str, int]] = []
+    real = tiled_search.first_pass
+
+    def counting(grid, *a, **k):
+        made.append((id(grid), threading.current_thread().name, numba.get_num_threads()))
+        return real(grid, *a, **k)
+
+    monkeypatch.setattr(tiled_search, "first_pass", counting)
+    records = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(tiled_search, "TILE_THREADS", threads)
+        monkeypatch.setattr(tiled_search, "_first_passes", {})
+        made.clear()
+        records[threads] = []
+        for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
+            rec = locate_tiled(index, _skyline(lat, lon, seed=k), PARAMS).to_json(index, (lat, lon))
+            rec.pop("elapsed_ms")
+            records[threads].append(rec)
+        assert len(made) == 2 * len(index.tiles) == 2 * len({g for g, _, _ in made})
+        assert len(tiled_search._first_passes) == 2 * len(index.tiles)
+        on_pool = {name.startswith("viper-tile") and n == 1 for _, name, n in made}
+        assert on_pool == {threads > 1 and numba.threading_layer() != "workqueue"}
+    assert records[3] == records[1]
+
+
+def test_the_best_tile_needs_no_region_but_the_combination_does(built):
+    """The grid round leaves every tile's region out: enough to find the best tile, whose refined
+    search then brings its region; combining without it is refused, not answered wrongly."""
+    folder, _ = built
+    index = open_tiled(folder)
+    sky = _skyline(*INTERIOR)
+    floor = max(tiled_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles)
+    bare = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor, region=False)
+            for t in index.tiles]
+    full = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor)
+            for t in index.tiles]
+    assert all(o.region_nodes.size == 0 and not o.has_region for o in bare)
+    best = tiled_search.best_tile(bare)
+    assert best == tiled_search.combine(full, index.body).tile == _tile_holding(index, *INTERIOR)
+    with pytest.raises(ValueError, match="without its region"):
+        tiled_search.combine(bare, index.body)
+    mixed = [f if f.file == best else b for b, f in zip(bare, full, strict=True)]
+    combined = tiled_search.combine(mixed, index.body).to_json(index)
+    assert combined == tiled_search.combine(full, index.body).to_json(index)

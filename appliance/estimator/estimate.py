@@ -484,6 +484,7 @@ def estimate(
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
+    given = first is not None
     if first is None:
         first = _scored_first_pass(grid, meas, heading_tolerance_deg)
     elif not first.made_for(grid, meas, heading_tolerance_deg):
@@ -491,7 +492,14 @@ def estimate(
     # a uniform prior is a read-only view of one zero, not an array of the grid's size
     lp = (np.broadcast_to(0.0, (grid.codes.shape[0],)) if log_prior is None
           else np.asarray(log_prior, dtype=np.float64))
-    plausible = _plausible_nodes(first.scores, meas, lp, rescore_floor)
+    if given and log_prior is None:
+        # a first pass made earlier (a tiled search's floor) holds these bounds already; the
+        # posteriors are made from them in place
+        lo, up, scored = first.uniform_bounds()
+        bounds = (lo.copy(), up.copy(), scored)
+    else:
+        bounds = _first_pass_bounds(first.scores, meas, lp)
+    plausible = _plausible_nodes(bounds, rescore_floor)
     rescored = _rescore(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
@@ -600,19 +608,37 @@ class FirstPass:
     meas: _Measurement
     heading_tolerance_deg: float | None
     scores: _FirstPass
+    #: the bounds under a uniform prior once made (:meth:`uniform_bounds`).  Memoised by hand:
+    #: functools.cached_property holds one lock across every instance (Python < 3.12), which would
+    #: make the tiles searched on several threads wait for each other's bounds.
+    _memo: dict[str, tuple[np.ndarray, np.ndarray, int]] = field(default_factory=dict, compare=False, repr=False)
 
-    @cached_property
+    def uniform_bounds(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """Every node's first-pass lower and upper log-likelihood (nats, read-only) and the count of
+        nodes scored: made once, for the pruning floor (:attr:`best_lower`) and for :func:`estimate`
+        under a uniform prior, which starts from the same numbers."""
+        made = self._memo.get("uniform")
+        if made is None:
+            lo, up, scored = _first_pass_bounds(self.scores, self.meas)
+            lo.flags.writeable = False
+            up.flags.writeable = False
+            made = self._memo["uniform"] = (lo, up, scored)
+        return made
+
+    @property
     def best_lower(self) -> float:
         """The best lower log-posterior (unnormalised, nats, uniform prior) of any node: what
         :func:`estimate` prunes its rescoring against.  Over the tiles of one lattice the largest of
         these is the ``rescore_floor`` that makes each tile's search rescore the nodes a search of
         the whole lattice would."""
-        return float(np.max(_first_pass_bounds(self.scores, self.meas)[0]))
+        return float(np.max(self.uniform_bounds()[0]))
 
     @cached_property
     def nbytes(self) -> int:
+        """The scores' bytes and those of the uniform prior's bounds (two float64 per node)."""
         s = self.scores
-        return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + (0 if s.centre is None else s.centre.nbytes))
+        return int(s.ssd.nbytes + s.occluded.nbytes + s.penalty.nbytes + (0 if s.centre is None else s.centre.nbytes)
+                   + 16 * s.ssd.shape[0])
 
     def made_for(self, grid: SkylineGrid, meas: _Measurement, heading_tolerance_deg: float | None) -> bool:
         a, b = self.meas, meas
@@ -706,11 +732,12 @@ def _first_pass_bounds(first: _FirstPass, meas: _Measurement,
                               meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
 
 
-def _plausible_nodes(first: _FirstPass, meas: _Measurement, lp: np.ndarray, floor: float | None) -> _Plausible:
-    """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats) comes
-    within RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound
-    reached elsewhere on the lattice), at least MIN_RESCORE of them."""
-    node_lo, node_up, scored = _first_pass_bounds(first, meas, lp)
+def _plausible_nodes(bounds: tuple[np.ndarray, np.ndarray, int], floor: float | None) -> _Plausible:
+    """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats,
+    ``bounds``: :func:`_first_pass_bounds`, which the result takes over) comes within
+    RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound reached
+    elsewhere on the lattice), at least MIN_RESCORE of them."""
+    node_lo, node_up, scored = bounds
     n_nodes = node_lo.size
     best_lo = float(np.max(node_lo)) if floor is None else max(float(np.max(node_lo)), floor)
     rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]

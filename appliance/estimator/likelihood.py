@@ -162,7 +162,7 @@ def mixture_log_likelihood_bounds(ssd: np.ndarray, n: float, occluded: np.ndarra
     return lo + const, up + const
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarray, log_prior: np.ndarray,
                         cap32: np.float32, rank_cap: bool, n: float, sigma_lo: float, sigma_hi: float,
                         log_occ: float, log_clear: float, mixture: bool, lower: np.ndarray,

@@ -85,7 +85,7 @@ def map_var_at(dist: np.ndarray, i: int, j: int, map2: float, inv_d2: np.ndarray
     return map2 * inv_d2[dc]
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _coarse_tau2(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, g2: np.ndarray,
                  rho2: float, inv_d2: np.ndarray, factor: int, map2: float, out: np.ndarray) -> None:
     n, n_az = codes.shape
@@ -148,7 +148,7 @@ def ground_gradient(ground_m: np.ndarray, n_rows: int, n_cols: int, dx_m: float,
     return np.nan_to_num(gx).ravel(), np.nan_to_num(-gy).ravel()
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, ge: np.ndarray,
                    gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, mj: np.ndarray, rows: np.ndarray,
                    shifts: np.ndarray, rho2: float, inv_d2: np.ndarray, sig2: float, lin2: float,

@@ -30,7 +30,7 @@ MAX_MISSING_FRACTION = 0.1
 BLOCK = 256
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_shifts(
     codes: np.ndarray,
     offset: np.ndarray,
@@ -124,7 +124,7 @@ def _ssd_shifts(
                     occ_out[r, k] = occ * n_t / cnt
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)
 def _decimate_codes(codes: np.ndarray, offset: np.ndarray, factor: int, out: np.ndarray,
                     partial: np.ndarray) -> None:
     """out[i, t] = mean code of azimuths t*factor .. t*factor+factor-1 of node i, rounded (255 if
@@ -211,7 +211,7 @@ def _gappy_shift(row: np.ndarray, ww: np.ndarray, mt: np.ndarray, w: np.ndarray,
     return acc * scale * n_meas / cnt, occ * n_meas / cnt
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                 w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
                 p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float, occ_out: np.ndarray) -> None:
@@ -317,7 +317,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
 SHIFT_RUN = 32
 
 
-@numba.njit(cache=True, parallel=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                      w: np.ndarray, out: np.ndarray, occ_out: np.ndarray, arg_out: np.ndarray, T: np.ndarray,
                      w_lut: np.ndarray, p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float,
