@@ -42,7 +42,7 @@ import numba
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
-from appliance.errors import DatabaseError, DemError, EstimationError, InputError
+from appliance.errors import DatabaseError, EstimationError, InputError
 from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, FirstPass, SkylineGrid, first_pass
 from appliance.position import MAX_REGION_CELLS_IN_JSON, crs_name, locate, skyline_grid
 from appliance.skyline import Skyline
@@ -684,8 +684,8 @@ def open_surface(index: TiledIndex) -> tuple[Dem | None, str | None]:
         if source.sha256 != rec["sha256"]:
             return None, f"its map {path} has changed since the build"
         return source.load(), None
-    except DemError as exc:
-        return None, f"its map {path} cannot be read ({exc})"
+    except OSError as exc:  # DemError too
+        return None, f"its map {path} cannot be read ({exc.strerror or exc})"
 
 
 def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline: Skyline,

@@ -288,6 +288,9 @@ def test_index_records_the_map_for_fits_on_its_surface(moon, seam_db, tmp_path):
                          {**index.raw, "surface": {**rec, "sha256": "0" * 64}})
     surface, why_not = open_surface(changed)
     assert surface is None and "has changed since the build" in str(why_not)
+    folder_map = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m,
+                            index.body, {**index.raw, "surface": {**rec, "path": str(tmp_path)}})
+    assert open_surface(folder_map) == (None, f"its map {tmp_path} is not there")
     bad = TiledIndex(index.folder, index.tiles, index.n_azimuths, index.height_m, index.max_range_m, index.body,
                      {**index.raw, "surface": {"path": 3}})
     with pytest.raises(DatabaseError, match="malformed 'surface'"):
