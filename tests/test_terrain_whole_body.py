@@ -325,6 +325,19 @@ def test_fit_on_the_maps_surface_finds_the_renderers_skyline_in_the_cap(moon, ca
         assert rec["status"] == ("ambiguous" if res.ambiguous else "ok")
 
 
+def test_fit_on_the_maps_surface_gives_the_same_answer_on_dask(moon, cap_db, client):
+    _, dem = moon
+    index = open_tiled(cap_db)
+    surface, _ = open_surface(index)
+    az = np.arange(360.0)
+    sky = _read(az, render_skyline(dem, 79.6, 20.0, HEIGHT_M, az, index.max_range_m).elevation_deg, 4)
+    here = locate_tiled(index, sky, PARAMS, surface=surface).to_json(index)
+    there = locate_tiled(index, sky, PARAMS, client=client, surface=surface).to_json(index)
+    for rec in (here, there):
+        rec.pop("elapsed_ms")
+    assert "surface_fit" in here and here == there
+
+
 def test_estimate_command_fits_on_the_recorded_map_or_warns(moon, cap_db, tmp_path, capsys):
     _, dem = moon
     lat, lon = 80.0, 200.3
