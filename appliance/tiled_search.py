@@ -430,7 +430,7 @@ class RegionCell:
 class SurfaceFit:
     """The answer fitted on the map's own surface (:mod:`appliance.verification`): where, in which
     tile's grid coordinates, the compass's error, the fit's RMS residual and how many contending
-    places were fitted."""
+    places were looked at."""
 
     lat: float
     lon: float

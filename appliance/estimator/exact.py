@@ -54,8 +54,8 @@ class Terrain:
     ``heights_m`` has the node grid's spacing; candidate node (0, 0) is its (row0, col0).
     ``convergence_deg[node]`` is the true azimuth of grid north at the node.
 
-    With an ``outer`` grid (``outer_ratio`` times coarser, both grids centred on the same point,
-    each of odd size), this one is marched out to ``near_reach_m`` and the outer one beyond: fine
+    With an ``outer`` grid (``outer_ratio`` times coarser, both grids square, of odd size and
+    centred on the same point), this one is marched out to ``near_reach_m`` and the outer one beyond: fine
     heights near the eye, where a camera close to the ground sees the slopes under it, and coarse
     ones farther away, where a cell subtends little."""
 
