@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from pyproj import Transformer
 
-from appliance.estimator.estimate import resample_to_grid
+from appliance.estimator.estimate import measured_on_grid
 from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Model, Terrain, refine, render, screen
 from appliance.estimator.likelihood import occlusion_cap_deg2
 from appliance.skyline import Skyline
@@ -163,31 +163,10 @@ def local_terrain(dem: Dem, lat: float, lon: float, cell_m: float, reach_m: floa
                    near_reach_m), frame
 
 
-def pixel_m(dem: Dem, lat: float, lon: float) -> float:
-    """The ground size (m) of the map's pixel at (lat, lon): the shorter of its two sides."""
-    col, row = dem.xy_to_pixel(*dem.lonlat_to_xy(lon, lat))
-    c, r = float(np.floor(col)), float(np.floor(row))
-    x, y = dem.pixel_to_xy(np.array([c, c + 1.0, c]), np.array([r, r, r + 1.0]))
-    lo, la = dem.xy_to_lonlat(x, y)
-    _, _, d = dem.body.geod.inv(np.full(2, lo[0]), np.full(2, la[0]), lo[1:], la[1:])
-    return float(np.min(d))
-
-
 def local_cell_m(dem: Dem, lat: float, lon: float, node_spacing_m: float) -> float:
     """The local grid's cell at (lat, lon) (FINE_PER_NODE, FINE_PER_PIXEL, MAX_FINE_PER_NODE)."""
-    fine = min(node_spacing_m / FINE_PER_NODE, pixel_m(dem, lat, lon) / FINE_PER_PIXEL)
+    fine = min(node_spacing_m / FINE_PER_NODE, min(dem.resolution_m((lon, lat))) / FINE_PER_PIXEL)
     return max(fine, node_spacing_m / MAX_FINE_PER_NODE)
-
-
-def _measurement(skyline: Skyline, n_az: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """The skyline and its confidence on the azimuth grid (NaN where missing)."""
-    m = resample_to_grid(skyline.azimuth_deg, skyline.elevation_deg, n_az)
-    if skyline.confidence is None:
-        return m, None
-    w = resample_to_grid(skyline.azimuth_deg, np.where(np.isfinite(skyline.elevation_deg), skyline.confidence,
-                                                       np.nan), n_az)
-    m = np.where(np.isfinite(w) & (w > 0), m, np.nan)
-    return m, np.where(np.isfinite(m), w, 0.0)
 
 
 def _look_heading(terrain: Terrain, cell_m: float, m: np.ndarray, row: float, col: float, height_m: float,
@@ -214,7 +193,8 @@ class PlaceSearch:
 
     def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> None:
         self.dem, self.place, self.settings = dem, place, settings
-        self.m, w = _measurement(skyline, settings.n_azimuths)
+        self.m, w = measured_on_grid(skyline.azimuth_deg, skyline.elevation_deg, skyline.confidence,
+                                     settings.n_azimuths)
         node = settings.node_spacing_m
         self.cell = local_cell_m(dem, place.lat, place.lon, node)
         self.per_node = node / self.cell

@@ -543,6 +543,19 @@ class _Measurement:
     map_sigma_m: float
 
 
+def measured_on_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, weights: np.ndarray | None,
+                     n_az: int) -> tuple[np.ndarray, np.ndarray]:
+    """The measured skyline (deg, NaN where missing) and its weights (0..1, 0 where missing) on the
+    azimuth grid j * 360 / n_az (:func:`resample_to_grid`); an azimuth of weight 0 is missing."""
+    m = resample_to_grid(azimuth_deg, elevation_deg, n_az)
+    if weights is None:
+        return m, np.isfinite(m).astype(float)
+    wts = np.asarray(weights, dtype=float)
+    w_grid = resample_to_grid(azimuth_deg, np.where(np.isfinite(elevation_deg), wts, np.nan), n_az)
+    m = np.where(np.isfinite(w_grid) & (w_grid > 0), m, np.nan)
+    return m, np.where(np.isfinite(m), w_grid, 0.0)
+
+
 def _measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, sigma_deg: tuple[float, float],
              weights: np.ndarray | None, occlusion_weight: float, map_sigma_m: float,
              min_field_of_view_deg: float) -> _Measurement:
@@ -552,16 +565,11 @@ def _measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarr
     if not 0 < sig_lo <= sig_hi:
         raise InputError(f"sigma interval [{sig_lo}, {sig_hi}] must satisfy 0 < lo <= hi")
     n_az = grid.n_azimuths
-    m = resample_to_grid(azimuth_deg, elevation_deg, n_az)
     if weights is not None:
         wts = np.asarray(weights, dtype=float)
         if wts.shape != np.shape(elevation_deg) or not np.all((wts >= 0) & (wts <= 1) | np.isnan(wts)):
             raise InputError("weights: one value in [0, 1] per measured azimuth")
-        w_grid = resample_to_grid(azimuth_deg, np.where(np.isfinite(elevation_deg), wts, np.nan), n_az)
-        m = np.where(np.isfinite(w_grid) & (w_grid > 0), m, np.nan)
-        w_grid = np.where(np.isfinite(m), w_grid, 0.0)
-    else:
-        w_grid = np.isfinite(m).astype(float)
+    m, w_grid = measured_on_grid(azimuth_deg, elevation_deg, weights, n_az)
     if not 0.0 <= occlusion_weight < 1.0:
         raise InputError(f"occlusion weight {occlusion_weight}: expected 0 <= w < 1")
     if not (math.isfinite(map_sigma_m) and map_sigma_m >= 0.0):

@@ -156,10 +156,15 @@ class Dem:
             west, east = -180.0, 180.0
         return west, max(float(lat.min()), -90.0), east, min(float(lat.max()), 90.0)
 
-    def resolution_m(self) -> tuple[float, float]:
-        """Ground size (m) of one pixel along x and y at the map's centre."""
-        rows, cols = self.shape
-        c, r = cols / 2.0, rows / 2.0
+    def resolution_m(self, lonlat: tuple[float, float] | None = None) -> tuple[float, float]:
+        """Ground size (m) of one pixel along x and y at the map's centre, or of the pixel holding
+        ``lonlat`` (lon, lat): on a lon/lat map a pixel narrows towards the poles."""
+        if lonlat is None:
+            rows, cols = self.shape
+            c, r = cols / 2.0, rows / 2.0
+        else:
+            col, row = self.xy_to_pixel(*self.lonlat_to_xy(*lonlat))
+            c, r = float(np.floor(col)) + 0.5, float(np.floor(row)) + 0.5
         xs, ys = affine_apply(self.transform, np.array([c, c + 1, c]), np.array([r, r, r + 1]))
         lon, lat = self.xy_to_lonlat(xs, ys)
         _, _, dx = self.geod.inv(lon[0], lat[0], lon[1], lat[1])
