@@ -106,11 +106,13 @@ def _number(d: dict, key: str, folder: Path, kind: Callable[[Any], Any] = float)
         v = d[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise TypeError
+        if isinstance(v, float) and not math.isfinite(v):
+            raise _bad(folder, f"{INDEX_NAME} has a non-finite {key!r}")
         out = kind(v)
     except (KeyError, TypeError, ValueError):
         raise _bad(folder, f"{INDEX_NAME} lacks a numeric {key!r}") from None
-    if isinstance(out, float) and not math.isfinite(out):
-        raise _bad(folder, f"{INDEX_NAME} has a non-finite {key!r}")
+    if out != v:
+        raise _bad(folder, f"{INDEX_NAME} has a non-integral {key!r}: {v}")
     return out
 
 

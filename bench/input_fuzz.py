@@ -13,8 +13,14 @@ Readers and their seeds:
   ASCII .dem, PDS .IMG with its label, .npz, .e00), copied to a scratch folder and truncated or
   bit-flipped; ``--dem-count`` inputs per file (each load reads a whole map).
 - skyline database (``load_database``): a small jacksboro database; ``--count`` inputs.
+- tiled database index (``open_tiled``, then ``open_surface`` and a search with ``locate_tiled``): the
+  ``index.json`` of a small 2 x 2 tiled jacksboro database, with a ``surface`` record naming the
+  jacksboro map, and the whole-body Moon index of ``bench/moon_whole_body.py`` where its cache exists
+  (opened and its surface record checked, not searched: one search takes seconds); ``--index-count``
+  inputs, half of them byte mutations, half structural ones (a value replaced by a hostile one of
+  another type or sign, a key deleted).
 
-Mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
+Byte mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
 ones or by a hostile token (nan, inf, a huge number, a minus sign), bytes inserted or deleted, a line
 duplicated.  Target: every input either loads or raises the project's own error (ViperError); any
 other exception is foreign and fails the run.
@@ -26,6 +32,8 @@ import argparse
 import collections
 import datetime
 import functools
+import hashlib
+import json
 import logging
 import random
 import shutil
@@ -42,12 +50,14 @@ from appliance.errors import ViperError
 from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
+from appliance.tiled_search import SearchParams, locate_tiled, open_surface, open_tiled
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 OUT = ROOT / "bench" / "results" / "input_fuzz.md"
 sys.path.insert(0, str(ROOT))
 from bench.results_file import append_result  # noqa: E402
+from tests.tiled_build import build_tiled  # noqa: E402
 
 HOSTILE = [b"nan", b"-inf", b"1e999", b"99999999999999999999", b"-", b"", b"\x00", b"\"", b"[", b"]]", b"=",
            b"\xef\xbb\xbf", b"\r\n", b",", b"-0", b"0", b"true", b"{}", b"\xff\xfe"]
@@ -191,10 +201,84 @@ def fuzz_database(count: int, rng: random.Random, work: Path) -> Tally:
     return t
 
 
+JSON_HOSTILE: list[object] = [None, -1, 0, -0.5, 1e308, float("nan"), float("inf"), 2**70, True, "x", "", [], {},
+                               [1, 2], "../index.json", "/etc/passwd", "EPSG:4326", "moon"]
+
+
+def _leaves(node: object, path: tuple = ()) -> list[tuple]:
+    """Every path (keys and indices) inside a parsed JSON document, containers included."""
+    out = [path]
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _leaves(v, path + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += _leaves(v, path + (i,))
+    return out
+
+
+def mutate_json(doc: dict, rng: random.Random) -> bytes:
+    """``doc`` with one to three values replaced by hostile ones or their keys deleted."""
+    doc = json.loads(json.dumps(doc))
+    for _ in range(rng.randint(1, 3)):
+        paths = [p for p in _leaves(doc) if p]
+        path = rng.choice(paths)
+        parent = doc
+        for key in path[:-1]:
+            parent = parent[key]
+        if isinstance(parent, dict) and rng.random() < 0.25:
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = rng.choice(JSON_HOSTILE)
+    return json.dumps(doc).encode()
+
+
+def _open_and_search(folder: Path, sky: Skyline, params: SearchParams, search: bool) -> None:
+    index = open_tiled(folder)
+    open_surface(index)
+    if search:
+        locate_tiled(index, sky, params)
+
+
+def fuzz_tiled_index(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
+    dem = load_dem("jacksboro")
+    small = build_tiled(dem, work / "tiled-seed", (-84.30, 36.55, -84.28, 36.56), (2, 2), 3_000.0, n_azimuths=36)
+    index = json.loads((small / "index.json").read_text())
+    map_path = DATA / "dem_other" / "jacksboro_fault_dem.npz"
+    if map_path.exists():
+        index["surface"] = {"path": str(map_path), "crs": None,
+                            "sha256": hashlib.sha256(map_path.read_bytes()).hexdigest()}
+    seeds = {"tiled index (jacksboro 2 x 2)": (small, index, True)}
+    moon = ROOT / "bench" / "cache" / "moon_whole_body_3790m_150km"
+    if (moon / "index.json").is_file():
+        seeds["tiled index (Moon whole body)"] = (moon, json.loads((moon / "index.json").read_text()), False)
+    az = np.arange(0.0, 360.0, 10.0)
+    sky = Skyline(az, 1.0 + np.sin(np.radians(2.0 * az)))
+    params = SearchParams((0.3, 1.2), 4.0)
+    out = {}
+    for name, (source, doc, search) in seeds.items():
+        folder = work / "tiled-fuzz"
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir()
+        for tile in source.iterdir():
+            if tile.name != "index.json":
+                (folder / tile.name).symlink_to(tile.resolve())
+        raw = json.dumps(doc).encode()
+        t = Tally()
+
+        for _ in range(count):
+            data = mutate(raw, rng) if rng.random() < 0.5 else mutate_json(doc, rng)
+            (folder / "index.json").write_bytes(data)
+            t.run(functools.partial(_open_and_search, folder, sky, params, search))
+        out[name] = t
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=20_000, help="inputs per reader (CSV, config, database)")
     ap.add_argument("--dem-count", type=int, default=12, help="inputs per DEM file")
+    ap.add_argument("--index-count", type=int, default=2_000, help="inputs per tiled database index")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-record", action="store_true", help="do not append to the results file")
     args = ap.parse_args()
@@ -206,6 +290,7 @@ def main() -> int:
         tallies = {"skyline CSV": fuzz_skyline(args.count, rng), "config": fuzz_config(args.count, rng, work)}
         tallies.update({f"DEM {Path(k).name}": v for k, v in fuzz_dems(args.dem_count, rng, work).items()})
         tallies["database"] = fuzz_database(args.count, rng, work)
+        tallies.update(fuzz_tiled_index(args.index_count, rng, work))
     elapsed = time.perf_counter() - t0
     foreign = sum(len(t.foreign) for t in tallies.values())
     result = "pass" if not foreign else f"FAIL: {foreign} foreign exceptions"
@@ -228,7 +313,7 @@ def main() -> int:
                       "|---|---|---|---|---|---|---|\n",
                       "\n".join(rows) + "\n"
                       + f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
-                      f"{args.dem_count} --seed {args.seed}): {result}.\n\n")
+                      f"{args.dem_count} --index-count {args.index_count} --seed {args.seed}): {result}.\n\n")
     return 0 if not foreign else 1
 
 

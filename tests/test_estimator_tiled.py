@@ -245,7 +245,14 @@ def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
     foreign = tmp_path / "foreign"
     shutil.copytree(folder, foreign)
     (foreign / "index.json").write_text(json.dumps({**idx, "format": "something-else"}))
-    cases = {empty: "index.json", missing: gone, garbled: "unreadable", future: "version 99", foreign: "format"}
+    endless = tmp_path / "endless"
+    shutil.copytree(folder, endless)
+    (endless / "index.json").write_text(json.dumps({**idx, "n_azimuths": math.inf}))
+    halved = tmp_path / "halved"
+    shutil.copytree(folder, halved)
+    (halved / "index.json").write_text(json.dumps({**idx, "n_azimuths": idx["n_azimuths"] + 0.5}))
+    cases = {empty: "index.json", missing: gone, garbled: "unreadable", future: "version 99", foreign: "format",
+             endless: "non-finite 'n_azimuths'", halved: "non-integral 'n_azimuths'"}
     for path, word in cases.items():
         with pytest.raises(DatabaseError):
             open_tiled(path)

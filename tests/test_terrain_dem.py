@@ -162,6 +162,24 @@ def test_truncated_npz_is_a_dem_error(tmp_path):
                               "truncated")
 
 
+def test_npz_with_a_damaged_compressed_member_is_a_dem_error(tmp_path):
+    import zipfile
+
+    path = tmp_path / "damaged.npz"
+    np.savez_compressed(path, elevation=np.arange(400.0).reshape(20, 20), dx=1.0, dy=1.0, xmin=0.0, xmax=20.0,
+                        ymin=0.0, ymax=20.0)
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("elevation.npy")
+    data = bytearray(path.read_bytes())
+    name_len, extra_len = int.from_bytes(data[info.header_offset + 26: info.header_offset + 28], "little"), \
+        int.from_bytes(data[info.header_offset + 28: info.header_offset + 30], "little")
+    start = info.header_offset + 30 + name_len + extra_len
+    data[start: start + 8] = b"\xff" * 8  # a deflate block of the reserved type
+    path.write_bytes(bytes(data))
+    with pytest.raises(DemError, match=r"damaged\.npz: not a readable \.npz grid \(Error -3 while decompressing"):
+        load_dem(path)
+
+
 def test_truncated_pds_image_names_its_size(tmp_path):
     lbl = data_file("dem_planetary/LDEM_4.LBL")
     img = data_file("dem_planetary/LDEM_4.IMG")

@@ -14,6 +14,7 @@ import hashlib
 import math
 import re
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -272,7 +273,7 @@ def load_dem(path: str | Path | None = None, crs: str | None = None) -> Dem:
                 dem = _load_srtm_raw(p, tile)
     except DemError:
         raise
-    except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile) as exc:
+    except (OSError, ValueError, KeyError, IndexError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise DemError(f"{p}: cannot read DEM: {first}") from None
     if crs is not None and suffix in (".npz", ".e00"):
@@ -437,7 +438,7 @@ def _check_raw_size(p: Path, ds: Any) -> None:
 def _load_npz(p: Path) -> Dem:
     try:
         return _read_npz(p)
-    except (zipfile.BadZipFile, EOFError, ValueError, OSError) as exc:
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
         if isinstance(exc, DemError):
             raise
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
