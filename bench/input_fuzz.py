@@ -19,6 +19,12 @@ Readers and their seeds:
   (opened and its surface record checked, not searched: one search takes seconds); ``--index-count``
   inputs, half of them byte mutations, half structural ones (a value replaced by a hostile one of
   another type or sign, a key deleted).
+- images through ``viper skyline`` (``main`` in-process, as a user runs it): a small synthetic
+  panorama as PNG and as JPEG with its geometry sidecar, and a small photo with its camera
+  calibration TOML and an orientation sidecar; ``--image-count`` inputs, each mutating the image, the
+  sidecar (bytes or structure) or the calibration.  Here a project error is a non-zero exit with
+  exactly one line on stderr; an exception out of ``main``, or an exit of 0 with no skyline written,
+  is foreign.
 
 Byte mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
 ones or by a hostile token (nan, inf, a huge number, a minus sign), bytes inserted or deleted, a line
@@ -30,9 +36,12 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
+import copy
 import datetime
 import functools
 import hashlib
+import io
 import json
 import logging
 import random
@@ -229,7 +238,7 @@ def mutate_json(doc: dict, rng: random.Random) -> bytes:
         if isinstance(parent, dict) and rng.random() < 0.25:
             del parent[path[-1]]
         else:
-            parent[path[-1]] = rng.choice(JSON_HOSTILE)
+            parent[path[-1]] = copy.deepcopy(rng.choice(JSON_HOSTILE))
     return json.dumps(doc).encode()
 
 
@@ -274,11 +283,87 @@ def fuzz_tiled_index(count: int, rng: random.Random, work: Path) -> dict[str, Ta
     return out
 
 
+def _image_seeds(work: Path) -> dict[str, dict[str, bytes]]:
+    """Each seed's files by name: the image first, then the files beside it."""
+    import cv2
+
+    from appliance.vision.intrinsics import CameraIntrinsics, save_intrinsics
+    from appliance.vision.panorama import save_panorama
+    from appliance.vision.synth import analytic_skyline_fn, render_panorama
+
+    seeds: dict[str, dict[str, bytes]] = {}
+    pano = render_panorama(analytic_skyline_fn(3), np.random.default_rng(3), px_per_rad=120.0, height_px=120).panorama
+    for suffix in (".png", ".jpg"):
+        folder = work / f"seed{suffix}"
+        folder.mkdir()
+        side = save_panorama(pano, folder / f"pano{suffix}")
+        seeds[f"panorama{suffix}"] = {f"pano{suffix}": (folder / f"pano{suffix}").read_bytes(),
+                                      side.name: side.read_bytes()}
+    folder = work / "seed-photo"
+    folder.mkdir()
+    img = np.empty((135, 240, 3), np.uint8)
+    img[:] = (205, 200, 198)
+    rows = np.arange(135)[:, None] > 70 + 8 * np.sin(np.arange(240) / 20.0)[None, :]
+    img[rows] = (60, 110, 80)
+    ok, buf = cv2.imencode(".png", img)
+    save_intrinsics(CameraIntrinsics(240, 135, 180.0, 180.0, 120.0, 67.5), folder / "camera.toml")
+    seeds["photo.png"] = {"photo.png": buf.tobytes(),
+                          "photo.png.json": json.dumps({"yaw_deg": 30.0, "pitch_deg": 0.0, "roll_deg": 0.0,
+                                                        "camera": "camera.toml"}).encode(),
+                          "camera.toml": (folder / "camera.toml").read_bytes()}
+    return seeds
+
+
+def fuzz_images(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
+    from appliance.cli.main import main as viper_main
+
+    out = {}
+    for name, files in _image_seeds(work).items():
+        t = Tally()
+        folder = work / "image-fuzz"
+        image = next(iter(files))
+        for _ in range(count):
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            victim = rng.choice(list(files))
+            for fname, data in files.items():
+                if fname == victim:
+                    if fname.endswith(".json") and rng.random() < 0.5:
+                        data = mutate_json(json.loads(data), rng)
+                    else:
+                        data = mutate(data, rng)
+                (folder / fname).write_bytes(data)
+            t.run(functools.partial(_skyline_command, viper_main, folder / image, folder / "sky.csv"))
+        out[f"viper skyline, {name}"] = t
+    return out
+
+
+class _ForeignExitError(Exception):
+    pass
+
+
+def _skyline_command(viper_main: Callable[[list[str]], int], image: Path, csv: Path) -> None:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = viper_main(["skyline", str(image), "--out", str(csv)])
+    lines = err.getvalue().strip().splitlines()
+    if code == 0:
+        if not csv.is_file():
+            raise _ForeignExitError("exit 0 without a skyline CSV")
+        if len(lines) > 1:
+            raise _ForeignExitError(f"exit 0 with {len(lines)} lines on stderr: {lines[:2]}")
+        return
+    if len(lines) != 1:
+        raise _ForeignExitError(f"exit {code} with {len(lines)} lines on stderr: {lines[:1]}")
+    raise ViperError(lines[0])
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=20_000, help="inputs per reader (CSV, config, database)")
     ap.add_argument("--dem-count", type=int, default=12, help="inputs per DEM file")
     ap.add_argument("--index-count", type=int, default=2_000, help="inputs per tiled database index")
+    ap.add_argument("--image-count", type=int, default=1_000, help="inputs per image seed of viper skyline")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-record", action="store_true", help="do not append to the results file")
     args = ap.parse_args()
@@ -291,6 +376,7 @@ def main() -> int:
         tallies.update({f"DEM {Path(k).name}": v for k, v in fuzz_dems(args.dem_count, rng, work).items()})
         tallies["database"] = fuzz_database(args.count, rng, work)
         tallies.update(fuzz_tiled_index(args.index_count, rng, work))
+        tallies.update(fuzz_images(args.image_count, rng, work))
     elapsed = time.perf_counter() - t0
     foreign = sum(len(t.foreign) for t in tallies.values())
     result = "pass" if not foreign else f"FAIL: {foreign} foreign exceptions"
@@ -313,7 +399,8 @@ def main() -> int:
                       "|---|---|---|---|---|---|---|\n",
                       "\n".join(rows) + "\n"
                       + f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
-                      f"{args.dem_count} --index-count {args.index_count} --seed {args.seed}): {result}.\n\n")
+                      f"{args.dem_count} --index-count {args.index_count} "
+                      f"--image-count {args.image_count} --seed {args.seed}): {result}.\n\n")
     return 0 if not foreign else 1
 
 

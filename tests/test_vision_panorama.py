@@ -65,3 +65,46 @@ def test_bad_inputs(tmp_path: Path) -> None:
         load_panorama(square)
     with pytest.raises(InputError, match="sidecar"):
         load_panorama(square, projection=Projection.CYLINDRICAL)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "words"),
+    [
+        ("px_per_rad", float("nan"), "px_per_rad must be a finite number"),
+        ("azimuth0_deg", "12", "azimuth0_deg must be a finite number"),
+        ("horizon_row", True, "horizon_row must be a finite number"),
+        ("full_circle", "false", "full_circle must be true or false"),
+        ("width", [300], "width and height must be whole numbers"),
+        ("height", "/etc/passwd", "width and height must be whole numbers"),
+        ("width", 301, "geometry is for 301x40, image is 300x40"),
+    ],
+)
+def test_malformed_sidecar_field_is_named(tmp_path: Path, field: str, value: object, words: str) -> None:
+    import json
+
+    img = np.random.default_rng(0).integers(0, 255, (40, 300, 3), dtype=np.uint8)
+    side = save_panorama(Panorama(img, Projection.CYLINDRICAL, 60.0, 123.0, 17.5, False), tmp_path / "pano.png")
+    meta = json.loads(side.read_text())
+    meta[field] = value
+    side.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=f"{side}: .*{words}"):
+        load_panorama(tmp_path / "pano.png")
+
+
+def test_damaged_png_is_one_line_naming_the_decoders_complaint(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    img = np.zeros((100, 400, 3), np.uint8)
+    img[:50] = 200
+    ok, buf = cv2.imencode(".png", img)
+    data = bytearray(buf.tobytes())
+    idat = data.index(b"IDAT") + 8  # inside the compressed pixels
+    data[idat] ^= 0xFF
+    (tmp_path / "bad.png").write_bytes(bytes(data))
+    out = subprocess.run([sys.executable, "-m", "appliance.cli.main", "skyline", "bad.png", "--out", "sky.csv"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0
+    assert out.stderr.count("\n") == 1, out.stderr
+    assert "bad.png: not a readable image" in out.stderr and "libpng" in out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.png"]

@@ -18,9 +18,15 @@ geometry.  An image without its sidecar is read as an equirectangular 360-degree
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import json
+import logging
 import math
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +37,7 @@ from appliance.atomic import atomic_output
 from appliance.errors import InputError
 
 SIDECAR_SUFFIX = ".json"
+log = logging.getLogger(__name__)
 
 
 class Projection(enum.Enum):
@@ -146,10 +153,36 @@ def read_image(path: str | Path) -> np.ndarray:
     if not p.is_file():
         raise InputError(f"{p}: image file not found")
     data = np.fromfile(str(p), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    with _c_stderr_lines() as said:
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
-        raise InputError(f"{p}: not a readable image ({data.size} bytes)")
+        why = f": {said[0]}" if said else ""
+        raise InputError(f"{p}: not a readable image ({data.size} bytes){why}")
+    if said:
+        more = f" (and {len(said) - 1} more)" if len(said) > 1 else ""
+        log.warning("%s: the image is damaged, read what could be decoded: %s%s", p, said[0], more)
     return img
+
+
+@contextlib.contextmanager
+def _c_stderr_lines() -> Iterator[list[str]]:
+    """Collect what the image libraries print on the process's stderr (file descriptor 2) inside the
+    block, so that a damaged file makes one message, not a stream of the decoder's own lines."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as capture:
+            os.dup2(capture.fileno(), 2)
+            try:
+                yield lines
+            finally:
+                os.dup2(saved, 2)
+                capture.seek(0)
+                text = capture.read(65536).decode("utf-8", "replace")
+                lines.extend(line.strip() for line in text.splitlines() if line.strip())
+    finally:
+        os.close(saved)
 
 
 def load_panorama(
@@ -165,26 +198,8 @@ def load_panorama(
     img = read_image(p)
     side = sidecar_path(p)
     if side.is_file():
-        try:
-            meta = json.loads(side.read_text(encoding="utf-8"))
-            proj = Projection(meta["projection"])
-            pano = Panorama(
-                image=img,
-                projection=proj,
-                px_per_rad=float(meta["px_per_rad"]),
-                azimuth0_deg=float(meta["azimuth0_deg"]),
-                horizon_row=float(meta["horizon_row"]),
-                full_circle=bool(meta["full_circle"]),
-            )
-        except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"{side}: not a valid panorama sidecar: {exc}") from None
-        if (int(meta.get("width", pano.width)), int(meta.get("height", pano.height))) != (
-            pano.width,
-            pano.height,
-        ):
-            raise InputError(
-                f"{side}: geometry is for {meta.get('width')}x{meta.get('height')}, image is {pano.width}x{pano.height}"
-            )
+        pano = _from_sidecar(img, side)
+        proj = pano.projection
         if projection is not None and projection is not proj:
             raise InputError(f"{p}: --projection {projection.value} contradicts its sidecar ({proj.value})")
         if azimuth_offset_deg:
@@ -200,6 +215,34 @@ def load_panorama(
     if projection is Projection.CYLINDRICAL:
         raise InputError(f"{p}: a cylindrical panorama needs its geometry sidecar {side.name}")
     return equirectangular(img, azimuth_offset_deg or 0.0)
+
+
+def _from_sidecar(img: np.ndarray, side: Path) -> Panorama:
+    """The panorama ``img`` with the geometry its sidecar gives; any malformed field is an InputError."""
+    try:
+        meta = json.loads(side.read_text(encoding="utf-8"))
+        if not isinstance(meta, dict):
+            raise ValueError("not a JSON object")
+        proj = Projection(meta["projection"])
+        numbers = {}
+        for key in ("px_per_rad", "azimuth0_deg", "horizon_row"):
+            v = meta[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{key} must be a finite number, got {v!r}")
+            numbers[key] = float(v)
+        if not isinstance(meta["full_circle"], bool):
+            raise ValueError(f"full_circle must be true or false, got {meta['full_circle']!r}")
+        size = [meta.get(key, n) for key, n in (("width", img.shape[1]), ("height", img.shape[0]))]
+        if any(isinstance(v, bool) or not isinstance(v, int) for v in size):
+            raise ValueError(f"width and height must be whole numbers, got {size}")
+    except OSError as exc:
+        raise InputError(f"{side}: cannot read the panorama sidecar: {exc.strerror or exc}") from None
+    except (ValueError, KeyError) as exc:
+        raise InputError(f"{side}: not a valid panorama sidecar: {exc}") from None
+    if tuple(size) != (img.shape[1], img.shape[0]):
+        raise InputError(f"{side}: geometry is for {size[0]}x{size[1]}, image is {img.shape[1]}x{img.shape[0]}")
+    return Panorama(img, proj, numbers["px_per_rad"], numbers["azimuth0_deg"], numbers["horizon_row"],
+                    meta["full_circle"])
 
 
 def save_panorama(pano: Panorama, path: str | Path) -> Path:
