@@ -9,9 +9,10 @@ Readers and their seeds:
   with a byte order mark and CRLF; ``--count`` inputs.
 - configuration (``load_config`` on a file): examples/tripod.toml, examples/sim-forest.toml and a
   file setting every section; ``--count`` inputs.
-- DEM readers (``load_dem``): one file of every format in ../shared/data (GeoTIFF, SRTM .hgt, USGS
-  ASCII .dem, PDS .IMG with its label, .npz, .e00), copied to a scratch folder and truncated or
-  bit-flipped; ``--dem-count`` inputs per file (each load reads a whole map).
+- DEM readers (``viper dem info``, in process, which loads the map with ``load_dem``): one file of
+  every format in ../shared/data (GeoTIFF, SRTM .hgt, USGS ASCII .dem, PDS .IMG with its label, .npz,
+  .e00), copied to a scratch folder and truncated or bit-flipped; ``--dem-count`` inputs per file
+  (each load reads a whole map).
 - skyline database (``load_database``): a small jacksboro database; ``--count`` inputs.
 - tiled database index (``open_tiled``, then ``open_surface`` and a search with ``locate_tiled``): the
   ``index.json`` of a small 2 x 2 tiled jacksboro database, with a ``surface`` record naming the
@@ -22,9 +23,12 @@ Readers and their seeds:
 - images through ``viper skyline`` (``main`` in-process, as a user runs it): a small synthetic
   panorama as PNG and as JPEG with its geometry sidecar, and a small photo with its camera
   calibration TOML and an orientation sidecar; ``--image-count`` inputs, each mutating the image, the
-  sidecar (bytes or structure) or the calibration.  Here a project error is a non-zero exit with
-  exactly one line on stderr; an exception out of ``main``, or an exit of 0 with no skyline written,
-  is foreign.
+  sidecar (bytes or structure) or the calibration.
+
+The commands (``viper dem info``, ``viper skyline``) are judged by what a user sees on stderr, the
+compiled libraries' own lines included: a project error is a non-zero exit with exactly one line; an
+exception out of ``main``, more lines, or an exit of 0 with more than one line or without its output,
+is foreign.
 
 Byte mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
 ones or by a hostile token (nan, inf, a huge number, a minus sign), bytes inserted or deleted, a line
@@ -56,6 +60,7 @@ import numpy as np
 
 from appliance.config import load_config
 from appliance.errors import ViperError
+from appliance.native import native_messages
 from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
@@ -193,7 +198,7 @@ def fuzz_dems(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
                 label = src.with_suffix(".LBL")
                 (folder / label.name).write_bytes(label.read_bytes())
             target.write_bytes(mutate(data, rng) if rng.random() < 0.5 else data[: rng.randrange(len(data))])
-            t.run(functools.partial(load_dem, target))
+            t.run(functools.partial(_command, ["dem", "info", str(target)]))
         out[rel] = t
     return out
 
@@ -315,8 +320,6 @@ def _image_seeds(work: Path) -> dict[str, dict[str, bytes]]:
 
 
 def fuzz_images(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
-    from appliance.cli.main import main as viper_main
-
     out = {}
     for name, files in _image_seeds(work).items():
         t = Tally()
@@ -333,7 +336,8 @@ def fuzz_images(count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
                     else:
                         data = mutate(data, rng)
                 (folder / fname).write_bytes(data)
-            t.run(functools.partial(_skyline_command, viper_main, folder / image, folder / "sky.csv"))
+            t.run(functools.partial(_command, ["skyline", str(folder / image), "--out", str(folder / "sky.csv")],
+                                    folder / "sky.csv"))
         out[f"viper skyline, {name}"] = t
     return out
 
@@ -342,19 +346,25 @@ class _ForeignExitError(Exception):
     pass
 
 
-def _skyline_command(viper_main: Callable[[list[str]], int], image: Path, csv: Path) -> None:
+def _command(args: list[str], expect: Path | None = None) -> None:
+    """Run ``viper ARGS`` in process as a user would; what the process prints on stderr (Python's
+    and compiled libraries') is its terminal.  A non-zero exit with one line there is a project
+    error; more lines, an escaping exception, or an exit of 0 with more than one line (a warning) or
+    without ``expect`` written, is foreign."""
+    from appliance.cli.main import main as viper_main
+
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        code = viper_main(["skyline", str(image), "--out", str(csv)])
-    lines = err.getvalue().strip().splitlines()
+    with native_messages() as native, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = viper_main(args)
+    lines = native + err.getvalue().strip().splitlines()
     if code == 0:
-        if not csv.is_file():
-            raise _ForeignExitError("exit 0 without a skyline CSV")
+        if expect is not None and not expect.is_file():
+            raise _ForeignExitError(f"exit 0 without {expect.name}")
         if len(lines) > 1:
             raise _ForeignExitError(f"exit 0 with {len(lines)} lines on stderr: {lines[:2]}")
         return
     if len(lines) != 1:
-        raise _ForeignExitError(f"exit {code} with {len(lines)} lines on stderr: {lines[:1]}")
+        raise _ForeignExitError(f"exit {code} with {len(lines)} lines on stderr: {lines[:2]}")
     raise ViperError(lines[0])
 
 

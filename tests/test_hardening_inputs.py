@@ -124,3 +124,31 @@ def test_run_all_lists_the_quick_benchmarks(capsys):
     for name in mod.QUICK:
         assert (path.parent / f"{name}.py").is_file(), name
     assert mod.main(["no_such_bench"]) == 2
+
+
+def test_native_messages_gathers_what_compiled_code_prints_only_when_alone(capfd):
+    import os
+    import threading
+
+    from appliance.native import native_messages
+
+    class Noisy:
+        def __del__(self):
+            raise ValueError("raised in a callback")
+
+    with native_messages() as lines:
+        os.write(2, b"libtiff: Invalid argument.\n\n")
+        Noisy()
+    assert lines == ["libtiff: Invalid argument.", "ValueError: raised in a callback"]
+    assert capfd.readouterr().err == ""
+    # another thread may log on the same descriptor meanwhile: then nothing is taken from it
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        with native_messages() as lines:
+            os.write(2, b"libtiff: Invalid argument.\n")
+    finally:
+        stop.set()
+        other.join()
+    assert lines == [] and "libtiff: Invalid argument." in capfd.readouterr().err

@@ -208,3 +208,20 @@ def test_srtm_tile_under_another_name_is_recognised_by_its_size(tmp_path):
     odd.write_bytes(src.read_bytes()[:-2])
     with pytest.raises(DemError, match="not a readable DEM"):
         load_dem(odd)
+
+
+def test_damaged_geotiffs_say_one_line_with_nothing_from_the_libraries(tmp_path):
+    """What GDAL and libtiff print about a damaged file, and rasterio's warning about a missing
+    transform, stay out of the terminal: the command's own line is all a user sees."""
+    import rasterio
+
+    src = data_file("dem_geotiff/gmted2010_clips/matterhorn.tiff").read_bytes()
+    (tmp_path / "cut.tiff").write_bytes(src[: int(len(src) * 0.3)])
+    with rasterio.open(tmp_path / "nogeo.tif", "w", driver="GTiff", width=8, height=8, count=1,
+                       dtype="float32") as ds:
+        ds.write(np.ones((1, 8, 8), np.float32))
+    for name, words in (("cut.tiff", "not a readable DEM"), ("nogeo.tif", "carries no CRS")):
+        out = subprocess.run([sys.executable, "-m", "appliance.cli.main", "dem", "info", name], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 1 and out.stdout == ""
+        assert out.stderr.count("\n") == 1 and words in out.stderr, out.stderr

@@ -11,8 +11,10 @@ heights stored in feet are converted; nodata is NaN, never 0.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import re
+import warnings
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -26,7 +28,9 @@ from pyproj import CRS, Geod, Transformer
 
 from appliance.bodies import EARTH, MARS, MOON, Body
 from appliance.errors import DemError
+from appliance.native import native_messages
 
+log = logging.getLogger(__name__)
 FEET_UNITS = {"ft", "feet", "foot", "us-ft", "us survey foot", "us_survey_foot"}
 DEMO_DEM = "jacksboro"
 
@@ -360,7 +364,7 @@ def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, i
     share of a large map, read without the rest); ``shape_only`` reads no heights at all (a map's
     georeferencing, to plan a grid over it) and ``sha256`` spares hashing a file already hashed."""
     import rasterio
-    from rasterio.errors import RasterioError
+    from rasterio.errors import NotGeoreferencedWarning, RasterioError
     from rasterio.windows import Window
 
     open_path = p
@@ -370,25 +374,30 @@ def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, i
                 open_path = label
                 break
     try:
-        with rasterio.open(open_path) as ds:
-            _check_raw_size(p, ds)
-            win = None if window is None else Window(window[1], window[0], window[3], window[2])
-            if shape_only:
-                band = np.ma.masked_all((1, 1))
-                shape = (int(ds.height), int(ds.width))
-            else:
-                band = ds.read(1, masked=True, window=win)
-                shape = band.shape
-            scale = float(ds.scales[0] or 1.0)
-            offset = float(ds.offsets[0] or 0.0)
-            units = (ds.units[0] or ds.tags(1).get("UNITTYPE") or ds.tags().get("ZUNITS") or "").strip()
-            transform = ds.transform if win is None else ds.window_transform(win)
-            crs_wkt = ds.crs.to_wkt() if ds.crs else None
-            driver = ds.driver
+        with native_messages() as said, warnings.catch_warnings():
+            # a missing transform is this reader's own error below, not a library warning
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(open_path) as ds:
+                _check_raw_size(p, ds)
+                win = None if window is None else Window(window[1], window[0], window[3], window[2])
+                if shape_only:
+                    band = np.ma.masked_all((1, 1))
+                    shape = (int(ds.height), int(ds.width))
+                else:
+                    band = ds.read(1, masked=True, window=win)
+                    shape = band.shape
+                scale = float(ds.scales[0] or 1.0)
+                offset = float(ds.offsets[0] or 0.0)
+                units = (ds.units[0] or ds.tags(1).get("UNITTYPE") or ds.tags().get("ZUNITS") or "").strip()
+                transform = ds.transform if win is None else ds.window_transform(win)
+                crs_wkt = ds.crs.to_wkt() if ds.crs else None
+                driver = ds.driver
     except RasterioError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         first = first.replace(" See previous exception for details.", "").strip()
         raise DemError(f"{p}: not a readable DEM ({first}: the file is damaged or truncated)") from None
+    for line in said:
+        log.debug("%s: %s", p, line)
     if crs_override is not None:
         crs = _parse_crs(crs_override, p)
     elif crs_wkt is None:
@@ -403,8 +412,9 @@ def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, i
         # a read-only array of the map's shape holding no memory: the georeferencing alone
         empty = np.broadcast_to(np.float64(np.nan), shape)
         return Dem(empty, transform, crs, body, str(p), sha256 or "", meta)
-    data = np.ma.filled(band.astype(np.float64), np.nan)
-    data[np.abs(data) > 1e30] = np.nan
+    with np.errstate(invalid="ignore", over="ignore"):
+        data = np.ma.filled(band.astype(np.float64), np.nan)
+    data[~(np.abs(data) <= 1e30)] = np.nan
     # PDS planetary DEMs store radius = raw * scale + reference radius: keep height above the sphere.
     if offset > 1e5:
         offset = 0.0

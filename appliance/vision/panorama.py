@@ -18,15 +18,10 @@ geometry.  An image without its sidecar is read as an equirectangular 360-degree
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import json
 import logging
 import math
-import os
-import sys
-import tempfile
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,8 +30,11 @@ import numpy as np
 
 from appliance.atomic import atomic_output
 from appliance.errors import InputError
+from appliance.native import native_messages
 
 SIDECAR_SUFFIX = ".json"
+#: A panorama narrower than this (deg) holds too little skyline to locate anything.
+MIN_SPAN_DEG = 1.0
 log = logging.getLogger(__name__)
 
 
@@ -62,6 +60,11 @@ class Panorama:
         if not (self.px_per_rad > 0 and math.isfinite(self.px_per_rad)):
             raise InputError(f"panorama: px_per_rad must be positive, got {self.px_per_rad}")
         span = self.width / self.px_per_rad
+        if span < math.radians(MIN_SPAN_DEG):
+            raise InputError(
+                f"panorama: {self.width} columns at {self.px_per_rad:.6g} px/rad span {math.degrees(span):.3g} degrees,"
+                f" less than {MIN_SPAN_DEG:g}"
+            )
         if span > 2 * math.pi * (1 + 1e-6):
             raise InputError(
                 f"panorama: {self.width} columns at {self.px_per_rad:.3f} px/rad span more than 360 degrees"
@@ -153,7 +156,7 @@ def read_image(path: str | Path) -> np.ndarray:
     if not p.is_file():
         raise InputError(f"{p}: image file not found")
     data = np.fromfile(str(p), dtype=np.uint8)
-    with _c_stderr_lines() as said:
+    with native_messages() as said:
         img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
         why = f": {said[0]}" if said else ""
@@ -162,27 +165,6 @@ def read_image(path: str | Path) -> np.ndarray:
         more = f" (and {len(said) - 1} more)" if len(said) > 1 else ""
         log.warning("%s: the image is damaged, read what could be decoded: %s%s", p, said[0], more)
     return img
-
-
-@contextlib.contextmanager
-def _c_stderr_lines() -> Iterator[list[str]]:
-    """Collect what the image libraries print on the process's stderr (file descriptor 2) inside the
-    block, so that a damaged file makes one message, not a stream of the decoder's own lines."""
-    lines: list[str] = []
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with tempfile.TemporaryFile() as capture:
-            os.dup2(capture.fileno(), 2)
-            try:
-                yield lines
-            finally:
-                os.dup2(saved, 2)
-                capture.seek(0)
-                text = capture.read(65536).decode("utf-8", "replace")
-                lines.extend(line.strip() for line in text.splitlines() if line.strip())
-    finally:
-        os.close(saved)
 
 
 def load_panorama(
