@@ -25,15 +25,17 @@ Readers and their seeds:
   calibration TOML and an orientation sidecar; ``--image-count`` inputs, each mutating the image, the
   sidecar (bytes or structure) or the calibration.
 
-The commands (``viper dem info``, ``viper skyline``) are judged by what a user sees on stderr, the
-compiled libraries' own lines included: a project error is a non-zero exit with exactly one line; an
-exception out of ``main``, more lines, or an exit of 0 with more than one line or without its output,
-is foreign.
+- session logs (MCAP) through ``viper log info``, ``viper log recover`` and ``viper replay``: the log of
+  ``viper demo --seed 11`` (made once into bench/cache/, with its jacksboro database), mutated;
+  ``--log-count`` inputs for info and recover, ``--replay-count`` for replay (each replay stitches,
+  detects and estimates: seconds).  Both report each log on stdout: ``log info`` exits 1 on a log it
+  reads as incomplete, ``replay`` on one it cannot estimate from, with nothing on stderr; that counts
+  as a project error.
 
-Byte mutations: the file cut at a random length, 1 to 8 bits flipped, a run of bytes replaced by random
-ones or by a hostile token (nan, inf, a huge number, a minus sign), bytes inserted or deleted, a line
-duplicated.  Target: every input either loads or raises the project's own error (ViperError); any
-other exception is foreign and fails the run.
+The commands (``viper dem info``, ``viper skyline``, ``viper log``, ``viper replay``) are judged by
+what a user sees on stderr, the compiled libraries' own lines included: a project error is a non-zero
+exit with exactly one line; an exception out of ``main``, more lines, or an exit of 0 with more than
+one line or without its output, is foreign.
 """
 
 from __future__ import annotations
@@ -368,12 +370,65 @@ def _command(args: list[str], expect: Path | None = None) -> None:
     raise ViperError(lines[0])
 
 
+def _demo_seed() -> tuple[Path, Path]:
+    """The demo's session log and database (``viper demo --seed 11``), made once into bench/cache/."""
+    import subprocess
+
+    folder = ROOT / "bench" / "cache" / "fuzz-demo-seed-11"
+    logs = sorted(folder.glob("viper-*.mcap"))
+    if not logs or not (folder / "jacksboro.viperdb").is_file():
+        subprocess.run([sys.executable, "-m", "appliance.cli.main", "demo", "--seed", "11", "--out", str(folder)],
+                       check=True, capture_output=True)
+        logs = sorted(folder.glob("viper-*.mcap"))
+    return logs[0], folder / "jacksboro.viperdb"
+
+
+def _batch(args: list[str], verdict: str) -> None:
+    """``viper log info`` and ``viper replay``, which report each log on stdout: an exit of 1 with
+    nothing on stderr and ``verdict`` on stdout is their own finding about a damaged log."""
+    from appliance.cli.main import main as viper_main
+
+    err = io.StringIO()
+    out = io.StringIO()
+    with native_messages() as native, contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        code = viper_main(args)
+    lines = native + err.getvalue().strip().splitlines()
+    if code == 1 and not lines and verdict in out.getvalue():
+        raise ViperError(verdict)
+    if code == 0 and not lines:
+        return
+    if code != 0 and len(lines) == 1:
+        raise ViperError(lines[0])
+    raise _ForeignExitError(f"exit {code} with {len(lines)} lines on stderr: {lines[:2]}")
+
+
+def fuzz_logs(count: int, replay_count: int, rng: random.Random, work: Path) -> dict[str, Tally]:
+    seed, db = _demo_seed()
+    data = seed.read_bytes()
+    log = work / "fuzz.mcap"
+    fixed = work / "fixed.mcap"
+    info, recover, replay = Tally(), Tally(), Tally()
+    for k in range(count):
+        log.write_bytes(mutate(data, rng) if rng.random() < 0.7 else data[: rng.randrange(len(data))])
+        info.run(functools.partial(_batch, ["log", "info", str(log)], "INCOMPLETE"))
+        recover.run(functools.partial(_command, ["log", "recover", str(log), "--out", str(fixed), "--force"],
+                                      fixed))
+        if k < replay_count:
+            out = work / "replay"
+            shutil.rmtree(out, ignore_errors=True)
+            replay.run(functools.partial(_batch, ["replay", str(log), "--db", str(db), "--out", str(out)],
+                                         ": no estimate: "))
+    return {"viper log info": info, "viper log recover": recover, "viper replay": replay}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=20_000, help="inputs per reader (CSV, config, database)")
     ap.add_argument("--dem-count", type=int, default=12, help="inputs per DEM file")
     ap.add_argument("--index-count", type=int, default=2_000, help="inputs per tiled database index")
     ap.add_argument("--image-count", type=int, default=1_000, help="inputs per image seed of viper skyline")
+    ap.add_argument("--log-count", type=int, default=1_000, help="mutated session logs for log info and recover")
+    ap.add_argument("--replay-count", type=int, default=40, help="of those, how many go through viper replay")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-record", action="store_true", help="do not append to the results file")
     args = ap.parse_args()
@@ -387,6 +442,7 @@ def main() -> int:
         tallies["database"] = fuzz_database(args.count, rng, work)
         tallies.update(fuzz_tiled_index(args.index_count, rng, work))
         tallies.update(fuzz_images(args.image_count, rng, work))
+        tallies.update(fuzz_logs(args.log_count, args.replay_count, rng, work))
     elapsed = time.perf_counter() - t0
     foreign = sum(len(t.foreign) for t in tallies.values())
     result = "pass" if not foreign else f"FAIL: {foreign} foreign exceptions"
@@ -410,7 +466,8 @@ def main() -> int:
                       "\n".join(rows) + "\n"
                       + f"\nRun of {datetime.date.today().isoformat()} (--count {args.count} --dem-count "
                       f"{args.dem_count} --index-count {args.index_count} "
-                      f"--image-count {args.image_count} --seed {args.seed}): {result}.\n\n")
+                      f"--image-count {args.image_count} --log-count {args.log_count} "
+                      f"--replay-count {args.replay_count} --seed {args.seed}): {result}.\n\n")
     return 0 if not foreign else 1
 
 

@@ -106,6 +106,11 @@ def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, wi
     # the truncated log gives what it holds, and says so
     assert not cut.data.complete and 0 < len(cut.data.frames) < 9
     assert "incomplete" in cut.notes[0]
+    # and estimates from the frames it has: the columns no frame covers are missing, the rest found
+    n = len(cut.data.frames)
+    assert cut.skyline is not None and cut.position is not None and cut.error_m is not None
+    assert n / 9 - 0.12 < cut.skyline.valid_fraction < n / 9 + 0.12
+    assert geodesic_distance_m(cut.position.lat, cut.position.lon, ok.position.lat, ok.position.lon) < 120.0
     assert bad.failure is not None and "not a readable MCAP log" in bad.failure and "\n" not in bad.failure
     rows = list(csv.DictReader((out / "summary.csv").open()))
     # the logs named from the table's folder, so that the folder can be moved with its logs

@@ -113,3 +113,22 @@ def test_dp_path_is_optimal_against_an_exhaustive_oracle(seed: int) -> None:
     path = np.asarray(_dp_path(cost_t, jump, jump_cost))
     assert np.abs(np.diff(path)).max() <= jump
     assert _path_cost_of(cost_t, path, jump_cost) == pytest.approx(float(acc.min()), abs=1e-4)
+
+
+def test_columns_no_frame_covers_are_missing_and_the_rest_found() -> None:
+    """A turn with frames missing (a power cut, a lost frame) stitches a panorama with a black band:
+    the band's columns are missing, and the black does not hide the skyline everywhere else."""
+    import dataclasses
+
+    sp = render_panorama(FN, np.random.default_rng(4), px_per_rad=300.0, height_px=160)
+    w = sp.panorama.width
+    empty = np.zeros(w, dtype=bool)
+    empty[int(0.60 * w): int(0.77 * w)] = True
+    black = np.where(empty[None, :, None], 0, sp.panorama.image).astype(np.uint8)
+    pano = dataclasses.replace(sp.panorama, image=black, empty_columns=empty)
+    cols = detect_columns(pano)
+    assert np.all(np.isnan(cols.row[empty]))
+    found = np.isfinite(cols.row[~empty])
+    assert found.mean() >= 0.95
+    err = (cols.elevation_deg - sp.truth.elevation_deg)[~empty][found]
+    assert np.sqrt(np.mean(err**2)) <= 0.1

@@ -32,7 +32,8 @@ class PosedImage:
 
 def stitch_posed(shots: Sequence[PosedImage], intrinsics: CameraIntrinsics,
                  height_px: int | None = None) -> Panorama:
-    """A full-circle cylindrical panorama (azimuth 0 = true north at column 0) of ``shots``."""
+    """A full-circle cylindrical panorama (azimuth 0 = true north at column 0) of ``shots``; the
+    columns that they leave less than half covered are its ``empty_columns``."""
     if not shots:
         raise InputError("stitch: no image with a known pose")
     width = int(round(2 * math.pi * intrinsics.fx))
@@ -64,4 +65,7 @@ def stitch_posed(shots: Sequence[PosedImage], intrinsics: CameraIntrinsics,
     covered = wsum > 0
     image = np.zeros((height, width, 3), np.uint8)
     image[covered] = np.clip(acc[covered] / wsum[covered][:, None] + 0.5, 0, 255).astype(np.uint8)
-    return Panorama(image, Projection.CYLINDRICAL, px_per_rad, 0.0, horizon_row, True)
+    # a column less than half covered (a frame missing from the turn) holds no skyline to find
+    empty = covered.mean(axis=0) < 0.5
+    return Panorama(image, Projection.CYLINDRICAL, px_per_rad, 0.0, horizon_row, True,
+                    empty if empty.any() else None)
