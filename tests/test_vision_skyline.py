@@ -132,3 +132,25 @@ def test_columns_no_frame_covers_are_missing_and_the_rest_found() -> None:
     assert found.mean() >= 0.95
     err = (cols.elevation_deg - sp.truth.elevation_deg)[~empty][found]
     assert np.sqrt(np.mean(err**2)) <= 0.1
+
+
+@pytest.mark.parametrize("band", ["rows", "columns"])
+def test_black_padding_does_not_hide_the_skyline_elsewhere(band: str) -> None:
+    """A quarter of the image black (a stitch's uncovered corners, a letterboxed photo), with no
+    flag saying so: the sky's noise floor is measured on pixels that have noise, so the rest is found."""
+    import dataclasses
+
+    sp = render_panorama(FN, np.random.default_rng(4), px_per_rad=300.0, height_px=160)
+    img = sp.panorama.image.copy()
+    h, w = img.shape[:2]
+    if band == "rows":
+        img[: h // 4] = 0
+        keep = np.ones(w, dtype=bool)
+    else:
+        img[:, : w // 4] = 0
+        keep = np.arange(w) >= w // 4 + 5
+    cols = detect_columns(dataclasses.replace(sp.panorama, image=img))
+    found = np.isfinite(cols.row[keep])
+    assert found.mean() >= 0.95
+    err = (cols.elevation_deg - sp.truth.elevation_deg)[keep][found]
+    assert np.sqrt(np.mean(err**2)) <= 0.1

@@ -161,10 +161,15 @@ def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
     """Generic sky likeness in [-1, 1]: smooth and bright.
 
     Smooth is relative to the image's own noise floor (its 10th percentile of texture, usually
-    sky), so the prior adapts to sensor noise and compression.  Colour is left to the models
-    learnt per image: hazy terrain may be bluer than the sky above it.
+    sky, over the pixels that have any), so the prior adapts to sensor noise and compression.
+    Colour is left to the models learnt per image: hazy terrain may be bluer than the sky above it.
     """
-    floor = min(max(float(np.percentile(texture[::4, ::4], 10)), 1e-4), MAX_NOISE_TEXTURE)
+    sample = texture[::4, ::4]
+    # pixels without any texture (black padding where no photo reached, a clipped sky) carry no
+    # noise to measure: with them a band of padding would set the floor to nothing
+    live = sample[sample > 0]
+    floor = float(np.percentile(live if live.size >= sample.size // 4 else sample, 10))
+    floor = min(max(floor, 1e-4), MAX_NOISE_TEXTURE)
     smooth = np.clip(1.0 - (texture - 1.5 * floor) / (3.0 * floor), 0.0, 1.0)
     v = np.maximum(np.maximum(bgr[..., 0], bgr[..., 1]), bgr[..., 2])
     bright = np.clip((v - 0.3) / 0.25, 0.0, 1.0)
