@@ -61,6 +61,15 @@ FULL_PLACES = 6
 FITS_PER_PLACE = 2
 #: How far (node spacings) a fit may wander from the place's node.
 MAX_OFFSET_NODES = 1.5
+#: The screening of many places before the fits (:func:`screen_places`): each place's terrain keeps
+#: the fine cell out to NEAR_NODES but samples the rest one node spacing apart (a sixteenth of the
+#: samples: the map's pixel is coarser than that below 60 deg of latitude), and gets one quick look
+#: (:meth:`PlaceSearch.quick_look`) at each of SCREEN_LOOKS (node spacings south and east of its node).
+SCREEN_OUTER_PER_NODE = 1.0
+SCREEN_LOOKS = ((0.0, 0.0), (-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5))
+#: A quick look turns its one render across the heading bounds in whole azimuth steps, then in
+#: steps of 1 / SCREEN_TURN_SPLIT of one around the best.
+SCREEN_TURN_SPLIT = 4
 
 
 @dataclass(frozen=True)
@@ -191,7 +200,10 @@ class PlaceSearch:
     """The search for a skyline's fit near one place on the map's own surface: its local terrain,
     the looks made so far (cost, row and column offsets in node spacings, heading) and the fit."""
 
-    def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> None:
+    def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings,
+                 outer_per_node: float = FINE_PER_NODE) -> None:
+        """``outer_per_node``: the terrain's cell beyond NEAR_NODES node spacings, per node spacing
+        (FINE_PER_NODE for the fits; SCREEN_OUTER_PER_NODE for a screening look only)."""
         self.dem, self.place, self.settings = dem, place, settings
         self.m, w = measured_on_grid(skyline.azimuth_deg, skyline.elevation_deg, skyline.confidence,
                                      settings.n_azimuths)
@@ -200,7 +212,7 @@ class PlaceSearch:
         self.per_node = node / self.cell
         r_eff = dem.body.effective_radius_m(settings.refraction)
         self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, settings.reach_m,
-                                                 settings.height_m, r_eff, MARGIN_NODES * node, node / FINE_PER_NODE,
+                                                 settings.height_m, r_eff, MARGIN_NODES * node, node / outer_per_node,
                                                  NEAR_NODES * node)
         self.centre = self.terrain.heights_m.shape[1] // 2
         self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
@@ -230,6 +242,42 @@ class PlaceSearch:
                                    self.settings.height_m, self.sig_ref, self.model)
             if math.isfinite(cost):
                 self.looks.append((cost, dr, dc, heading))
+
+    def quick_look(self, dr: float, dc: float) -> float:
+        """The cost (chi-square units at sigma's midpoint, as :meth:`look`'s) of one render from
+        ``dr``, ``dc`` node spacings south and east of the place's node, turned to its best heading
+        within the bounds: whole azimuth steps, then 1 / SCREEN_TURN_SPLIT of one around the best
+        (no eye-height fit, no heading scan between renders: a ranking, cheaper than a look).  inf
+        where the render sees too little."""
+        m = self.m
+        n = m.size
+        valid = np.isfinite(m)
+        if not valid.any():
+            return math.inf
+        step = 360.0 / n
+        az = np.arange(n) * step
+        row, col = self.centre + dr * self.per_node, self.centre + dc * self.per_node
+        s, d, _ = render(self.terrain, self.cell, self.cell, row, col, az, self.terrain.look_distances(self.cell),
+                         self.settings.height_m)
+        ok = np.isfinite(s) & np.isfinite(d)
+        if ok.sum() < 0.9 * n:
+            return math.inf
+        if not ok.all():
+            s = np.interp(az, az[ok], s[ok], period=360.0)
+            d = np.interp(az, az[ok], d[ok], period=360.0)
+        u = self.model.weights(valid, d, self.sig_ref)
+        mz = np.where(valid, m, 0.0)
+        lo, hi = self.bounds
+        whole = np.arange(math.ceil(lo / step), math.floor(hi / step) + 1) if hi - lo < 360.0 else np.arange(n)
+        if whole.size == 0:
+            whole = np.array([0])
+        idx = (np.arange(n)[None, :] + whole[:, None]) % n
+        k = int(np.argmin(self.model.cost(np.where(valid, mz - s[idx], 0.0), u)))
+        split = SCREEN_TURN_SPLIT
+        turns = (whole[k] + np.arange(-split, split + 1) / split) * step
+        turns = turns[(turns >= lo) & (turns <= hi)] if hi - lo < 360.0 else turns
+        sky = np.interp(((az[None, :] + turns[:, None]) % 360.0).ravel(), az, s, period=360.0).reshape(turns.size, n)
+        return float(np.min(self.model.cost(np.where(valid, mz - sky, 0.0), u))) / self.sig_ref**2
 
     def look_around(self, reach_nodes: float, step_nodes: float) -> None:
         """Looks on a lattice ``step_nodes`` apart out to ``reach_nodes`` along each axis (those not
@@ -282,6 +330,17 @@ def fit_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSet
     return [f for f in (s.fit() for s in ranked[:FULL_PLACES]) if f is not None]
 
 
+def screen_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSettings) -> list[tuple[float, Place]]:
+    """Each place's best quick look (:meth:`PlaceSearch.quick_look` at SCREEN_LOOKS, on terrain
+    sampled SCREEN_OUTER_PER_NODE per node spacing beyond NEAR_NODES), lowest first: which places
+    deserve the fits.  Places that cannot be rendered come last (inf)."""
+    out = []
+    for p in places:
+        search = PlaceSearch(dem, skyline, p, settings, SCREEN_OUTER_PER_NODE)
+        out.append((min(search.quick_look(dr, dc) for dr, dc in SCREEN_LOOKS), p))
+    return sorted(out, key=lambda v: v[0])
+
+
 def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> PlaceFit | None:
     """The full search for the fit of ``skyline`` near one ``place`` (:meth:`PlaceSearch.fit`)."""
     return PlaceSearch(dem, skyline, place, settings).fit()
@@ -289,16 +348,30 @@ def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -
 
 def distinct_places(ranked: list[Place], count: int, apart_m: float, dem: Dem) -> list[Place]:
     """The first ``count`` places of ``ranked`` (most likely first) each more than ``apart_m`` from
-    every place kept before it."""
+    every place kept before it (geodesic distance on the map's body).  The places near each kept
+    one are found on the sphere first, with a margin, and only those measured on the body."""
     if not ranked:
         return []
     lat = np.array([p.lat for p in ranked])
     lon = np.array([p.lon for p in ranked])
-    alive = np.ones(lat.size, dtype=bool)
-    kept: list[Place] = []
-    while len(kept) < count and alive.any():
-        k = int(np.argmax(alive))
-        kept.append(ranked[k])
-        _, _, d = dem.body.geod.inv(np.full(lat.size, lon[k]), np.full(lat.size, lat[k]), lon, lat)
-        alive &= np.asarray(d) > apart_m
-    return kept
+    la, lo = np.radians(lat), np.radians(lon)
+    xyz = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=1)
+    # within apart_m on the body, within this angle between the normals: no radius of curvature of
+    # an ellipsoid is shorter than b^2 / a
+    geod = dem.body.geod
+    cos_reach = math.cos(min(1.01 * apart_m * geod.a / (geod.b * geod.b) + 1e-9, math.pi))
+    # the places kept from a prefix of ``ranked`` are those kept from the whole list, as long as
+    # the prefix yields ``count`` of them: try a short prefix first
+    size = min(lat.size, max(64 * count, 4096))
+    while True:
+        alive = np.ones(size, dtype=bool)
+        kept: list[Place] = []
+        while len(kept) < count and alive.any():
+            k = int(np.argmax(alive))
+            kept.append(ranked[k])
+            near = np.nonzero(alive & (xyz[:size] @ xyz[k] >= cos_reach))[0]
+            _, _, d = dem.body.geod.inv(np.full(near.size, lon[k]), np.full(near.size, lat[k]), lon[near], lat[near])
+            alive[near[np.asarray(d) <= apart_m]] = False
+        if len(kept) >= count or size == lat.size:
+            return kept
+        size = min(lat.size, 4 * size)
