@@ -33,6 +33,7 @@ from appliance.estimator.likelihood import occlusion_cap_deg2
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import local_aeqd
+from appliance.terrain.raycast import BLOCK_CELLS, bilinear, march
 
 #: The local grid's cell: a quarter of the node spacing, and a quarter of the map's pixel where
 #: that is smaller (near the poles a longitude pixel narrows: 1.3 km at 80 deg on the LOLA map),
@@ -61,10 +62,11 @@ FULL_PLACES = 6
 FITS_PER_PLACE = 2
 #: How far (node spacings) a fit may wander from the place's node.
 MAX_OFFSET_NODES = 1.5
-#: The screening of many places before the fits (:func:`screen_places`): each place's terrain keeps
-#: the fine cell out to NEAR_NODES but samples the rest one node spacing apart (a sixteenth of the
-#: samples: the map's pixel is coarser than that below 60 deg of latitude), and gets one quick look
-#: (:meth:`PlaceSearch.quick_look`) at each of SCREEN_LOOKS (node spacings south and east of its node).
+#: The screening of many places before the fits (:func:`screen_places`): each place's terrain has
+#: the node's quarter out to NEAR_NODES (not finer where the map's pixel is narrower) and one node
+#: spacing beyond (a sixteenth of the samples: the map's pixel is coarser than that below 60 deg of
+#: latitude), and gets one quick look (:meth:`PlaceSearch.quick_look`) at each of SCREEN_LOOKS
+#: (node spacings south and east of its node).
 SCREEN_OUTER_PER_NODE = 1.0
 SCREEN_LOOKS = ((0.0, 0.0), (-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5))
 #: A quick look turns its one render across the heading bounds in whole azimuth steps, then in
@@ -141,6 +143,38 @@ class LocalFrame:
         return (lon + 180.0) % 360.0 - 180.0, np.degrees(lat)
 
 
+def quick_render(terrain: Terrain, cell_m: float, row: float, col: float, azimuth_deg: np.ndarray,
+                 height_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation (deg) and range (m) per grid azimuth from fractional (row, col) of a local grid
+    (:func:`local_terrain`), as :func:`appliance.estimator.exact.render` renders them with the looks'
+    schedule of ray samples, except that its outer grid, too, is sampled on the looks' schedule
+    (two per cent of the distance, an outer cell at most) rather than the fits' finer one."""
+    Z = terrain.heights64
+    tr, tc = row + terrain.row0, col + terrain.col0
+    ground = bilinear(Z, tr, tc)
+    tan = np.empty(azimuth_deg.size)
+    far = np.empty(azimuth_deg.size)
+    if not math.isfinite(ground):
+        return np.full(azimuth_deg.size, np.nan), far
+    az = np.radians(azimuth_deg)
+    dist = terrain.look_distances(cell_m)
+    outer = terrain.outer
+    near = dist if outer is None else dist[dist <= terrain.near_reach_m]
+    march(Z, cell_m, cell_m, tr, tc, ground + height_m, az, near, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
+          tan, far)
+    if outer is not None:
+        ratio = terrain.outer_ratio
+        beyond = outer.look_distances(cell_m * ratio)
+        tan_o = np.empty(az.size)
+        far_o = np.empty(az.size)
+        march(outer.heights64, cell_m * ratio, cell_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
+              beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
+        take = np.isfinite(tan_o) & ~(tan >= tan_o)
+        tan = np.where(take, tan_o, tan)
+        far = np.where(take, far_o, far)
+    return np.degrees(np.arctan(tan)), far
+
+
 def _grid_heights(dem: Dem, frame: LocalFrame, cell_m: float, half: int) -> np.ndarray:
     """The map's heights at the frame's nodes (i - half, half - j) * cell_m east and north."""
     n = 2 * half + 1
@@ -201,18 +235,19 @@ class PlaceSearch:
     the looks made so far (cost, row and column offsets in node spacings, heading) and the fit."""
 
     def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings,
-                 outer_per_node: float = FINE_PER_NODE) -> None:
-        """``outer_per_node``: the terrain's cell beyond NEAR_NODES node spacings, per node spacing
-        (FINE_PER_NODE for the fits; SCREEN_OUTER_PER_NODE for a screening look only)."""
+                 screening: bool = False) -> None:
+        """``screening``: terrain for quick looks only (:func:`screen_places`): the node's quarter
+        out to NEAR_NODES whatever the map's pixel, one node spacing beyond (SCREEN_OUTER_PER_NODE)."""
         self.dem, self.place, self.settings = dem, place, settings
         self.m, w = measured_on_grid(skyline.azimuth_deg, skyline.elevation_deg, skyline.confidence,
                                      settings.n_azimuths)
         node = settings.node_spacing_m
-        self.cell = local_cell_m(dem, place.lat, place.lon, node)
+        self.cell = node / FINE_PER_NODE if screening else local_cell_m(dem, place.lat, place.lon, node)
         self.per_node = node / self.cell
         r_eff = dem.body.effective_radius_m(settings.refraction)
+        outer = node / (SCREEN_OUTER_PER_NODE if screening else FINE_PER_NODE)
         self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, settings.reach_m,
-                                                 settings.height_m, r_eff, MARGIN_NODES * node, node / outer_per_node,
+                                                 settings.height_m, r_eff, MARGIN_NODES * node, outer,
                                                  NEAR_NODES * node)
         self.centre = self.terrain.heights_m.shape[1] // 2
         self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
@@ -257,8 +292,7 @@ class PlaceSearch:
         step = 360.0 / n
         az = np.arange(n) * step
         row, col = self.centre + dr * self.per_node, self.centre + dc * self.per_node
-        s, d, _ = render(self.terrain, self.cell, self.cell, row, col, az, self.terrain.look_distances(self.cell),
-                         self.settings.height_m)
+        s, d = quick_render(self.terrain, self.cell, row, col, az, self.settings.height_m)
         ok = np.isfinite(s) & np.isfinite(d)
         if ok.sum() < 0.9 * n:
             return math.inf
@@ -331,12 +365,12 @@ def fit_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSet
 
 
 def screen_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSettings) -> list[tuple[float, Place]]:
-    """Each place's best quick look (:meth:`PlaceSearch.quick_look` at SCREEN_LOOKS, on terrain
-    sampled SCREEN_OUTER_PER_NODE per node spacing beyond NEAR_NODES), lowest first: which places
-    deserve the fits.  Places that cannot be rendered come last (inf)."""
+    """Each place's best quick look (:meth:`PlaceSearch.quick_look` at SCREEN_LOOKS, on screening
+    terrain: :class:`PlaceSearch`'s ``screening``), lowest first: which places deserve the fits.
+    Places that cannot be rendered come last (inf)."""
     out = []
     for p in places:
-        search = PlaceSearch(dem, skyline, p, settings, SCREEN_OUTER_PER_NODE)
+        search = PlaceSearch(dem, skyline, p, settings, screening=True)
         out.append((min(search.quick_look(dr, dc) for dr, dc in SCREEN_LOOKS), p))
     return sorted(out, key=lambda v: v[0])
 

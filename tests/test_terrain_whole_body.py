@@ -453,9 +453,9 @@ def test_screen_ranks_the_place_seen_from_first(moon):
     # the same look without a compass: the heading is found over the whole circle
     free = FitSettings(HEIGHT_M, 360, 150_000.0, 0.0, spacing, PARAMS.sigma_deg, None)
     turned = Skyline(sky.azimuth_deg, np.roll(sky.elevation_deg, 40))
-    look = PlaceSearch(dem, turned, truth, free, 1.0)
+    look = PlaceSearch(dem, turned, truth, free, screening=True)
     assert min(look.quick_look(dr, dc) for dr in (-0.5, 0.0, 0.5) for dc in (-0.5, 0.0, 0.5)) == pytest.approx(
-        min(PlaceSearch(dem, sky, truth, free, 1.0).quick_look(dr, dc) for dr in (-0.5, 0.0, 0.5)
+        min(PlaceSearch(dem, sky, truth, free, screening=True).quick_look(dr, dc) for dr in (-0.5, 0.0, 0.5)
             for dc in (-0.5, 0.0, 0.5)), rel=1e-6)
 
 
