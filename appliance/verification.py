@@ -12,9 +12,11 @@ grid around it in an azimuthal equidistant frame, a few cells per node spacing a
 (:func:`local_cell_m`), whose bilinear surface follows the map's; a few looks around the node (one
 render each, every heading the compass allows) at every place, more at the places whose first looks
 come lowest, then the exact refinement (:func:`appliance.estimator.exact.refine`) from the best of
-them.  The place whose fit explains the skyline best is the answer.  The fits only choose among
-places the database could not rule out; the posterior bounds, the region and whether the answer is
-ambiguous stay the grid's.
+them.  The place whose fit explains the skyline best is the answer.  Where more places contend
+than can be fitted, each is first screened (:func:`screen_places`): a few quick looks on a coarser
+local grid, one render each, which rank the places on the map itself rather than on the facets'
+skylines.  The fits only choose among places the database could not rule out; the posterior
+bounds, the region and whether the answer is ambiguous stay the grid's.
 
 Nothing here touches devices or logs: a map, places and a skyline in, fits out.
 """
