@@ -50,7 +50,7 @@ from appliance.terrain.database import SkylineDatabase, load_database
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import lon_overlap
 from appliance.terrain.mosaic import open_map
-from appliance.verification import FitSettings, Place, distinct_places, fit_places
+from appliance.verification import FitSettings, Place, distinct_places, fit_places, screen_places
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -445,6 +445,7 @@ class SurfaceFit:
     rms_deg: float
     places: int
     grid_distance_m: float  # from the grid's best place
+    screened: int = 0  # contending places screened before choosing those looked at
 
 
 @dataclass(frozen=True)
@@ -549,7 +550,8 @@ class TiledEstimate:
             out.update({"lat": round(f.lat, 8), "lon": round(f.lon, 8), "x": round(f.x, 3), "y": round(f.y, 3),
                         "crs": f.crs, "heading_correction_deg": round(f.heading_correction_deg, 3),
                         "rms_residual_deg": round(f.rms_deg, 4),
-                        "surface_fit": {"places": f.places, "grid_distance_m": round(f.grid_distance_m, 1)}})
+                        "surface_fit": {"places": f.places, "screened": f.screened,
+                                        "grid_distance_m": round(f.grid_distance_m, 1)}})
         if truth is not None:
             out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(self.truth_error_m(truth), 2)}
         return out
@@ -661,11 +663,15 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
                          sum(o.candidates for o in ok))
 
 
-#: Contending places fitted on a whole-body database's map (:func:`fit_on_surface`).  The place a
-#: skyline was seen from ranked first to seventh among the distinct places of the facets' region at
-#: most positions of the bench; 17th and 20th at two places near 80 deg, where the region holds
-#: 20,000 cells, and 37th at one over the whole body.
-SURFACE_PLACES = 48
+#: Contending places of a whole-body search looked at on the map's own surface
+#: (:func:`fit_on_surface`): the region's SCREEN_PLACES most likely distinct places (by upper
+#: posterior on the facets' grid) are screened on the map (:func:`appliance.verification.screen_places`),
+#: and the grid's best place and the SURFACE_PLACES - 1 that screen best are fitted.  On the facets'
+#: grid alone the place a skyline was seen from ranked 112th-364th among the region's distinct
+#: places at four of twenty positions of the bench (bench/moon_rank_diag.py); screened on the map,
+#: first to sixth of 400.
+SCREEN_PLACES = 400
+SURFACE_PLACES = 24
 
 
 def open_surface(index: TiledIndex) -> tuple[Dem | None, str | None]:
@@ -694,17 +700,23 @@ def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline:
                    params: SearchParams) -> TiledEstimate | None:
     """``est`` (the facets' grid answer) with its answer fitted on the map's own surface: the
     contending places (the best, then the region's distinct places by upper posterior, at most
-    SURFACE_PLACES) each fitted between nodes on renders of the map, the best fit kept
+    SCREEN_PLACES) screened on renders of the map, the grid's best and the SURFACE_PLACES - 1 that
+    screen best each fitted between nodes on renders of the map, the best fit kept
     (:mod:`appliance.verification`).  The posterior bounds and the region stay the grid's; a fit
     farther than SAME_ANSWER_CELLS from the grid's best makes the answer ambiguous.  None where no
     place can be fitted."""
     spacing = max(est.best.cell_size_m)
     ranked = [Place(est.best.file, est.best.node, est.best.lat, est.best.lon)]
     ranked += [Place(c.tile, c.node, c.lat, c.lon) for c in sorted(est.region, key=lambda c: -c.log_upper_unnormalised)]
-    places = distinct_places(ranked, SURFACE_PLACES, SAME_ANSWER_CELLS * spacing, surface)
+    candidates = distinct_places(ranked, SCREEN_PLACES, SAME_ANSWER_CELLS * spacing, surface)
     settings = FitSettings(index.height_m if params.height_m is None else params.height_m, index.n_azimuths,
                            index.max_range_m, index.raw.get("refraction"), spacing, params.sigma_deg,
                            params.heading_tolerance_deg, params.occlusion_weight, params.map_sigma_m)
+    places = candidates
+    if len(candidates) > SURFACE_PLACES:
+        # the grid's best place always, then those that screen best on the map
+        screened = screen_places(surface, skyline, candidates[1:], settings)
+        places = candidates[:1] + [p for _, p in screened[:SURFACE_PLACES - 1]]
     fits = fit_places(surface, skyline, places, settings)
     if not fits:
         return None
@@ -713,15 +725,15 @@ def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline:
     db = _open_tile(str(index.folder), tile, None)[0]
     x, y = db.grid.lonlat_to_xy(w.lon, w.lat)
     off = geodesic_distance_m(est.best.lat, est.best.lon, w.lat, w.lon, body_named(index.body))
-    notes = list(est.notes) + [f"fitted on the map's own surface: {len(places)} contending place(s) looked at, "
-                               f"{len(fits)} fitted, the best {w.rms_deg:.2f} deg RMS"]
+    notes = list(est.notes) + [f"fitted on the map's own surface: {len(candidates)} contending place(s) screened, "
+                               f"{len(places)} looked at, {len(fits)} fitted, the best {w.rms_deg:.2f} deg RMS"]
     ambiguous = est.ambiguous
     if off > SAME_ANSWER_CELLS * spacing:
         ambiguous = True
         notes.append(f"ambiguous: fitted on the map's own surface, the skyline lies {off / 1000:.1f} km from the "
                      f"grid's best place (in {est.best.file})")
     fit = SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
-                     w.heading_correction_deg, w.rms_deg, len(places), off)
+                     w.heading_correction_deg, w.rms_deg, len(places), off, len(candidates))
     return dataclasses.replace(est, fit=fit, ambiguous=ambiguous, notes=notes)
 
 

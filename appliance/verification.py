@@ -12,9 +12,11 @@ grid around it in an azimuthal equidistant frame, a few cells per node spacing a
 (:func:`local_cell_m`), whose bilinear surface follows the map's; a few looks around the node (one
 render each, every heading the compass allows) at every place, more at the places whose first looks
 come lowest, then the exact refinement (:func:`appliance.estimator.exact.refine`) from the best of
-them.  The place whose fit explains the skyline best is the answer.  The fits only choose among
-places the database could not rule out; the posterior bounds, the region and whether the answer is
-ambiguous stay the grid's.
+them.  The place whose fit explains the skyline best is the answer.  Where more places contend
+than can be fitted, each is first screened (:func:`screen_places`): a few quick looks on a coarser
+local grid, one render each, which rank the places on the map itself rather than on the facets'
+skylines.  The fits only choose among places the database could not rule out; the posterior
+bounds, the region and whether the answer is ambiguous stay the grid's.
 
 Nothing here touches devices or logs: a map, places and a skyline in, fits out.
 """
@@ -33,6 +35,7 @@ from appliance.estimator.likelihood import occlusion_cap_deg2
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import local_aeqd
+from appliance.terrain.raycast import BLOCK_CELLS, bilinear, march
 
 #: The local grid's cell: a quarter of the node spacing, and a quarter of the map's pixel where
 #: that is smaller (near the poles a longitude pixel narrows: 1.3 km at 80 deg on the LOLA map),
@@ -61,6 +64,16 @@ FULL_PLACES = 6
 FITS_PER_PLACE = 2
 #: How far (node spacings) a fit may wander from the place's node.
 MAX_OFFSET_NODES = 1.5
+#: The screening of many places before the fits (:func:`screen_places`): each place's terrain has
+#: the node's quarter out to NEAR_NODES (not finer where the map's pixel is narrower) and one node
+#: spacing beyond (a sixteenth of the samples: the map's pixel is coarser than that below 60 deg of
+#: latitude), and gets one quick look (:meth:`PlaceSearch.quick_look`) at each of SCREEN_LOOKS
+#: (node spacings south and east of its node).
+SCREEN_OUTER_PER_NODE = 1.0
+SCREEN_LOOKS = ((0.0, 0.0), (-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5))
+#: A quick look turns its one render across the heading bounds in whole azimuth steps, then in
+#: steps of 1 / SCREEN_TURN_SPLIT of one around the best.
+SCREEN_TURN_SPLIT = 4
 
 
 @dataclass(frozen=True)
@@ -132,6 +145,38 @@ class LocalFrame:
         return (lon + 180.0) % 360.0 - 180.0, np.degrees(lat)
 
 
+def quick_render(terrain: Terrain, cell_m: float, row: float, col: float, azimuth_deg: np.ndarray,
+                 height_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation (deg) and range (m) per grid azimuth from fractional (row, col) of a local grid
+    (:func:`local_terrain`), as :func:`appliance.estimator.exact.render` renders them with the looks'
+    schedule of ray samples, except that its outer grid, too, is sampled on the looks' schedule
+    (two per cent of the distance, an outer cell at most) rather than the fits' finer one."""
+    Z = terrain.heights64
+    tr, tc = row + terrain.row0, col + terrain.col0
+    ground = bilinear(Z, tr, tc)
+    tan = np.empty(azimuth_deg.size)
+    far = np.empty(azimuth_deg.size)
+    if not math.isfinite(ground):
+        return np.full(azimuth_deg.size, np.nan), far
+    az = np.radians(azimuth_deg)
+    dist = terrain.look_distances(cell_m)
+    outer = terrain.outer
+    near = dist if outer is None else dist[dist <= terrain.near_reach_m]
+    march(Z, cell_m, cell_m, tr, tc, ground + height_m, az, near, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
+          tan, far)
+    if outer is not None:
+        ratio = terrain.outer_ratio
+        beyond = outer.look_distances(cell_m * ratio)
+        tan_o = np.empty(az.size)
+        far_o = np.empty(az.size)
+        march(outer.heights64, cell_m * ratio, cell_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
+              beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
+        take = np.isfinite(tan_o) & ~(tan >= tan_o)
+        tan = np.where(take, tan_o, tan)
+        far = np.where(take, far_o, far)
+    return np.degrees(np.arctan(tan)), far
+
+
 def _grid_heights(dem: Dem, frame: LocalFrame, cell_m: float, half: int) -> np.ndarray:
     """The map's heights at the frame's nodes (i - half, half - j) * cell_m east and north."""
     n = 2 * half + 1
@@ -191,16 +236,20 @@ class PlaceSearch:
     """The search for a skyline's fit near one place on the map's own surface: its local terrain,
     the looks made so far (cost, row and column offsets in node spacings, heading) and the fit."""
 
-    def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> None:
+    def __init__(self, dem: Dem, skyline: Skyline, place: Place, settings: FitSettings,
+                 screening: bool = False) -> None:
+        """``screening``: terrain for quick looks only (:func:`screen_places`): the node's quarter
+        out to NEAR_NODES whatever the map's pixel, one node spacing beyond (SCREEN_OUTER_PER_NODE)."""
         self.dem, self.place, self.settings = dem, place, settings
         self.m, w = measured_on_grid(skyline.azimuth_deg, skyline.elevation_deg, skyline.confidence,
                                      settings.n_azimuths)
         node = settings.node_spacing_m
-        self.cell = local_cell_m(dem, place.lat, place.lon, node)
+        self.cell = node / FINE_PER_NODE if screening else local_cell_m(dem, place.lat, place.lon, node)
         self.per_node = node / self.cell
         r_eff = dem.body.effective_radius_m(settings.refraction)
+        outer = node / (SCREEN_OUTER_PER_NODE if screening else FINE_PER_NODE)
         self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, settings.reach_m,
-                                                 settings.height_m, r_eff, MARGIN_NODES * node, node / FINE_PER_NODE,
+                                                 settings.height_m, r_eff, MARGIN_NODES * node, outer,
                                                  NEAR_NODES * node)
         self.centre = self.terrain.heights_m.shape[1] // 2
         self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
@@ -230,6 +279,41 @@ class PlaceSearch:
                                    self.settings.height_m, self.sig_ref, self.model)
             if math.isfinite(cost):
                 self.looks.append((cost, dr, dc, heading))
+
+    def quick_look(self, dr: float, dc: float) -> float:
+        """The cost (chi-square units at sigma's midpoint, as :meth:`look`'s) of one render from
+        ``dr``, ``dc`` node spacings south and east of the place's node, turned to its best heading
+        within the bounds: whole azimuth steps, then 1 / SCREEN_TURN_SPLIT of one around the best
+        (no eye-height fit, no heading scan between renders: a ranking, cheaper than a look).  inf
+        where the render sees too little."""
+        m = self.m
+        n = m.size
+        valid = np.isfinite(m)
+        if not valid.any():
+            return math.inf
+        step = 360.0 / n
+        az = np.arange(n) * step
+        row, col = self.centre + dr * self.per_node, self.centre + dc * self.per_node
+        s, d = quick_render(self.terrain, self.cell, row, col, az, self.settings.height_m)
+        ok = np.isfinite(s) & np.isfinite(d)
+        if ok.sum() < 0.9 * n:
+            return math.inf
+        if not ok.all():
+            s = np.interp(az, az[ok], s[ok], period=360.0)
+            d = np.interp(az, az[ok], d[ok], period=360.0)
+        u = self.model.weights(valid, d, self.sig_ref)
+        mz = np.where(valid, m, 0.0)
+        lo, hi = self.bounds
+        whole = np.arange(math.ceil(lo / step), math.floor(hi / step) + 1) if hi - lo < 360.0 else np.arange(n)
+        if whole.size == 0:
+            whole = np.array([0])
+        idx = (np.arange(n)[None, :] + whole[:, None]) % n
+        k = int(np.argmin(self.model.cost(np.where(valid, mz - s[idx], 0.0), u)))
+        split = SCREEN_TURN_SPLIT
+        turns = (whole[k] + np.arange(-split, split + 1) / split) * step
+        turns = turns[(turns >= lo) & (turns <= hi)] if hi - lo < 360.0 else turns
+        sky = np.interp(((az[None, :] + turns[:, None]) % 360.0).ravel(), az, s, period=360.0).reshape(turns.size, n)
+        return float(np.min(self.model.cost(np.where(valid, mz - sky, 0.0), u))) / self.sig_ref**2
 
     def look_around(self, reach_nodes: float, step_nodes: float) -> None:
         """Looks on a lattice ``step_nodes`` apart out to ``reach_nodes`` along each axis (those not
@@ -282,6 +366,17 @@ def fit_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSet
     return [f for f in (s.fit() for s in ranked[:FULL_PLACES]) if f is not None]
 
 
+def screen_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSettings) -> list[tuple[float, Place]]:
+    """Each place's best quick look (:meth:`PlaceSearch.quick_look` at SCREEN_LOOKS, on screening
+    terrain: :class:`PlaceSearch`'s ``screening``), lowest first: which places deserve the fits.
+    Places that cannot be rendered come last (inf)."""
+    out = []
+    for p in places:
+        search = PlaceSearch(dem, skyline, p, settings, screening=True)
+        out.append((min(search.quick_look(dr, dc) for dr, dc in SCREEN_LOOKS), p))
+    return sorted(out, key=lambda v: v[0])
+
+
 def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -> PlaceFit | None:
     """The full search for the fit of ``skyline`` near one ``place`` (:meth:`PlaceSearch.fit`)."""
     return PlaceSearch(dem, skyline, place, settings).fit()
@@ -289,16 +384,30 @@ def fit_place(dem: Dem, skyline: Skyline, place: Place, settings: FitSettings) -
 
 def distinct_places(ranked: list[Place], count: int, apart_m: float, dem: Dem) -> list[Place]:
     """The first ``count`` places of ``ranked`` (most likely first) each more than ``apart_m`` from
-    every place kept before it."""
+    every place kept before it (geodesic distance on the map's body).  The places near each kept
+    one are found on the sphere first, with a margin, and only those measured on the body."""
     if not ranked:
         return []
     lat = np.array([p.lat for p in ranked])
     lon = np.array([p.lon for p in ranked])
-    alive = np.ones(lat.size, dtype=bool)
-    kept: list[Place] = []
-    while len(kept) < count and alive.any():
-        k = int(np.argmax(alive))
-        kept.append(ranked[k])
-        _, _, d = dem.body.geod.inv(np.full(lat.size, lon[k]), np.full(lat.size, lat[k]), lon, lat)
-        alive &= np.asarray(d) > apart_m
-    return kept
+    la, lo = np.radians(lat), np.radians(lon)
+    xyz = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=1)
+    # within apart_m on the body, within this angle between the normals: no radius of curvature of
+    # an ellipsoid is shorter than b^2 / a
+    geod = dem.body.geod
+    cos_reach = math.cos(min(1.01 * apart_m * geod.a / (geod.b * geod.b) + 1e-9, math.pi))
+    # the places kept from a prefix of ``ranked`` are those kept from the whole list, as long as
+    # the prefix yields ``count`` of them: try a short prefix first
+    size = min(lat.size, max(64 * count, 4096))
+    while True:
+        alive = np.ones(size, dtype=bool)
+        kept: list[Place] = []
+        while len(kept) < count and alive.any():
+            k = int(np.argmax(alive))
+            kept.append(ranked[k])
+            near = np.nonzero(alive & (xyz[:size] @ xyz[k] >= cos_reach))[0]
+            _, _, d = dem.body.geod.inv(np.full(near.size, lon[k]), np.full(near.size, lat[k]), lon[near], lat[near])
+            alive[near[np.asarray(d) <= apart_m]] = False
+        if len(kept) >= count or size == lat.size:
+            return kept
+        size = min(lat.size, 4 * size)

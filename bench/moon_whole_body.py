@@ -36,7 +36,15 @@ from appliance.terrain.database import load_database  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.terrain.mosaic import open_map  # noqa: E402
 from appliance.terrain.whole_body import build_whole_body, default_spacing_m  # noqa: E402
-from appliance.tiled_search import SURFACE_PLACES, SearchParams, box_around, locate_tiled, open_surface, open_tiled  # noqa: E402
+from appliance.tiled_search import (  # noqa: E402
+    SCREEN_PLACES,
+    SURFACE_PLACES,
+    SearchParams,
+    box_around,
+    locate_tiled,
+    open_surface,
+    open_tiled,
+)
 
 LOLA = HERE.parent.parent / "shared" / "data" / "dem_planetary" / "LDEM_4.LBL"
 PARAMS = SearchParams((0.3, 1.2), 4.0)
@@ -166,7 +174,8 @@ def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spaci
         f"Within two cells: geodesic error <= {cell2 / 1000:.2f} km (twice the facets' spacing).",
         "",
         ("Answers fitted on the map's own surface (up to "
-         f"{SURFACE_PLACES} contending places of the facets' region, appliance/verification.py)." if fitted else
+         f"{SCREEN_PLACES} contending places of the facets' region screened on the map, the grid's best and the "
+         f"{SURFACE_PLACES - 1} that screen best fitted, appliance/verification.py)." if fitted else
          "Answers on the facets' grid alone (refined on the facets' resampled surface), not fitted on the map."),
         "",
         f"Load before the estimates (uptime): {load_before}",

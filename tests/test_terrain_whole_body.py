@@ -30,7 +30,7 @@ from appliance.terrain.whole_body import (
     plan_facets,
 )
 from appliance.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
-from appliance.verification import FitSettings, Place, distinct_places, fit_place
+from appliance.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
 from tests.conftest import data_file
 
 distributed = pytest.importorskip("distributed")
@@ -322,6 +322,7 @@ def test_fit_on_the_maps_surface_finds_the_renderers_skyline_in_the_cap(moon, ca
         rec = res.to_json(index, (lat, lon))
         assert (rec["lat"], rec["lon"]) == (round(res.lat, 8), round(res.lon, 8))
         assert rec["surface_fit"]["places"] == res.fit.places >= 1
+        assert rec["surface_fit"]["screened"] == res.fit.screened >= res.fit.places
         assert rec["status"] == ("ambiguous" if res.ambiguous else "ok")
 
 
@@ -393,6 +394,69 @@ def test_distinct_places_keep_the_likeliest_of_each_neighbourhood(moon):
     assert [p.node for p in distinct_places(ranked, 2, 5000.0, dem)] == [0, 2]
     assert [p.node for p in distinct_places(ranked, 9, 1000.0, dem)] == [0, 1, 2, 3, 4, 5]
     assert distinct_places([], 3, 1000.0, dem) == []
+
+
+def test_distinct_places_match_the_plain_greedy_choice(moon):
+    """The places kept, found on the sphere first and from a prefix of the ranking, are those of
+    the plain greedy choice measuring every place on the body, also when the first 5,000 places
+    crowd into one neighbourhood (the prefix then has to grow)."""
+    _, dem = moon
+    rng = np.random.default_rng(11)
+    crowd_lat, crowd_lon = rng.normal(30.0, 0.02, 5000), rng.normal(100.0, 0.02, 5000)
+    spread_lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, 6000)))
+    spread_lon = rng.uniform(0.0, 360.0, 6000)
+    near_lat, near_lon = rng.normal(-10.0, 0.5, 3000), rng.normal(200.0, 0.5, 3000)
+    lat = np.concatenate([crowd_lat, spread_lat, near_lat])
+    lon = np.concatenate([crowd_lon, spread_lon, near_lon])
+    ranked = [Place("t", i, float(a), float(b)) for i, (a, b) in enumerate(zip(lat, lon))]
+
+    def plain(count: int, apart_m: float) -> list[int]:
+        alive = np.ones(lat.size, dtype=bool)
+        kept: list[int] = []
+        while len(kept) < count and alive.any():
+            k = int(np.argmax(alive))
+            kept.append(k)
+            _, _, d = dem.body.geod.inv(np.full(lat.size, lon[k]), np.full(lat.size, lat[k]), lon, lat)
+            alive &= np.asarray(d) > apart_m
+        return kept
+
+    for count, apart_m in ((30, 7580.8), (400, 7580.8), (60, 40_000.0)):
+        got = [p.node for p in distinct_places(ranked, count, apart_m, dem)]
+        assert got == plain(count, apart_m)
+        assert len(got) == count
+        assert got[0] == 0 and got[1] >= 5000  # the crowd, within 3 km, gives one place
+
+
+def test_screen_ranks_the_place_seen_from_first(moon):
+    """Places of a whole-body search screened on the map: the skyline seen 1.5 m above
+    15.06 S 162.69 E, read with a compass off by up to 4 deg, screens lowest at a place 1.5 km from
+    where it was seen, below places three to twelve node spacings away and far ones, and its cost
+    is that of residuals within twice the noise (0.2 deg): the compass's error is turned away,
+    though the nearest look lies 1.5 km from where it was seen."""
+    _, dem = moon
+    lat, lon = -15.06, 162.69
+    az = np.arange(360.0)
+    sky = _read(az, render_skyline(dem, lat, lon, HEIGHT_M, az, 150_000.0).elevation_deg, 6)
+    spacing = 3790.42
+    settings = FitSettings(HEIGHT_M, 360, 150_000.0, 0.0, spacing, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    deg = math.degrees(spacing / MOON.radius_m)
+    truth = Place("t", 0, lat + math.degrees(1500.0 / MOON.radius_m), lon)
+    others = [Place("t", k, lat + dy * deg, lon + dx * deg / math.cos(math.radians(lat)))
+              for k, (dy, dx) in enumerate(((3, 0), (0, -3), (-4, 4), (6, 6), (-12, 0), (0, 12)), start=1)]
+    others += [Place("t", 10, 42.82, 59.37), Place("t", 11, -41.89, 166.3), Place("t", 12, 6.53, 204.12)]
+    screened = screen_places(dem, sky, others[:3] + [truth] + others[3:], settings)
+    assert [p.node for _, p in screened][0] == 0
+    cost, _ = screened[0]
+    sig_ref = 0.5 * sum(PARAMS.sigma_deg)
+    assert math.sqrt(cost * sig_ref**2 / 360.0) < 0.4  # RMS residual, deg
+    assert screened[1][0] > 1.5 * cost
+    # the same look without a compass: the heading is found over the whole circle
+    free = FitSettings(HEIGHT_M, 360, 150_000.0, 0.0, spacing, PARAMS.sigma_deg, None)
+    turned = Skyline(sky.azimuth_deg, np.roll(sky.elevation_deg, 40))
+    look = PlaceSearch(dem, turned, truth, free, screening=True)
+    assert min(look.quick_look(dr, dc) for dr in (-0.5, 0.0, 0.5) for dc in (-0.5, 0.0, 0.5)) == pytest.approx(
+        min(PlaceSearch(dem, sky, truth, free, screening=True).quick_look(dr, dc) for dr in (-0.5, 0.0, 0.5)
+            for dc in (-0.5, 0.0, 0.5)), rel=1e-6)
 
 
 def test_whole_body_refusals(moon, tmp_path, capsys):
