@@ -35,7 +35,6 @@ from appliance.estimator.likelihood import occlusion_cap_deg2
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import local_aeqd
-from appliance.terrain.raycast import BLOCK_CELLS, bilinear, march
 
 #: The local grid's cell: a quarter of the node spacing, and a quarter of the map's pixel where
 #: that is smaller (near the poles a longitude pixel narrows: 1.3 km at 80 deg on the LOLA map),
@@ -149,32 +148,11 @@ def quick_render(terrain: Terrain, cell_m: float, row: float, col: float, azimut
                  height_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Elevation (deg) and range (m) per grid azimuth from fractional (row, col) of a local grid
     (:func:`local_terrain`), as :func:`appliance.estimator.exact.render` renders them with the looks'
-    schedule of ray samples, except that its outer grid, too, is sampled on the looks' schedule
-    (two per cent of the distance, an outer cell at most) rather than the fits' finer one."""
-    Z = terrain.heights64
-    tr, tc = row + terrain.row0, col + terrain.col0
-    ground = bilinear(Z, tr, tc)
-    tan = np.empty(azimuth_deg.size)
-    far = np.empty(azimuth_deg.size)
-    if not math.isfinite(ground):
-        return np.full(azimuth_deg.size, np.nan), far
-    az = np.radians(azimuth_deg)
-    dist = terrain.look_distances(cell_m)
-    outer = terrain.outer
-    near = dist if outer is None else dist[dist <= terrain.near_reach_m]
-    march(Z, cell_m, cell_m, tr, tc, ground + height_m, az, near, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
-          tan, far)
-    if outer is not None:
-        ratio = terrain.outer_ratio
-        beyond = outer.look_distances(cell_m * ratio)
-        tan_o = np.empty(az.size)
-        far_o = np.empty(az.size)
-        march(outer.heights64, cell_m * ratio, cell_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
-              beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
-        take = np.isfinite(tan_o) & ~(tan >= tan_o)
-        tan = np.where(take, tan_o, tan)
-        far = np.where(take, far_o, far)
-    return np.degrees(np.arctan(tan)), far
+    schedule of ray samples, its outer grid too (two per cent of the distance, an outer cell at most)
+    rather than the fits' finer one."""
+    el, far, _ = render(terrain, cell_m, cell_m, row, col, azimuth_deg,
+                        terrain.look_distances(cell_m), height_m, outer_looks=True)
+    return el, far
 
 
 def _grid_heights(dem: Dem, frame: LocalFrame, cell_m: float, half: int) -> np.ndarray:

@@ -172,8 +172,11 @@ class Fit:
 
 
 def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
-           dist: np.ndarray, height_m: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """Elevation (deg), range (m) per grid azimuth and ground height from fractional node (row, col)."""
+           dist: np.ndarray, height_m: float, outer_looks: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Elevation (deg), range (m) per grid azimuth and ground height from fractional node (row, col).
+
+    ``dist`` is the ray's schedule on this grid; an outer grid is sampled on its own
+    :meth:`Terrain.distances`, or with ``outer_looks`` on the looks' coarser schedule."""
     Z = terrain.heights64
     tr, tc = row + terrain.row0, col + terrain.col0
     ground = bilinear(Z, tr, tc)
@@ -190,7 +193,8 @@ def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, g
     march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
           terrain.block_max, BLOCK_CELLS, tan, far)
     ratio = terrain.outer_ratio
-    beyond = outer.distances(min(dx_m, dy_m) * ratio)
+    outer_cell = min(dx_m, dy_m) * ratio
+    beyond = outer.look_distances(outer_cell) if outer_looks else outer.distances(outer_cell)
     tan_o = np.empty(az.size)
     far_o = np.empty(az.size)
     march(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
