@@ -369,10 +369,13 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 t_start = 0
                 if not rank_cap:
                     # no finite cap, nothing is an occluder: two azimuths per pass over the shifts,
-                    # each shift's sum still taken in azimuth order
+                    # each shift's sum still taken in azimuth order.  Two unmeasured azimuths (weight
+                    # 0) would add exact zeros: they are skipped, so a narrow view costs its share.
                     for t in range(0, d - 1, 2):
                         w0 = w[t]
                         w1 = w[t + 1]
+                        if w0 == 0 and w1 == 0:
+                            continue
                         m0 = mt[t]
                         m1 = mt[t + 1]
                         c_0 = cf[t : t + k_pad]
