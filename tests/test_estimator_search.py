@@ -239,49 +239,6 @@ def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
     assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)
 
 
-@pytest.mark.parametrize("cap", [math.inf, 2.0, 0.3])
-@pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-2, 3), np.array([3, -1, 0, 7])])
-def test_compass_first_pass_keeps_the_least_shift_of_the_scaled_rows(cap, shifts):
-    """Each node's least shift, as the first pass keeps it, is the one numpy picks from every
-    shift's row once scaled: the same float32 numbers, bit for bit (nodata, gappy and occluded
-    nodes among them)."""
-    from appliance.estimator.search import ssd_coarse, ssd_coarse_least
-
-    rng = np.random.default_rng(9)
-    n, d = 300, 90
-    C = rng.integers(0, 255, (n, d)).astype(np.uint8)
-    C[:5, rng.choice(d, 4, replace=False)] = 255
-    C[5:8, : d // 5] = 255
-    off = rng.uniform(-2, 2, n).astype(np.float32)
-    off[8] = np.nan
-    step = rng.uniform(0.02, 0.1, n).astype(np.float32)
-    partial = np.zeros(n, dtype=bool)
-    partial[:9] = True
-    T = rng.integers(0, 120, (n, d)).astype(np.uint8)
-    w_lut = rng.uniform(0.2, 1.0, 256).astype(np.float32)
-    p_lut = rng.uniform(0.0, 2.0, 256).astype(np.float32)
-    m = off[30] + step[30] * np.roll(C[30], 2).astype(np.float64) + rng.normal(0, 0.2, d)
-    m[rng.choice(d, 6, replace=False)] = np.nan
-    w = np.where(np.isfinite(m), rng.uniform(0.5, 1.0, d), 0.0)
-    scale = np.float32(1.37)
-    tau = (T, w_lut, p_lut)
-    occ = np.empty((n, shifts.size), dtype=np.float32)
-    every, pen = ssd_coarse((C, partial), off, step, m, shifts, tau, w, cap, occ)
-    every = every * scale
-    occ = occ * scale
-    ranked = every + occ * np.float32(cap) if math.isfinite(cap) else every
-    k = np.argmin(ranked, axis=1)
-    rows = np.arange(n)
-    least, least_occ, least_pen = ssd_coarse_least((C, partial), off, step, m, shifts, scale, tau, w, cap)
-    assert least.shape == least_occ.shape == (n, 1)
-    assert np.array_equal(least[:, 0], every[rows, k])
-    assert np.array_equal(least_occ[:, 0], occ[rows, k])
-    assert np.array_equal(least_pen, pen)
-    assert np.isinf(least[8, 0]) and np.isinf(least[5:8, 0]).all()
-    if cap == 0.3:
-        assert (least_occ[:, 0] > 0).sum() > n // 2
-
-
 @pytest.mark.parametrize("view", [(0, 24), (37, 69), (80, 97)])
 def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_reference(view):
     """A view of a few runs of azimuths (one across the circle's seam): the azimuths not measured

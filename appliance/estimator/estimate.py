@@ -42,8 +42,8 @@ from appliance.estimator.search import (
     TauModel,
     box_decimate,
     decimated,
+    ssd_coarse,
     ssd_coarse_best,
-    ssd_coarse_least,
     ssd_for_shifts,
 )
 
@@ -591,8 +591,8 @@ def _measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarr
 class _FirstPass:
     """Every node scored on the first pass, and the fine shifts each node is rescored at."""
 
-    ssd: np.ndarray  # (n_nodes, 1) float32 weighted residual sums at each node's least first-pass shift, deg^2
-    occluded: np.ndarray  # (n_nodes, 1) float32 weight of the occluded measurements there
+    ssd: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weighted residual sums, deg^2
+    occluded: np.ndarray  # (n_nodes, n_coarse_shifts) float32 weight of the occluded measurements
     penalty: np.ndarray  # (n_nodes,) float64 log-normalisers
     band: np.ndarray  # (n_fine_shifts,) azimuth steps around each node's centre
     centre: np.ndarray | None  # (n_nodes,) azimuth steps each node's band is centred on; None = 0 for all
@@ -694,6 +694,7 @@ def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance
     at every azimuth step of the band."""
     if heading_tolerance_deg < 0:
         raise InputError(f"heading tolerance {heading_tolerance_deg} must be >= 0")
+    n_nodes = grid.codes.shape[0]
     n, n_eff = meas.n_valid, meas.n_eff
     k = int(math.ceil(heading_tolerance_deg / grid.az_step_deg - 1e-9))
     base_shifts = np.arange(-k, k + 1)
@@ -704,11 +705,13 @@ def _compass_first_pass(grid: SkylineGrid, meas: _Measurement, heading_tolerance
     scale = n / max(float(np.nansum(w_dec)), 1e-9) * n_eff / max(n, 1)
     tau_c = ((grid.coarse_tau2(meas.map_sigma_m), *parallax.tau2_tables(meas.sigma_ref_deg)) if grid.has_parallax
              else None)
-    # only each node's least first-pass shift is kept: the bounds are made from it alone
-    coarse, coarse_occ, coarse_pen32 = ssd_coarse_least(
-        grid.coarse, grid.offset_deg, grid.step_deg, m_dec, np.arange(-k_dec, k_dec + 1), np.float32(scale), tau_c,
-        np.nan_to_num(w_dec), meas.cap_deg2)
-    coarse_pen = coarse_pen32.astype(np.float64)
+    coarse_occ = np.empty((n_nodes, 2 * k_dec + 1), dtype=np.float32)
+    coarse, coarse_pen = ssd_coarse(grid.coarse, grid.offset_deg, grid.step_deg, m_dec,
+                                    np.arange(-k_dec, k_dec + 1), tau_c, np.nan_to_num(w_dec), meas.cap_deg2,
+                                    coarse_occ)
+    coarse *= np.float32(scale)
+    coarse_occ *= np.float32(scale)
+    coarse_pen = coarse_pen.astype(np.float64)
     coarse_pen *= scale
     return _FirstPass(coarse, coarse_occ, coarse_pen, base_shifts, None, grid.n_azimuths)
 

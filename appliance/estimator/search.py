@@ -211,51 +211,14 @@ def _gappy_shift(row: np.ndarray, ww: np.ndarray, mt: np.ndarray, w: np.ndarray,
     return acc * scale * n_meas / cnt, occ * n_meas / cnt
 
 
-@numba.njit(cache=True, nogil=True)
-def _least_column(sums: np.ndarray, occ: np.ndarray, post: np.float32, cap32: np.float32,
-                  rank_cap: bool) -> tuple[np.float32, np.float32]:
-    """Of one node's shifts (residual sums and occluded weights), each times ``post`` in float32:
-    the shift of least sum (plus ``cap32`` per occluded weight with ``rank_cap``), the first of equal
-    ones, and its two numbers.  No fast-math: the same float32 operations, in the same order, as
-    scaling the whole rows in numpy and choosing with :func:`likelihood.best_column_bounds`."""
-    best_s = np.float32(sums[0] * post)
-    best_o = np.float32(occ[0] * post)
-    best = best_s + best_o * cap32 if rank_cap else best_s
-    for k in range(1, sums.size):
-        s = np.float32(sums[k] * post)
-        o = np.float32(occ[k] * post)
-        v = s + o * cap32 if rank_cap else s
-        if v < best:
-            best = v
-            best_s = s
-            best_o = o
-    return best_s, best_o
-
-
-@numba.njit(cache=True, nogil=True)
-def _store_node(ss: np.ndarray, so: np.ndarray, out: np.ndarray, occ_out: np.ndarray, i: int, least: bool,
-                post: np.float32, cap_rank: np.float32, rank_cap: bool) -> None:
-    """Row i of the first pass's outputs: every shift's sum and occluded weight, or with ``least``
-    only those of the node's least shift, scaled (:func:`_least_column`)."""
-    if least:
-        out[i, 0], occ_out[i, 0] = _least_column(ss, so, post, cap_rank, rank_cap)
-        return
-    for k in range(ss.size):
-        out[i, k] = ss[k]
-        occ_out[i, k] = so[k]
-
-
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                 w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, w_lut: np.ndarray,
-                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float, occ_out: np.ndarray,
-                least: bool, post: np.float32, cap_rank: np.float32, rank_cap: bool) -> None:
+                p_lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float, occ_out: np.ndarray) -> None:
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
     node's log-normaliser at shift 0.  A measurement above the model whose weighted square passes
     ``cap`` (deg^2) is an occluder: left out of the sum, counted by its weight in occ_out[i, k].
-    With ``least`` only each node's least shift is kept, times ``post``, in column 0
-    (:func:`_least_column`: ``cap_rank`` per occluded weight with ``rank_cap``).
 
     Nodes are taken in blocks, their scratch rows made once per block.  A node with terrain
     everywhere is decoded once into float rows laid out around the circle (codes and weights,
@@ -282,17 +245,13 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
         mt = np.empty(d, dtype=np.float32)
         cf = np.empty(n_ext, dtype=np.float32)
         vf = np.empty(n_ext, dtype=np.float32)
-        # the node's sums and occluded weights, one per shift
-        ss = np.empty(n_shift, dtype=np.float32)
-        so = np.empty(n_shift, dtype=np.float32)
         for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
             o = offset[i]
             pen[i] = 0.0
             if math.isnan(o):
                 for k in range(n_shift):
-                    ss[k] = np.inf
-                    so[k] = 0.0
-                _store_node(ss, so, out, occ_out, i, least, post, cap_rank, rank_cap)
+                    out[i, k] = np.inf
+                    occ_out[i, k] = 0.0
                 continue
             ww = vf[pad_lo : pad_lo + d]
             pen[i] = _node_weights(T[i if use_tau else 0], w, w_lut, p_lut, use_tau, ww)
@@ -342,16 +301,15 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                         h = e > 0 and q > cap_c
                         a2 += wt * (np.float32(0.0) if h else q)
                         o2 += wt if h else np.float32(0.0)
-                    ss[k0] = a0 * scale
-                    so[k0] = o0
-                    ss[k1] = a1 * scale
-                    so[k1] = o1
-                    ss[k2] = a2 * scale
-                    so[k2] = o2
+                    out[i, k0] = a0 * scale
+                    occ_out[i, k0] = o0
+                    out[i, k1] = a1 * scale
+                    occ_out[i, k1] = o1
+                    out[i, k2] = a2 * scale
+                    occ_out[i, k2] = o2
             else:
                 for k in range(n_shift):
-                    ss[k], so[k] = _gappy_shift(row, ww, mt, w, shifts[k] % d, cap_c, scale, n_meas)
-            _store_node(ss, so, out, occ_out, i, least, post, cap_rank, rank_cap)
+                    out[i, k], occ_out[i, k] = _gappy_shift(row, ww, mt, w, shifts[k] % d, cap_c, scale, n_meas)
 
 
 #: Shifts of the every-heading kernel are scored in runs of this many (the vector width times the
@@ -527,30 +485,8 @@ def ssd_coarse(
     pen = np.empty(C.shape[0], dtype=np.float32)
     occ = np.empty_like(out) if occluded is None else occluded
     _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
-                use, pen, float(min(cap_deg2, 1e30)), occ, False, np.float32(1.0), np.float32(0.0), False)
+                use, pen, float(min(cap_deg2, 1e30)), occ)
     return out, pen
-
-
-def ssd_coarse_least(
-    coarse: tuple[np.ndarray, np.ndarray], offset_deg: np.ndarray, step_deg: np.ndarray,
-    measured_dec: np.ndarray, shifts: np.ndarray, scale: np.float32,
-    tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, weights_dec: np.ndarray | None = None,
-    cap_deg2: float = math.inf,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`ssd_coarse` with each node's sums and occluded weights times ``scale`` (float32), kept
-    at the node's least shift only (``sum + cap_deg2 * occluded``, the sum alone when the cap is
-    infinite; the first of equal ones): the (n_nodes, 1) sums and occluded weights and the
-    log-normalisers, unscaled.  The numbers :func:`ssd_coarse`'s whole rows give once scaled and
-    chosen from, bit for bit, without the (n_nodes, len(shifts)) arrays."""
-    C, partial = coarse
-    m, w, T, w_lut, p_lut, use = _coarse_inputs(measured_dec, weights_dec, tau)
-    out = np.empty((C.shape[0], 1), dtype=np.float32)
-    occ = np.empty((C.shape[0], 1), dtype=np.float32)
-    pen = np.empty(C.shape[0], dtype=np.float32)
-    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, w_lut, p_lut,
-                use, pen, float(min(cap_deg2, 1e30)), occ, True, np.float32(scale), np.float32(cap_deg2),
-                math.isfinite(cap_deg2))
-    return out, occ, pen
 
 
 def ssd_for_shifts(
