@@ -239,6 +239,42 @@ def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
     assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)
 
 
+@pytest.mark.parametrize("view", [(0, 24), (37, 69), (80, 97)])
+def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_reference(view):
+    """A view of a few runs of azimuths (one across the circle's seam): the azimuths not measured
+    are skipped in pairs, and the sums, best shifts and normalisers are still the reference's."""
+    from appliance.estimator.search import ssd_coarse_best
+
+    rng = np.random.default_rng(11)
+    n, d = 200, 90
+    C = rng.integers(0, 255, (n, d)).astype(np.uint8)
+    off = rng.uniform(-2, 2, n).astype(np.float32)
+    step = rng.uniform(0.02, 0.1, n).astype(np.float32)
+    partial = np.zeros(n, dtype=bool)
+    T = rng.integers(0, 120, (n, d)).astype(np.uint8)
+    w_lut = rng.uniform(0.2, 1.0, 256).astype(np.float32)
+    p_lut = rng.uniform(0.0, 2.0, 256).astype(np.float32)
+    seen = np.zeros(d, dtype=bool)
+    seen[np.arange(view[0], view[1]) % d] = True
+    m = off[40] + step[40] * np.roll(C[40], -31).astype(np.float64) + rng.normal(0, 0.2, d)
+    m[~seen] = np.nan
+    w = np.where(seen, rng.uniform(0.5, 1.0, d), 0.0)
+    best, occ, arg, pen = ssd_coarse_best((C, partial), off, step, m, (T, w_lut, p_lut), w, math.inf)
+    m0 = np.nan_to_num(m).astype(np.float32).astype(float)
+    ref, _, ref_pen = _every_shift_reference(C, off.astype(float), step.astype(float), m0,
+                                             w.astype(np.float32).astype(float), T, w_lut, p_lut, math.inf)
+    rows = np.arange(n)
+    k = np.argmin(ref, axis=1)
+    second = np.sort(ref, axis=1)[:, 1]
+    clear = second - ref[rows, k] > 1e-4 * ref[rows, k]
+    assert clear.sum() > n - 10
+    assert np.array_equal(arg[clear], k[clear])
+    assert arg[40] == 31
+    assert np.allclose(best, ref[rows, arg], rtol=2e-5)
+    assert np.all(occ == 0.0)
+    assert np.allclose(pen, ref_pen, rtol=1e-5)
+
+
 @pytest.mark.parametrize("cap", [math.inf, 2.0])
 @pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-3, 5), np.arange(90)])
 def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
