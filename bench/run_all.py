@@ -30,7 +30,9 @@ QUICK: dict[str, list[str]] = {
     "logbook_write": [],
     "session_demo": [],
     "nmea_fuzz": ["--count", "100000"],
-    "input_fuzz": ["--count", "2000"],
+    "input_fuzz": ["--count", "2000", "--index-count", "500", "--image-count", "100", "--log-count", "100",
+                   "--replay-count", "5"],
+    "replay_damaged_logs": ["--count", "20"],
 }
 
 
