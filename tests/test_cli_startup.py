@@ -8,6 +8,8 @@ import pkgutil
 import subprocess
 import sys
 
+import numpy as np
+
 import appliance.cli as cli_pkg
 from appliance.cli.main import COMMANDS, build_parser, command_of
 
@@ -62,3 +64,33 @@ def test_detecting_a_skyline_loads_no_compiler(tmp_path):
     loaded = _modules_after(["skyline", str(image), "--out", str(out)])
     assert out.is_file() and len(out.read_text().splitlines()) > 300  # a header and 360 azimuths
     assert not {"numba", "scipy", "appliance.estimator.estimate"} & loaded
+
+
+def _estimate_in_fresh_process(argv: list[str], first: str = "") -> tuple[dict, set[str]]:
+    code = (f"{first}\nimport json, sys\nfrom appliance.cli.main import main\nrc = main({argv!r})\n"
+            "print(json.dumps(sorted(sys.modules)), file=sys.stderr)\nsys.exit(rc)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    record = json.loads(out.stdout.strip().splitlines()[-1])
+    record.pop("elapsed_ms")
+    return record, set(json.loads(out.stderr.strip().splitlines()[-1]))
+
+
+def test_an_estimate_loads_scipys_lapack_without_scipy_linalg(window_db, dem, tmp_path):
+    """The estimator's kernels call LAPACK (np.linalg.solve) through scipy.linalg.cython_lapack: it is
+    loaded on its own, not with the whole of scipy.linalg, and the record is the same bit for bit as
+    in a process that imported scipy.linalg first."""
+    from appliance.skyline import Skyline, write_skyline_csv
+    from appliance.terrain.horizon import render_skyline
+
+    az = np.arange(360.0)
+    sky = tmp_path / "sky.csv"
+    write_skyline_csv(Skyline(az, render_skyline(dem, 36.585, -84.26, azimuths_deg=az).elevation_deg), sky)
+    for heading in (["--heading-tolerance", "4"], ["--unknown-heading"]):
+        argv = ["estimate", window_db.path, str(sky), "--json", *heading]
+        lean, loaded = _estimate_in_fresh_process(argv)
+        assert {"scipy.linalg.cython_blas", "scipy.linalg.cython_lapack"} <= loaded
+        assert "scipy.linalg" not in loaded and "numpy.f2py" not in loaded
+        whole, loaded_whole = _estimate_in_fresh_process(argv, first="import scipy.linalg")
+        assert "scipy.linalg" in loaded_whole
+        assert lean == whole
+        assert lean["status"] in ("ok", "ambiguous") and abs(lean["lat"] - 36.585) < 0.01
