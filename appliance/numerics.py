@@ -10,6 +10,15 @@ nothing on an estimate's path uses.  :func:`load_scipy_cython_linalg` loads the 
 modules from their files under their own names instead (a few ms); numba's imports then find them
 loaded and make their own checks (the BLAS integer width) as before.  The kernels call the very
 same LAPACK functions, so their results are the same bit for bit.
+
+Loading a kernel from numba's cache needs none of numba's compiler: the cache holds the kernel's
+machine code, which is linked as it is.  Numba nevertheless loads all of its compiler's typing and
+lowering registries before it looks in the cache (0.15-0.3 s: numba.np.arraymath, npyimpl, the
+typed containers and more).  :func:`load_cached_kernels_without_compiler` makes a cache load start
+the memory-management runtime the kernels call (all that those registries' loading does for a
+load) and no more; a kernel that is not in the cache is compiled exactly as before (numba's
+compiler loads the registries itself).  It applies to the numba versions in
+:data:`CACHE_LOAD_TESTED` only; under another, numba loads its cache its own way.
 """
 
 from __future__ import annotations
@@ -74,4 +83,37 @@ def load_scipy_cython_linalg() -> list[str]:
     return loaded
 
 
+#: The numba versions (major, minor) whose cache loading :func:`load_cached_kernels_without_compiler`
+#: was checked against: numba.core.caching.Cache.load_overload is ``target_context.refresh()`` then
+#: ``self._load_overload(sig, target_context)``, and the refresh's only part a load needs is
+#: ``rtsys.initialize(target_context)``.
+CACHE_LOAD_TESTED = frozenset({(0, 68)})
+
+
+def load_cached_kernels_without_compiler() -> bool:
+    """Make numba load cached kernels without first loading its compiler's registries (see the
+    module's notes); returns whether it is in place (False under an untested numba)."""
+    import numba
+    from numba.core import caching
+    from numba.core.runtime import nrt
+
+    version = tuple(int(v) for v in numba.__version__.split(".")[:2])
+    if version not in CACHE_LOAD_TESTED:
+        return False
+    real = caching.Cache.load_overload
+    if getattr(real, "without_compiler", False):
+        return True
+
+    def load_overload(self: caching.Cache, sig: object, target_context: object) -> object:
+        nrt.rtsys.initialize(target_context)
+        with self._guard_against_spurious_io_errors():
+            return self._load_overload(sig, target_context)
+        return None  # the guard swallowed an error (as numba's own load does)
+
+    load_overload.without_compiler = True  # type: ignore[attr-defined]
+    caching.Cache.load_overload = load_overload  # type: ignore[method-assign]
+    return True
+
+
 load_scipy_cython_linalg()
+load_cached_kernels_without_compiler()
