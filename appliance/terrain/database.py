@@ -28,7 +28,8 @@ is terrain node (row0, col0), same spacing.
 
 The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
 block.  A file that passed is recorded (:mod:`appliance.terrain.verified`) and, unchanged since, is not
-read through again on later loads; its header is checked every time.  The first-pass arrays are made at build time so that no estimate has to make them.
+read through again on later loads; its header is checked every time.  The first-pass arrays are
+made at build time so that no estimate has to make them.
 """
 
 from __future__ import annotations
