@@ -23,10 +23,13 @@ compiler loads the registries itself).  It applies to the numba versions in
 
 from __future__ import annotations
 
+import importlib.abc
 import importlib.machinery
 import importlib.util
 import sys
+from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 
 #: Fast-math without the "no NaN, no inf" assumptions: the kernels test for NaN and use inf.
 FAST_FINITE = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -50,7 +53,7 @@ def load_scipy_cython_linalg() -> list[str]:
     Does nothing when scipy.linalg is loaded already (its modules come with it), and leaves a module
     whose file is missing, or that fails to load, to numba's own import (which then behaves as it
     always has: an ImportError is "no BLAS").  scipy.linalg imported later is the whole package as
-    usual and finds these two modules loaded."""
+    usual, with these two modules loaded as its own (:class:`_AttachToPackage`)."""
     if "scipy.linalg" in sys.modules:
         return []
     try:
@@ -80,7 +83,41 @@ def load_scipy_cython_linalg() -> list[str]:
             sys.modules[full] = module
             loaded.append(full)
             break
+    if loaded:
+        sys.meta_path.insert(0, _AttachToPackage())
     return loaded
+
+
+class _AttachToPackage(importlib.abc.MetaPathFinder):
+    """When scipy.linalg itself is imported after :func:`load_scipy_cython_linalg`, the modules that
+    loaded become its attributes (``scipy.linalg.cython_lapack``), as importing them by name makes
+    them; the package is found and run as usual.  Used once, then out of the way."""
+
+    def __init__(self) -> None:
+        self.used = False
+
+    def find_spec(self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
+                  ) -> importlib.machinery.ModuleSpec | None:
+        if self.used or fullname != "scipy.linalg":
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
+        if spec is None or spec.loader is None:
+            return None
+        self.used = True
+        loader = spec.loader
+        run = loader.exec_module
+
+        def exec_module(module: ModuleType) -> None:
+            if self in sys.meta_path:
+                sys.meta_path.remove(self)
+            run(module)
+            for name in CYTHON_LINALG:
+                child = sys.modules.get(f"scipy.linalg.{name}")
+                if child is not None and not hasattr(module, name):
+                    setattr(module, name, child)
+
+        loader.exec_module = exec_module  # type: ignore[method-assign]
+        return spec
 
 
 #: The numba versions (major, minor) whose cache loading :func:`load_cached_kernels_without_compiler`

@@ -116,7 +116,8 @@ def test_an_estimate_loads_neither_scipy_linalg_nor_numbas_compiler(window_db, w
 
 def test_numba_compiles_as_before_after_loading_cached_kernels(window_db, window_skyline):
     """A kernel that is not in the cache, compiled after the estimator's came from it: numba's compiler
-    loads what it needs then (here np.dot on BLAS, a typed list, an array reduction)."""
+    loads what it needs then (here np.dot on BLAS, a typed list, an array reduction); scipy.linalg
+    imported after is the whole package, with the Cython modules the estimate loaded as its own."""
     code = f"""
 import numba, numpy as np
 from appliance.cli.main import main
@@ -130,6 +131,12 @@ def fresh(a, b):
     return out
 
 print(list(fresh(np.array([1.0, 4.0, 9.0]), np.array([2.0, 4.0, 8.0]))))
+import sys
+import scipy.linalg, scipy.optimize
+assert scipy.linalg.cython_lapack is sys.modules["scipy.linalg.cython_lapack"]
+assert scipy.linalg.cython_blas is sys.modules["scipy.linalg.cython_blas"]
+print(float(scipy.linalg.solve(np.diag([2.0, 4.0]), np.array([1.0, 2.0]))[1]),
+      round(float(scipy.optimize.minimize_scalar(lambda x: (x - 3.0) ** 2).x), 6))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip().splitlines()[-1] == "[90.0, 7.0]"
+    assert out.stdout.strip().splitlines()[-2:] == ["[90.0, 7.0]", "0.5 3.0"]
