@@ -12,6 +12,16 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def own_cache_folder(tmp_path_factory):
+    """The appliance's cache folder (records of verified databases) is the test run's own, for this
+    process and the commands it starts."""
+    folder = tmp_path_factory.mktemp("viper-cache")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("VIPER_CACHE_DIR", str(folder))
+        yield folder
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not SHARED_DATA.is_dir():

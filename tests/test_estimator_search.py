@@ -307,3 +307,40 @@ def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
     assert np.allclose(got[fin], ref[:, cols][fin], rtol=2e-5)
     assert np.allclose(occ[fin], ref_occ[:, cols][fin], rtol=2e-5, atol=1e-6)
     assert np.allclose(pen[~np.isnan(off)], ref_pen[~np.isnan(off)], rtol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (2, 7), (7, 2), (37, 53)])
+def test_the_ground_gradient_at_some_nodes_is_the_whole_maps_there(shape):
+    """The kernels read the gradient at the nodes they score only: computed there alone it is the
+    whole map's, bit for bit, edges and nodata (NaN neighbours give 0) included."""
+    from appliance.estimator import parallax
+
+    rng = np.random.default_rng(7)
+    n_rows, n_cols = shape
+    ground = (rng.normal(0.0, 300.0, n_rows * n_cols) + 1000.0).astype(np.float32)
+    ground[rng.choice(ground.size, max(1, ground.size // 10), replace=False)] = np.nan
+    dx_m, dy_m = 74.573123, 92.4751
+    ge, gn = parallax.ground_gradient(ground, n_rows, n_cols, dx_m, dy_m)
+    all_nodes = np.arange(ground.size)
+    for nodes in (all_nodes, rng.choice(ground.size, max(1, ground.size // 3), replace=False), all_nodes[::-1]):
+        ge_at, gn_at = parallax.ground_gradient_at(ground, n_rows, n_cols, dx_m, dy_m, nodes)
+        assert ge_at.dtype == gn_at.dtype == np.float64
+        np.testing.assert_array_equal(ge_at[nodes], ge[nodes], strict=True)
+        np.testing.assert_array_equal(gn_at[nodes], gn[nodes], strict=True)
+        others = np.setdiff1d(all_nodes, nodes)
+        assert not ge_at[others].any() and not gn_at[others].any()
+    assert (ge != 0).any() and (gn != 0).any()
+
+
+def test_the_grids_gradient_at_nodes_matches_its_whole_one(window_db):
+    from appliance.position import skyline_grid
+
+    grid = skyline_grid(window_db)
+    nodes = np.random.default_rng(3).choice(grid.codes.shape[0], 500, replace=False)
+    ge_at, gn_at = grid.ground_gradient_at(nodes)
+    g2_at = grid.ground_gradient2_at(nodes)
+    ge, gn = grid.ground_gradient
+    np.testing.assert_array_equal(ge_at[nodes], ge[nodes], strict=True)
+    np.testing.assert_array_equal(gn_at[nodes], gn[nodes], strict=True)
+    np.testing.assert_array_equal(g2_at[nodes], grid.ground_gradient2[nodes], strict=True)
+    assert grid.ground_gradient_at(nodes)[0] is ge  # once the whole map's is made, it is the one used

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -282,3 +284,166 @@ def test_the_stored_first_pass_is_what_the_estimator_would_make(jacksboro_db):
     assert np.array_equal(partial, np.asarray(db.coarse_partial))
     assert np.array_equal(fresh.coarse_tau2(0.0), np.asarray(db.coarse_tau2))
     assert stored.coarse_tau2(0.0) is db.coarse_tau2
+
+
+# ---- records of verified databases: a changed file is checked again ----
+
+
+class _CountingZlib:
+    """zlib whose crc32 counts its calls."""
+
+    def __init__(self):
+        import zlib
+
+        self.real = zlib
+        self.calls = 0
+
+    def crc32(self, data, value=0):
+        self.calls += 1
+        return self.real.crc32(data, value)
+
+
+@pytest.fixture
+def settled(monkeypatch, tmp_path):
+    """A cache folder of the test's own, and files recorded however recently they were written (the
+    tests wait for the file system's clock to tick before they change a recorded file)."""
+    from appliance.terrain import verified
+
+    monkeypatch.setenv("VIPER_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(verified, "SETTLE_NS", 0)
+    return tmp_path / "cache" / verified.RECORD_DIR
+
+
+def _counted_load(monkeypatch, path, **kw):
+    from appliance.terrain import database
+
+    counter = _CountingZlib()
+    monkeypatch.setattr(database, "zlib", counter)
+    db = load_database(path, **kw)
+    monkeypatch.setattr(database, "zlib", counter.real)
+    return db, counter.calls
+
+
+def test_a_verified_unchanged_database_is_not_hashed_again(jacksboro_db, tmp_path, monkeypatch, settled):
+    _, db = jacksboro_db
+    raw, _, header = _parts(db.path)
+    path = tmp_path / "copy.viperdb"
+    path.write_bytes(bytes(raw))
+    blocks = header["checksum"]["blocks"]
+    first, calls = _counted_load(monkeypatch, path)
+    assert calls == 1 + blocks  # the header, then every block
+    records = list(settled.glob("*.json"))
+    assert len(records) == 1
+    st = path.stat()
+    rec = json.loads(records[0].read_text())
+    assert rec["identity"] == {"dev": st.st_dev, "ino": st.st_ino, "size": st.st_size, "mtime_ns": st.st_mtime_ns,
+                               "ctime_ns": st.st_ctime_ns}
+    again, calls = _counted_load(monkeypatch, path)
+    assert calls == 1  # the header only
+    np.testing.assert_array_equal(np.asarray(again.codes), np.asarray(first.codes))
+    np.testing.assert_array_equal(np.asarray(again.coarse_tau2), np.asarray(db.coarse_tau2))
+    _, calls = _counted_load(monkeypatch, path, full_check=True)
+    assert calls == 1 + blocks
+
+
+@pytest.mark.parametrize("keep_times", [False, True])
+def test_a_database_modified_after_its_verification_is_refused(jacksboro_db, tmp_path, monkeypatch, settled,
+                                                               keep_times):
+    """A byte changed in place after a recorded verification (with its modification time put back,
+    too) is caught by the full check it brings back."""
+    import os
+
+    _, db = jacksboro_db
+    raw, hlen, header = _parts(db.path)
+    path = tmp_path / "changed.viperdb"
+    path.write_bytes(bytes(raw))
+    load_database(path)
+    assert len(list(settled.glob("*.json"))) == 1
+    before = path.stat()
+    time.sleep(0.05)
+    where = 12 + hlen + (1 << 20) + 5  # in block 1
+    with path.open("r+b") as fh:
+        fh.seek(where)
+        old = fh.read(1)
+        fh.seek(where)
+        fh.write(bytes([old[0] ^ 0x01]))
+    if keep_times:
+        os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+        assert path.stat().st_mtime_ns == before.st_mtime_ns and path.stat().st_size == before.st_size
+    with pytest.raises(DatabaseError, match=f"block 1 of {header['checksum']['blocks']} .* fails its CRC32"):
+        load_database(path)
+
+
+def test_a_database_copied_over_or_replaced_is_checked_again(jacksboro_db, tmp_path, monkeypatch, settled):
+    _, db = jacksboro_db
+    raw, hlen, _ = _parts(db.path)
+    path = tmp_path / "replaced.viperdb"
+    path.write_bytes(bytes(raw))
+    load_database(path)
+    time.sleep(0.05)
+    bad = bytearray(raw)
+    bad[12 + hlen + 7] ^= 0x40
+    path.write_bytes(bytes(bad))  # the same inode, rewritten
+    with pytest.raises(DatabaseError, match="block 0 of"):
+        load_database(path)
+    other = tmp_path / "other.viperdb"
+    other.write_bytes(bytes(bad))
+    other.replace(path)  # another inode under the same name
+    with pytest.raises(DatabaseError, match="block 0 of"):
+        load_database(path)
+
+
+def test_no_record_for_a_file_just_written_nor_beyond_its_age(jacksboro_db, tmp_path, monkeypatch):
+    from appliance.terrain import verified
+
+    monkeypatch.setenv("VIPER_CACHE_DIR", str(tmp_path / "cache"))
+    _, db = jacksboro_db
+    raw, _, header = _parts(db.path)
+    path = tmp_path / "fresh.viperdb"
+    path.write_bytes(bytes(raw))
+    _, calls = _counted_load(monkeypatch, path)
+    _, again = _counted_load(monkeypatch, path)
+    assert calls == again == 1 + header["checksum"]["blocks"]  # written under SETTLE_NS ago: no record
+    assert not (tmp_path / "cache" / verified.RECORD_DIR).exists() or not any(
+        (tmp_path / "cache" / verified.RECORD_DIR).iterdir())
+    monkeypatch.setattr(verified, "SETTLE_NS", 0)
+    load_database(path)
+    with path.open("rb") as fh:
+        identity = verified.FileIdentity.of_fd(fh.fileno())
+    start = 12 + int(np.frombuffer(bytes(raw[8:12]), np.uint32)[0])
+    digest = verified.digest_of(bytes(raw[:start]), bytes(raw[start + header["checksum"]["offset"]:]))
+    assert verified.is_verified(identity, digest)
+    assert not verified.is_verified(identity, "0" * 64)
+    assert not verified.is_verified(identity, digest, now_s=time.time() + verified.MAX_AGE_S + 60)
+
+
+def test_an_unwritable_cache_folder_costs_only_the_full_check(jacksboro_db, tmp_path, monkeypatch):
+    from appliance.terrain import verified
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("VIPER_CACHE_DIR", str(blocker))
+    monkeypatch.setattr(verified, "SETTLE_NS", 0)
+    _, db = jacksboro_db
+    raw, _, header = _parts(db.path)
+    path = tmp_path / "db.viperdb"
+    path.write_bytes(bytes(raw))
+    for _ in range(2):
+        loaded, calls = _counted_load(monkeypatch, path)
+        assert calls == 1 + header["checksum"]["blocks"]
+    assert loaded.grid.n_nodes == db.grid.n_nodes
+
+
+def test_the_cache_folder_follows_the_environment(monkeypatch, tmp_path):
+    from appliance.terrain.verified import cache_root
+
+    for name in ("VIPER_CACHE_DIR", "CACHE_DIRECTORY", "XDG_CACHE_HOME"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert cache_root() == tmp_path / ".cache" / "viper"
+    monkeypatch.setenv("XDG_CACHE_HOME", "/x/cache")
+    assert cache_root() == Path("/x/cache/viper")
+    monkeypatch.setenv("CACHE_DIRECTORY", "/var/cache/viper:/var/cache/other")  # systemd's CacheDirectory=
+    assert cache_root() == Path("/var/cache/viper")
+    monkeypatch.setenv("VIPER_CACHE_DIR", str(tmp_path / "own"))
+    assert cache_root() == tmp_path / "own"

@@ -18,7 +18,6 @@ from appliance.errors import InputError
 from appliance.position import Move, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
-from appliance.tiled_search import is_tiled
 
 LOG = logging.getLogger(__name__)
 
@@ -116,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
                              f"[estimator] min_valid_fraction {cfg.min_valid_fraction:.0%}")
     tiled_only = [o for o, v in (("--search-bounds", args.search_bounds), ("--near", args.near),
                                  ("--scheduler", args.scheduler), ("--workers", args.workers)) if v is not None]
-    if is_tiled(args.db):
+    if Path(args.db).is_dir():  # a tiled database (tiled_search.is_tiled): its module is loaded only then
         return _run_tiled(args, cfg, skylines, truths, tolerance)
     if tiled_only:
         raise InputError(f"{tiled_only[0]} needs a tiled database (a folder with index.json), not {args.db}")

@@ -120,6 +120,23 @@ class SkylineGrid:
             return zero, zero
         return parallax.ground_gradient(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m)
 
+    def ground_gradient_at(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:attr:`ground_gradient` where only ``nodes`` are filled (0 elsewhere), for the kernels that
+        read those nodes alone: the same values without the gradient of the whole map."""
+        if self.ground_m is None or "ground_gradient" in self.__dict__:
+            return self.ground_gradient
+        return parallax.ground_gradient_at(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m, nodes)
+
+    def ground_gradient2_at(self, nodes: np.ndarray) -> np.ndarray:
+        """:attr:`ground_gradient2` where only ``nodes`` are filled (0 elsewhere)."""
+        if self.ground_m is None or "ground_gradient2" in self.__dict__:
+            return self.ground_gradient2
+        ge, gn = self.ground_gradient_at(nodes)
+        idx = np.asarray(nodes, dtype=np.int64).ravel()
+        g2 = np.zeros(ge.size, dtype=np.float32)
+        g2[idx] = (ge[idx] * ge[idx] + gn[idx] * gn[idx]).astype(np.float32)
+        return g2
+
     @cached_property
     def convergence_deg(self) -> np.ndarray:
         if self.terrain is None:
@@ -320,7 +337,7 @@ def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarra
     valid = np.isfinite(m)
     jj = np.nonzero(valid)[0].astype(np.int64)
     mj = m[jj].astype(np.float64)
-    ge, gn = grid.ground_gradient
+    ge, gn = grid.ground_gradient_at(rows)  # the kernel reads the rows' nodes only
     gamma = grid.convergence_deg
     out = np.empty(rows.size)
     pen = np.empty(rows.size)
@@ -773,7 +790,7 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
     m, w_grid, cap = meas.elevation_deg, meas.weight, meas.cap_deg2
     tau = None
     if grid.distance_codes is not None:
-        tau = TauModel(grid.distance_codes, grid.ground_gradient2, grid.rho2_m2, grid.inverse_range2,
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore), grid.rho2_m2, grid.inverse_range2,
                        meas.sigma_ref_deg, meas.map_sigma_m)
     occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,

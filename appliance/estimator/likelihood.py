@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+import appliance.numerics  # noqa: F401  (scipy's BLAS and LAPACK for numba without scipy.linalg)
+
 LOG_2PI = math.log(2.0 * math.pi)
 
 

@@ -27,18 +27,22 @@ and the terrain grid lets the estimator render exact skylines between nodes; can
 is terrain node (row0, col0), same spacing.
 
 The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
-block.  The first-pass arrays are made at build time so that no estimate has to make them.
+block.  A file that passed is recorded (:mod:`appliance.terrain.verified`) and, unchanged since, is not
+read through again on later loads; its header is checked every time.  The first-pass arrays are
+made at build time so that no estimate has to make them.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import time
 import zlib
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -58,6 +62,7 @@ from appliance.terrain.quantize import (
     turn_and_quantize,
 )
 from appliance.terrain.sweep import HorizonSweeper
+from appliance.terrain.verified import FileIdentity, digest_of, is_verified, remember_verified
 
 MAGIC = b"VIPERDB\0"
 FORMAT_VERSION = 3
@@ -308,9 +313,15 @@ def block_checksums(body: np.ndarray) -> list[int]:
     return [zlib.crc32(body[i : i + CHECKSUM_BLOCK].data) for i in range(0, body.size, CHECKSUM_BLOCK)]
 
 
-def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> None:
+def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray, identity: FileIdentity | None = None,
+                     full_check: bool = False) -> None:
     """Compare the header and every block of ``body`` (the array section, checksum table included)
-    with the table written at build; a mismatch is a DatabaseError naming the block."""
+    with the table written at build; a mismatch is a DatabaseError naming the block.
+
+    The header is always checked.  The blocks are not when a record of :mod:`appliance.terrain.verified`
+    says that this file (``identity``: fstat of the open file ``body`` maps), unchanged since, with
+    this header and table, passed them all (unless ``full_check``); a file that passes them all is
+    recorded so."""
     spec = header.get("checksum")
     if spec is None:
         return  # a version 2 file written before the checksums
@@ -326,6 +337,10 @@ def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> No
     table = body[offset : offset + 4 * (1 + n_blocks)].view("<u4")
     if zlib.crc32(head) != int(table[0]):
         raise DatabaseError(f"{p}: the header fails its CRC32 check: the file is damaged; rebuild it")
+    digest = digest_of(head, table.tobytes())
+    if identity is not None and not full_check and is_verified(identity, digest):
+        return
+    started_ns = time.time_ns()
     arrays = body[:offset]
     # zlib releases the GIL on large buffers: the blocks are checked on every core
     with ThreadPoolExecutor(max_workers=max(len(os.sched_getaffinity(0)), 1)) as pool:
@@ -338,26 +353,42 @@ def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray) -> No
                 f"{p}: block {k} of {n_blocks} (array bytes {lo}-{hi - 1}) fails its CRC32 check: the file "
                 "is damaged; rebuild it"
             )
+    if identity is not None:
+        remember_verified(identity, digest, str(p.resolve()), started_ns)
 
 
-def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
-    """Memory-map a database; refuses a foreign format or version, or one from another DEM."""
+def load_database(path: str | Path, dem: Dem | None = None, full_check: bool = False) -> SkylineDatabase:
+    """Memory-map a database; refuses a foreign format or version, or one from another DEM, and a
+    damaged file (see :func:`verify_checksums`; ``full_check``: every block even if this file was
+    verified before and has not changed since)."""
     p = Path(path)
     try:
-        with p.open("rb") as fh:
-            magic = fh.read(8)
-            if magic != MAGIC:
-                raise DatabaseError(f"{p}: not a Viper skyline database")
-            hlen_raw = fh.read(4)
-            hlen = int(np.frombuffer(hlen_raw, np.uint32)[0])
-            if hlen > 1 << 24:
-                raise ValueError(f"header length {hlen}")
-            raw = fh.read(hlen)
-            header = json.loads(raw.decode())
-        if not isinstance(header, dict):
-            raise ValueError("the header is not a JSON object")
+        fh = p.open("rb")
     except FileNotFoundError:
         raise DatabaseError(f"{p}: database not found") from None
+    except IsADirectoryError:
+        raise DatabaseError(f"{p}: is a folder, not a database") from None
+    except OSError as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DatabaseError(f"{p}: unreadable database header ({first})") from None
+    # the header, the file's identity and the memory map all come from this one open file
+    with fh:
+        return _load_open(p, fh, dem, full_check)
+
+
+def _load_open(p: Path, fh: BinaryIO, dem: Dem | None, full_check: bool) -> SkylineDatabase:
+    try:
+        magic = fh.read(8)
+        if magic != MAGIC:
+            raise DatabaseError(f"{p}: not a Viper skyline database")
+        hlen_raw = fh.read(4)
+        hlen = int(np.frombuffer(hlen_raw, np.uint32)[0])
+        if hlen > 1 << 24:
+            raise ValueError(f"header length {hlen}")
+        raw = fh.read(hlen)
+        header = json.loads(raw.decode())
+        if not isinstance(header, dict):
+            raise ValueError("the header is not a JSON object")
     except IsADirectoryError:
         raise DatabaseError(f"{p}: is a folder, not a database") from None
     except (OSError, ValueError, IndexError) as exc:
@@ -380,8 +411,9 @@ def load_database(path: str | Path, dem: Dem | None = None) -> SkylineDatabase:
         n = int(header["n_nodes"])
         n_az = int(header["n_azimuths"])
         lay = header["arrays"]
-        mm = np.memmap(p, mode="r", dtype=np.uint8, offset=start)
-        verify_checksums(p, header, magic + hlen_raw + raw, mm)
+        identity = FileIdentity.of_fd(fh.fileno())
+        mm = np.memmap(fh, mode="r", dtype=np.uint8, offset=start)
+        verify_checksums(p, header, magic + hlen_raw + raw, mm, identity, full_check)
         codes = mm[lay["codes"] : lay["codes"] + n * n_az].reshape(n, n_az)
         dist = mm[lay["distance"] : lay["distance"] + n * n_az].reshape(n, n_az)
         f32 = {k: mm[lay[k] : lay[k] + 4 * n].view(np.float32)

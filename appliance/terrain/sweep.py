@@ -28,6 +28,7 @@ import threading
 import numba
 import numpy as np
 
+import appliance.numerics  # noqa: F401  (scipy's BLAS and LAPACK for numba without scipy.linalg)
 from appliance.errors import InputError
 
 
