@@ -2,13 +2,15 @@
 
 GDAL, libtiff, libpng, libjpeg and OpenCV print on the process's stderr (file descriptor 2) when a
 file is damaged, and rasterio's GDAL message callback cannot raise, so Python prints its failures
-as "Exception ignored" with a traceback.  A command that reads such a file should say what is wrong
-in one line; :func:`native_messages` gathers those messages for the reader to put in its own.
+through ``sys.stderr`` (whatever it is at the time) and then as "Exception ignored".  A command that
+reads such a file should say what is wrong in one line; :func:`native_messages` gathers those
+messages for the reader to put in its own.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import sys
 import tempfile
@@ -36,8 +38,9 @@ def native_messages() -> Iterator[list[str]]:
     def unraisable(info: sys.UnraisableHookArgs) -> None:
         lines.append(f"{type(info.exc_value).__name__}: {info.exc_value}")
 
+    printed = io.StringIO()  # what a callback's error prints through Python's own sys.stderr
     try:
-        with tempfile.TemporaryFile() as capture:
+        with tempfile.TemporaryFile() as capture, contextlib.redirect_stderr(printed):
             os.dup2(capture.fileno(), 2)
             sys.unraisablehook = unraisable
             try:
@@ -46,7 +49,7 @@ def native_messages() -> Iterator[list[str]]:
                 sys.unraisablehook = saved_hook
                 os.dup2(saved_fd, 2)
                 capture.seek(0)
-                text = capture.read(KEEP_BYTES).decode("utf-8", "replace")
+                text = capture.read(KEEP_BYTES).decode("utf-8", "replace") + printed.getvalue()[:KEEP_BYTES]
                 lines[:0] = [line.strip() for line in text.splitlines() if line.strip()]
     finally:
         os.close(saved_fd)

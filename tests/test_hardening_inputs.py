@@ -136,9 +136,13 @@ class Noisy:
     def __del__(self):
         raise ValueError("raised in a callback")
 
-with native_messages() as alone:
+import contextlib, io
+elsewhere = io.StringIO()  # a caller's own sys.stderr (a test harness, a service's log)
+with contextlib.redirect_stderr(elsewhere), native_messages() as alone:
     os.write(2, b"libtiff: Invalid argument.\\n\\n")
+    sys.stderr.write("UnicodeDecodeError: printed through sys.stderr\\n")
     Noisy()
+assert elsewhere.getvalue() == "", elsewhere.getvalue()
 stop = threading.Event()
 other = threading.Thread(target=stop.wait)
 other.start()
@@ -162,6 +166,7 @@ def test_native_messages_gathers_what_compiled_code_prints_only_when_alone():
                          cwd=Path(__file__).resolve().parents[1])
     assert out.returncode == 0, out.stderr
     said = json.loads(out.stdout)
-    assert said["alone"] == ["libtiff: Invalid argument.", "ValueError: raised in a callback"]
+    assert said["alone"] == ["libtiff: Invalid argument.", "UnicodeDecodeError: printed through sys.stderr",
+                             "ValueError: raised in a callback"]
     assert said["beside"] == []
     assert out.stderr == "libtiff: beside a thread.\n"
