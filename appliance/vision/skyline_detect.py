@@ -333,34 +333,13 @@ def detect_columns(
     cols = np.arange(pano.width, dtype=np.float64)
     az = pano.column_azimuth_deg(cols)
     masked = in_mask(az, mask or [])
-    image = pano.image
     if pano.empty_columns is not None:
         masked = masked | pano.empty_columns
-        image = _fill_empty_columns(image, pano.empty_columns, pano.full_circle)
-    rows_local, conf = detect_rows(np.ascontiguousarray(image[top:bot]), cfg, masked, wrap=pano.full_circle)
+    rows_local, conf = detect_rows(np.ascontiguousarray(pano.image[top:bot]), cfg, masked, wrap=pano.full_circle)
     valid = np.isfinite(rows_local)
     rows = np.where(valid, rows_local + top, np.nan)
     el = np.where(valid, pano.row_elevation_deg(np.where(valid, rows, 0.0)), np.nan)
     return ColumnSkyline(az, rows, el, conf)
-
-
-def _fill_empty_columns(image: np.ndarray, empty: np.ndarray, wrap: bool) -> np.ndarray:
-    """``image`` with every empty column replaced by the nearest covered one (around the circle
-    with ``wrap``): the colour models and the path see no black band, and the columns stay masked."""
-    w = image.shape[1]
-    covered = np.flatnonzero(~empty)
-    if covered.size == 0:
-        return image
-    cols = np.arange(w)
-    after = np.searchsorted(covered, cols)
-    if wrap:
-        left, right = covered[after - 1], covered[after % covered.size]
-        near = np.where((cols - left) % w <= (right - cols) % w, left, right)
-    else:
-        left = covered[np.clip(after - 1, 0, covered.size - 1)]
-        right = covered[np.clip(after, 0, covered.size - 1)]
-        near = np.where(np.abs(cols - left) <= np.abs(right - cols), left, right)
-    return np.where(empty[None, :, None], image[:, near], image)
 
 
 def detect_rows(
