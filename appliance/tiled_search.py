@@ -668,7 +668,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
 #: posterior on the facets' grid) are screened on the map (:func:`appliance.verification.screen_places`),
 #: and the grid's best place and the SURFACE_PLACES - 1 that screen best are fitted.  On the facets'
 #: grid alone the place a skyline was seen from ranked 112th-364th among the region's distinct
-#: places at four of twenty positions of the bench (bench/moon_rank_diag.py); screened on the map,
+#: places at four of twenty positions of bench/moon_whole_body.py; screened on the map,
 #: first to sixth of 400.
 SCREEN_PLACES = 400
 SURFACE_PLACES = 24
