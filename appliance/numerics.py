@@ -27,6 +27,7 @@ import importlib.abc
 import importlib.machinery
 import importlib.util
 import sys
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
@@ -154,3 +155,35 @@ def load_cached_kernels_without_compiler() -> bool:
 
 load_scipy_cython_linalg()
 load_cached_kernels_without_compiler()
+
+
+def load_cached_kernels(prefix: str = "appliance.") -> int:
+    """Load, without running them, the machine code numba's cache holds for every serial kernel
+    of the loaded modules under ``prefix``: each signature of the kernel's cache index that is
+    fresh (same byte code, same machine).  A process forked afterwards calls them at once.  Nothing
+    is compiled.  Parallel kernels are left out: loading one loads the threading layer, and GNU
+    OpenMP's then ends any process forked from this one.  Returns the count loaded; 0 under a numba
+    outside :data:`CACHE_LOAD_TESTED`."""
+    import numba
+    from numba.core.registry import CPUDispatcher
+
+    version = tuple(int(v) for v in numba.__version__.split(".")[:2])
+    if version not in CACHE_LOAD_TESTED:
+        return 0
+    loaded = 0
+    for name, module in list(sys.modules.items()):
+        if not name.startswith(prefix) or module is None:
+            continue
+        for kernel in list(vars(module).values()):
+            if not isinstance(kernel, CPUDispatcher) or kernel.targetoptions.get("parallel"):
+                continue
+            cache = getattr(kernel, "_cache", None)
+            if cache is None:
+                continue
+            codegen = typing.cast(typing.Any, kernel.targetctx).codegen()  # the CPU target's context
+            for key in cache._cache_file._load_index():
+                sig = key[0]
+                if cache._index_key(sig, codegen) == key and sig not in kernel.overloads:
+                    kernel.compile(sig)
+                    loaded += 1
+    return loaded

@@ -6,9 +6,12 @@
 - ``viper estimate --json`` on the whole N44W072 tile with a compass: at most 0.6 s; without one: at most 1.5 s.
 
 Each command runs once unmeasured (numba's cache, the page cache), then ``--repeats`` times.  With ``--busy`` a
-second process spins on one core beside it for the whole run.  The databases are built once into bench/cache/.
+second process spins on one core beside it for the whole run.  With ``--served`` a ``viper serve`` of the bench's
+own runs the forwarded commands (estimate, skyline) in its warm process, as on an appliance with the commands'
+units installed; the bench checks that every run went through it.  Without, no command is forwarded.  The
+databases are built once into bench/cache/.
 
-    python bench/startup.py [--repeats N] [--busy] [--only NAME]
+    python bench/startup.py [--repeats N] [--busy] [--served] [--only NAME]
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from datetime import date
 from pathlib import Path
@@ -28,6 +32,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
+from appliance.cli._forward import FORWARDED  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 
 CACHE = HERE / "cache"
@@ -89,22 +94,48 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--busy", action="store_true", help="run a spinning process beside the commands")
     ap.add_argument("--only", help="run the cases whose name starts with this")
+    ap.add_argument("--served", action="store_true", help="a `viper serve` runs the forwarded commands")
     args = ap.parse_args()
     cases = prepare()
+    with tempfile.TemporaryDirectory() as where:
+        return measure(cases, args, Path(where))
+
+
+def start_server(where: Path) -> tuple[subprocess.Popen, Path, Path, float]:
+    """A `viper --log-level debug serve` on a socket in ``where``: the process, its socket, its log and the
+    seconds it took to start serving."""
+    sock, log = where / "commands.sock", where / "serve.log"
+    t = time.perf_counter()
+    with log.open("w") as err:
+        server = subprocess.Popen([VIPER, "--log-level", "debug", "serve", "--socket", str(sock)],
+                                  stderr=err, env=dict(os.environ, VIPER_SOCKET=""))
+    while "serving" not in log.read_text():
+        if server.poll() is not None:
+            raise SystemExit(f"viper serve ended: {log.read_text()}")
+        time.sleep(0.01)
+    return server, sock, log, time.perf_counter() - t
+
+
+def measure(cases: dict[str, list[str]], args: argparse.Namespace, where: Path) -> int:
+    chosen = {name: cmd for name, cmd in cases.items() if not args.only or name.startswith(args.only)}
+    server = None
+    env = dict(os.environ, VIPER_SOCKET="")
+    if args.served:
+        server, sock, log, start_s = start_server(where)
+        env["VIPER_SOCKET"] = str(sock)
+        print(f"viper serve started in {start_s:.2f} s")
     stop = multiprocessing.Event()
     busy = multiprocessing.Process(target=spin, args=(stop,), daemon=True) if args.busy else None
     if busy is not None:
         busy.start()
     rows = []
     try:
-        for name, cmd in cases.items():
-            if args.only and not name.startswith(args.only):
-                continue
-            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        for name, cmd in chosen.items():
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
             ts = []
             for _ in range(args.repeats):
                 t = time.perf_counter()
-                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+                subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
                 ts.append(time.perf_counter() - t)
             load = os.getloadavg()[0]
             med, best = float(np.median(ts)), float(np.min(ts))
@@ -112,6 +143,8 @@ def main() -> int:
             print(f"{name:28s} median {med * 1e3:6.0f} ms  best {best * 1e3:6.0f} ms  "
                   f"target {TARGETS[name] * 1e3:.0f} ms ({ok}), load {load:.1f}")
             condition = "beside a busy process" if args.busy else "no spinner added"
+            if args.served and cmd[1] in FORWARDED:
+                condition += ", through viper serve"
             rows.append(f"| {date.today()} | {name} | {med * 1e3:.0f} ms | {best * 1e3:.0f} ms | "
                         f"{TARGETS[name] * 1e3:.0f} ms | {condition}, "
                         f"load {load:.1f}, {os.cpu_count()} cores {platform.machine()} |")
@@ -119,6 +152,15 @@ def main() -> int:
         stop.set()
         if busy is not None:
             busy.join()
+        if server is not None:
+            server.terminate()
+            server.wait()
+    if server is not None:
+        served = sum(1 for line in log.read_text().splitlines() if "worker " in line)
+        expected = sum(args.repeats + 1 for cmd in chosen.values() if cmd[1] in FORWARDED)
+        print(f"runs through the server: {served} of {expected}")
+        if served != expected:
+            raise SystemExit("some runs did not go through the server: no rows written")
     out = HERE / "results" / "startup.md"
     append_result(out, "# Commands end to end (bench/startup.py)\n\n"
                   "Process start to output, fresh process each run.\n\n"

@@ -15,10 +15,12 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 @pytest.fixture(scope="session", autouse=True)
 def own_cache_folder(tmp_path_factory):
     """The appliance's cache folder (records of verified databases) is the test run's own, for this
-    process and the commands it starts."""
+    process and the commands it starts; and they run in process."""
     folder = tmp_path_factory.mktemp("viper-cache")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("VIPER_CACHE_DIR", str(folder))
+        # commands run in process: a `viper serve` of the user running the tests takes none of them
+        mp.setenv("VIPER_SOCKET", "")
         yield folder
 
 

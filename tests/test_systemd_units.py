@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import configparser
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+
+from appliance.cli._forward import fixed_environment
 
 UNITS = Path(__file__).resolve().parents[1] / "systemd"
 INSTALLED_VIPER = "/usr/local/bin/viper"
@@ -52,6 +57,8 @@ def test_units_verify_without_warnings(tmp_path):
         "viper-session.service",
         "viper-capture.service",
         "viper-capture.timer",
+        "viper-commands.socket",
+        "viper-commands.service",
     }
     r = _verify(tool, units)
     assert r.returncode == 0 and r.stderr.strip() == "" and r.stdout.strip() == "", r.stderr
@@ -116,3 +123,34 @@ def test_units_give_numba_a_writable_cache_and_numba_uses_it(tmp_path):
             "horizon_tan_grid(np.zeros((8, 8)), 30.0, 30.0, 10.0, 1.5, 6.4e6)\n")
     subprocess.run([sys.executable, "-c", code], check=True, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
     assert list(cache.rglob("*.nbi")), "numba wrote no cache index into NUMBA_CACHE_DIR"
+
+
+def test_the_command_server_takes_its_socket_from_socket_activation(tmp_path):
+    """`viper serve` as the commands' units start it: systemd opens the socket and passes it on the
+    first connection (systemd-socket-activate does what the socket unit does)."""
+    tool = shutil.which("systemd-socket-activate")
+    if tool is None:
+        pytest.skip("systemd-socket-activate is not installed (apt-get install systemd)")
+    sock = tmp_path / "commands.sock"
+    viper = [sys.executable, "-m", "appliance.cli.main"]
+    env = dict(os.environ, VIPER_SOCKET="")
+    # the variables a server must share with its clients, as a unit's Environment= lines would set them
+    passed = [a for k in fixed_environment(env) for a in ("-E", k)]
+    activator = subprocess.Popen([tool, "-l", str(sock), *passed, *viper, "--log-level", "debug", "serve"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    try:
+        deadline = time.monotonic() + 30
+        while not sock.exists():
+            assert activator.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        render = ["render", "jacksboro", "--lat", "36.5521", "--lon", "-84.1911", "--azimuths", "36"]
+        warm = subprocess.run([*viper, *render], capture_output=True, timeout=300,
+                              env=dict(os.environ, VIPER_SOCKET=str(sock)))
+        alone = subprocess.run([*viper, *render], capture_output=True, timeout=300, env=env)
+        assert warm.returncode == alone.returncode == 0 and warm.stdout == alone.stdout
+        assert len(warm.stdout.splitlines()) == 37
+    finally:
+        activator.send_signal(signal.SIGTERM)
+        _, err = activator.communicate(timeout=30)
+    log = err.decode()
+    assert "serving estimate, render, skyline" in log and "worker " in log and "viper render jacksboro" in log

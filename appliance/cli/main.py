@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 from appliance import __version__
 from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
+from appliance.cli._forward import forward
 from appliance.errors import ViperError
 from appliance.logsetup import LEVELS, configure_logging
 
@@ -59,6 +60,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "precompute": ("precompute", "render the skyline of every candidate node into a database"),
     "render": ("render", "render the skyline seen from a point of a DEM"),
     "replay": ("replay", "rerun stitch, skyline and estimate from session logs; report"),
+    "serve": ("serve", "run estimate, render and skyline in a warm process, so that they start at once"),
     "skyline": ("skyline", "detect the skyline in a panorama or a photo and write the azimuth/elevation CSV"),
     "stitch": ("stitch", "stitch images taken at known stage angles into a panorama"),
 }
@@ -103,8 +105,17 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command line (``sys.argv`` when ``argv`` is None: the console command, which a
+    ``viper serve`` of this user may run in its warm process instead, see
+    :mod:`appliance.cli._forward`)."""
+    from_shell = argv is None
     argv = join_negative_values(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(command_of(argv))
+    command = command_of(argv)
+    if from_shell:
+        status = forward(argv, command)
+        if status is not None:
+            return status
+    parser = build_parser(command)
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)
     if func is None:

@@ -1,0 +1,243 @@
+"""``viper serve``: run one-shot commands in a warm process (see :mod:`appliance.cli._forward`)."""
+
+from __future__ import annotations
+
+import argparse
+import array
+import importlib
+import io
+import logging
+import os
+import signal
+import socket
+import stat
+import struct
+import sys
+import traceback
+from pathlib import Path
+from typing import Any
+
+from appliance.cli._forward import (
+    FORWARDED,
+    MAX_REQUEST_BYTES,
+    LineReader,
+    code_identity,
+    fixed_environment,
+    send_message,
+    socket_path,
+)
+from appliance.errors import InputError
+
+LOG = logging.getLogger(__name__)
+
+#: Modules that the forwarded commands import as they run (``python -X importtime``), imported once by
+#: the server: the tiled search, the estimate's files, numpy.ma (rasterio's masks), multiprocessing
+#: (the thread pools' locks), and what numba's runtime imports when a parallel kernel loads.
+WARM_MODULES = ("appliance.tiled_search", "appliance.estimate_outputs", "numpy.ma", "multiprocessing.synchronize",
+                "numba.cpython.charseq", "numba.cpython.randomimpl", "numba.misc.mergesort")
+#: Seconds between the server's checks for finished workers and a request to stop.
+POLL_S = 0.5
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run estimate, render and skyline in a warm process, so that they start at once")
+    p.add_argument("--socket", help="Unix socket to listen on (default: $VIPER_SOCKET, else "
+                                    "$XDG_RUNTIME_DIR/viper/commands.sock; a socket passed by systemd comes first)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    listener, owned = _listener(args.socket)
+    try:
+        for name in WARM_MODULES:
+            importlib.import_module(name)
+        from appliance.cli.main import build_parser
+
+        for command in sorted(FORWARDED):
+            build_parser(command)
+        from appliance.numerics import load_cached_kernels
+
+        kernels = load_cached_kernels()
+        from appliance.acquisition.notify import Notifier
+
+        notifier = Notifier.from_environment()
+        identity = code_identity()
+        fixed = fixed_environment(dict(os.environ))
+        stopping: list[int] = []
+        signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
+        listener.settimeout(POLL_S)
+        LOG.info("serving %s (%d kernels loaded)", ", ".join(sorted(FORWARDED)), kernels)
+        notifier.ready(f"serving {', '.join(sorted(FORWARDED))}")
+        try:
+            while not stopping:
+                _reap()
+                try:
+                    conn, _ = listener.accept()
+                except TimeoutError:
+                    continue
+                with conn:
+                    conn.settimeout(None)
+                    _take(conn, listener, identity, fixed)
+        except KeyboardInterrupt:
+            pass
+        notifier.stopping()
+        LOG.info("stopped")
+        return 0
+    finally:
+        listener.close()
+        if owned is not None:
+            try:
+                owned.unlink()
+            except OSError:
+                pass
+
+
+def _listener(option: str | None) -> tuple[socket.socket, Path | None]:
+    """The listening socket, and its path when this process made it (and removes it at the end)."""
+    if option is None and os.environ.get("LISTEN_PID") == str(os.getpid()) and os.environ.get("LISTEN_FDS") == "1":
+        sock = socket.socket(fileno=3)
+        if sock.family != socket.AF_UNIX or sock.type != socket.SOCK_STREAM:
+            raise InputError("the socket passed by systemd is not a Unix stream socket")
+        return sock, None
+    path = Path(option) if option else socket_path()
+    if path is None:
+        raise InputError("no socket: give --socket, or set VIPER_SOCKET or XDG_RUNTIME_DIR")
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if path.exists() or path.is_symlink():
+        if not stat.S_ISSOCK(path.lstat().st_mode):
+            raise InputError(f"{path}: exists and is not a socket")
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            path.unlink()  # left by a server that ended without removing it
+        else:
+            raise InputError(f"{path}: another server is listening there")
+        finally:
+            probe.close()
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    old = os.umask(0o177)  # the socket is the user's alone
+    try:
+        sock.bind(str(path))
+    finally:
+        os.umask(old)
+    sock.listen(16)
+    return sock, path
+
+
+def _reap() -> None:
+    while True:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            return
+
+
+def _take(conn: socket.socket, listener: socket.socket, identity: str, fixed: dict[str, str]) -> None:
+    """One connection: check who asks and what, then fork the worker that runs it."""
+    fds: list[int] = []
+    try:
+        _, uid, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
+        data, ancillary, _, _ = conn.recvmsg(65536, socket.CMSG_SPACE(3 * array.array("i").itemsize))
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+                got = array.array("i")
+                got.frombytes(payload[: len(payload) - len(payload) % got.itemsize])
+                fds.extend(got)
+        reader = LineReader(conn)
+        reader.buffer = data
+        request = reader.read(MAX_REQUEST_BYTES) if data else None
+        reason = _refusal(request, uid, fds, identity, fixed)
+        if reason is not None:
+            LOG.debug("refused a command: %s", reason)
+            send_message(conn, {"refused": reason})
+            return
+        assert request is not None
+        pid = os.fork()
+        if pid == 0:
+            _worker(conn, listener, fds, request)
+        LOG.debug("worker %d: viper %s", pid, " ".join(request["argv"]))
+    except (OSError, ValueError) as exc:
+        LOG.warning("a request failed: %s", exc)
+    finally:
+        for fd in fds:
+            os.close(fd)
+
+
+def _refusal(request: dict[str, Any] | None, uid: int, fds: list[int], identity: str,
+             fixed: dict[str, str]) -> str | None:
+    if uid != os.getuid():
+        return "another user's command"
+    if request is None or len(fds) != 3:
+        return "not a request with three standard streams"
+    argv, env = request.get("argv"), request.get("env")
+    if not (isinstance(argv, list) and all(isinstance(a, str) for a in argv)):
+        return "argv is not a list of strings"
+    if not (isinstance(env, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in env.items())):
+        return "env is not a mapping of strings"
+    if not isinstance(request.get("cwd"), str) or not isinstance(request.get("umask"), int):
+        return "no working folder or umask"
+    if request.get("code") != identity:
+        return "the installed code changed since the server started"
+    if fixed_environment(env) != fixed:
+        return "numba's, BLAS's or Python's settings differ from the server's"
+    return None
+
+
+def _worker(conn: socket.socket, listener: socket.socket, fds: list[int], request: dict[str, Any]) -> None:
+    """The forked worker: the client's streams, folder, environment and umask, then the command
+    line as ``viper`` runs it; never returns."""
+    code = 1
+    try:
+        listener.close()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGCHLD):
+            signal.signal(s, signal.SIG_DFL)
+        for i, fd in enumerate(fds):
+            os.dup2(fd, i)
+            os.close(fd)
+        fds.clear()
+        sys.stdin = io.TextIOWrapper(io.FileIO(0, "r", closefd=False), encoding="utf-8")
+        sys.stdout = io.TextIOWrapper(io.FileIO(1, "w", closefd=False), encoding="utf-8",
+                                      line_buffering=os.isatty(1))
+        sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8", errors="backslashreplace",
+                                      line_buffering=True)
+        send_message(conn, {"pid": os.getpid()})
+        os.chdir(request["cwd"])
+        os.umask(request["umask"])
+        os.environ.clear()
+        os.environ.update(request["env"])
+        from appliance.cli.main import main
+
+        try:
+            code = main(request["argv"])
+        except SystemExit as exc:
+            code = _exit_status(exc.code)
+        except KeyboardInterrupt:
+            code = 130
+        except BaseException:  # what a process of its own would print before exiting with 1
+            traceback.print_exc()
+            code = 1
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+    finally:
+        try:
+            send_message(conn, {"exit": code})
+        finally:
+            os._exit(0)
+
+
+def _exit_status(value: object) -> int:
+    """The status ``sys.exit(value)`` gives a process: None is 0, a message is printed and 1."""
+    if value is None:
+        return 0
+    if isinstance(value, int):
+        return value
+    print(value, file=sys.stderr)
+    return 1
+
