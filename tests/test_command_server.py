@@ -159,3 +159,19 @@ def test_the_code_identity_moves_when_a_module_changes(tmp_path, monkeypatch):
     first = _forward.code_identity()
     os.utime(pkg / "sub" / "b.py", ns=(time.time_ns() + 10**9, time.time_ns() + 10**9))
     assert _forward.code_identity() != first
+
+
+def test_a_client_that_sends_nothing_holds_up_no_other(server):
+    sock, log = server
+    silent = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    silent.connect(str(sock))
+    try:
+        # well within the time a silent client is given to send its request (10 s)
+        done = subprocess.run([*VIPER, *RENDER], capture_output=True, env=_env(sock), timeout=8)
+        assert done.returncode == 0 and len(done.stdout.splitlines()) == 91
+    finally:
+        silent.close()
+    deadline = time.monotonic() + 10
+    while "refused a command: not a request with three standard streams" not in log.read_text():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)

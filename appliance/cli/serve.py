@@ -37,6 +37,8 @@ WARM_MODULES = ("appliance.tiled_search", "appliance.estimate_outputs", "numpy.m
                 "numba.cpython.charseq", "numba.cpython.randomimpl", "numba.misc.mergesort")
 #: Seconds between the server's checks for finished workers and a request to stop.
 POLL_S = 0.5
+#: Seconds a client has to send its request once connected.
+REQUEST_TIMEOUT_S = 10.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -76,8 +78,8 @@ def run(args: argparse.Namespace) -> int:
                 except TimeoutError:
                     continue
                 with conn:
-                    conn.settimeout(None)
-                    _take(conn, listener, identity, fixed)
+                    if os.fork() == 0:
+                        _child(conn, listener, identity, fixed)
         except KeyboardInterrupt:
             pass
         notifier.stopping()
@@ -135,35 +137,37 @@ def _reap() -> None:
             return
 
 
-def _take(conn: socket.socket, listener: socket.socket, identity: str, fixed: dict[str, str]) -> None:
-    """One connection: check who asks and what, then fork the worker that runs it."""
+def _child(conn: socket.socket, listener: socket.socket, identity: str, fixed: dict[str, str]) -> None:
+    """The process forked for one connection (so that a slow client holds up no other): check who
+    asks and what, then run the command or refuse it; never returns."""
     fds: list[int] = []
     try:
+        listener.close()
+        conn.settimeout(REQUEST_TIMEOUT_S)
         _, uid, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
-        data, ancillary, _, _ = conn.recvmsg(65536, socket.CMSG_SPACE(3 * array.array("i").itemsize))
-        for level, kind, payload in ancillary:
-            if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
-                got = array.array("i")
-                got.frombytes(payload[: len(payload) - len(payload) % got.itemsize])
-                fds.extend(got)
-        reader = LineReader(conn)
-        reader.buffer = data
-        request = reader.read(MAX_REQUEST_BYTES) if data else None
+        request = None
+        if uid == os.getuid():
+            data, ancillary, _, _ = conn.recvmsg(65536, socket.CMSG_SPACE(3 * array.array("i").itemsize))
+            for level, kind, payload in ancillary:
+                if level == socket.SOL_SOCKET and kind == socket.SCM_RIGHTS:
+                    got = array.array("i")
+                    got.frombytes(payload[: len(payload) - len(payload) % got.itemsize])
+                    fds.extend(got)
+            reader = LineReader(conn)
+            reader.buffer = data
+            request = reader.read(MAX_REQUEST_BYTES) if data else None
         reason = _refusal(request, uid, fds, identity, fixed)
         if reason is not None:
             LOG.debug("refused a command: %s", reason)
             send_message(conn, {"refused": reason})
-            return
-        assert request is not None
-        pid = os.fork()
-        if pid == 0:
-            _worker(conn, listener, fds, request)
-        LOG.debug("worker %d: viper %s", pid, " ".join(request["argv"]))
+        else:
+            assert request is not None
+            LOG.debug("worker %d: viper %s", os.getpid(), " ".join(request["argv"]))
+            _worker(conn, fds, request)
     except (OSError, ValueError) as exc:
         LOG.warning("a request failed: %s", exc)
     finally:
-        for fd in fds:
-            os.close(fd)
+        os._exit(0)
 
 
 def _refusal(request: dict[str, Any] | None, uid: int, fds: list[int], identity: str,
@@ -186,12 +190,12 @@ def _refusal(request: dict[str, Any] | None, uid: int, fds: list[int], identity:
     return None
 
 
-def _worker(conn: socket.socket, listener: socket.socket, fds: list[int], request: dict[str, Any]) -> None:
-    """The forked worker: the client's streams, folder, environment and umask, then the command
-    line as ``viper`` runs it; never returns."""
+def _worker(conn: socket.socket, fds: list[int], request: dict[str, Any]) -> None:
+    """Take the client's streams, folder, environment and umask, then run the command line as
+    ``viper`` runs it; never returns."""
     code = 1
     try:
-        listener.close()
+        conn.settimeout(None)
         signal.signal(signal.SIGINT, signal.default_int_handler)
         for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGCHLD):
             signal.signal(s, signal.SIG_DFL)
