@@ -175,3 +175,19 @@ def test_a_client_that_sends_nothing_holds_up_no_other(server):
     while "refused a command: not a request with three standard streams" not in log.read_text():
         assert time.monotonic() < deadline
         time.sleep(0.05)
+
+
+def test_a_terminated_command_ends_as_it_would_alone(server):
+    sock, log = server
+    before = len(_workers(log))
+    proc = subprocess.Popen([*VIPER, "render", "jacksboro", "--lat", "36.5521", "--lon", "-84.1911",
+                             "--azimuths", "36000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env=_env(sock))
+    deadline = time.monotonic() + 60
+    while len(_workers(log)) == before:
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == -signal.SIGTERM and err == b""

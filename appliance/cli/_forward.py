@@ -139,7 +139,10 @@ def _umask() -> int:
 def _wait(sock: socket.socket, reader: LineReader, pid: int, command: str) -> int:
     """The worker's exit status, passing this process's signals on to it meanwhile."""
 
+    passed: list[int] = []
+
     def pass_on(signum: int, frame: object) -> None:
+        passed.append(signum)
         try:
             os.kill(pid, signum)
         except ProcessLookupError:
@@ -159,6 +162,10 @@ def _wait(sock: socket.socket, reader: LineReader, pid: int, command: str) -> in
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+    if reply is None and passed and passed[-1] != signal.SIGINT:
+        # the worker ended by the signal this process was sent: so does this process, as it would have alone
+        signal.signal(passed[-1], signal.SIG_DFL)
+        os.kill(os.getpid(), passed[-1])
     if reply is None or not isinstance(reply.get("exit"), int):
         os.write(2, f"viper {command}: error: the command server's worker ended without an exit status\n".encode())
         return 1
