@@ -213,6 +213,7 @@ def _worker(conn: socket.socket, fds: list[int], request: dict[str, Any]) -> Non
         os.umask(request["umask"])
         os.environ.clear()
         os.environ.update(request["env"])
+        sys.argv = [sys.argv[0], *request["argv"]]
         from appliance.cli.main import main
 
         try:
