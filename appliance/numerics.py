@@ -157,12 +157,12 @@ load_scipy_cython_linalg()
 load_cached_kernels_without_compiler()
 
 
-def load_cached_kernels(prefix: str = "appliance.") -> int:
-    """Load, without running them, the machine code numba's cache holds for every serial kernel
-    of the loaded modules under ``prefix``: each signature of the kernel's cache index that is
-    fresh (same byte code, same machine).  A process forked afterwards calls them at once.  Nothing
-    is compiled.  Parallel kernels are left out: loading one loads the threading layer, and GNU
-    OpenMP's then ends any process forked from this one.  Returns the count loaded; 0 under a numba
+def load_cached_kernels(prefix: str = "appliance.", parallel: bool = False) -> int:
+    """Load, without running them, the machine code numba's cache holds for the kernels of the
+    loaded modules under ``prefix``: each signature of a kernel's cache index that is fresh (same
+    byte code, same machine).  The calls that follow start at once.  Nothing is compiled.
+    Parallel kernels only with ``parallel``: loading one loads numba's threading layer, and GNU
+    OpenMP's then ends any process forked afterwards.  Returns the count loaded; 0 under a numba
     outside :data:`CACHE_LOAD_TESTED`."""
     import numba
     from numba.core.registry import CPUDispatcher
@@ -175,7 +175,7 @@ def load_cached_kernels(prefix: str = "appliance.") -> int:
         if not name.startswith(prefix) or module is None:
             continue
         for kernel in list(vars(module).values()):
-            if not isinstance(kernel, CPUDispatcher) or kernel.targetoptions.get("parallel"):
+            if not isinstance(kernel, CPUDispatcher) or (kernel.targetoptions.get("parallel") and not parallel):
                 continue
             cache = getattr(kernel, "_cache", None)
             if cache is None:

@@ -1,10 +1,11 @@
 """Running a one-shot command in a warm process: the client side of ``viper serve``.
 
 Importing numpy, numba, pyproj and the estimator takes about half a second, more than a whole
-estimate on a small map.  ``viper serve`` imports them once and listens on a Unix socket; for each
-connection it forks a worker that takes over the client's standard streams (passed as file
-descriptors), working folder, environment and umask, and runs the command line as ``viper``
-would.  Each command runs in a fresh fork of the warm process, so commands share nothing.
+estimate on a small map.  ``viper serve`` imports them once and listens on a Unix socket.  A spare worker,
+forked from it ahead of time and with the kernels loaded, takes the next connection: it takes over
+the client's standard streams (passed as file descriptors), working folder, environment and umask,
+and runs the command line as ``viper`` would.  Each command runs in a fresh fork of the warm
+process, so commands share nothing.
 
 The client (``viper`` itself, before importing anything heavy) forwards the commands of
 FORWARDED when a server listens on :func:`socket_path` and agrees to take them; otherwise, or when

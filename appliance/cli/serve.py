@@ -8,6 +8,7 @@ import importlib
 import io
 import logging
 import os
+import select
 import signal
 import socket
 import stat
@@ -27,6 +28,7 @@ from appliance.cli._forward import (
     socket_path,
 )
 from appliance.errors import InputError
+from appliance.numerics import load_cached_kernels
 
 LOG = logging.getLogger(__name__)
 
@@ -57,8 +59,6 @@ def run(args: argparse.Namespace) -> int:
 
         for command in sorted(FORWARDED):
             build_parser(command)
-        from appliance.numerics import load_cached_kernels
-
         kernels = load_cached_kernels()
         from appliance.acquisition.notify import Notifier
 
@@ -67,21 +67,26 @@ def run(args: argparse.Namespace) -> int:
         fixed = fixed_environment(dict(os.environ))
         stopping: list[int] = []
         signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
-        listener.settimeout(POLL_S)
+        taken_r, taken_w = os.pipe()
+        idle = {_fork_spare(listener, taken_w, identity, fixed)}
         LOG.info("serving %s (%d kernels loaded)", ", ".join(sorted(FORWARDED)), kernels)
         notifier.ready(f"serving {', '.join(sorted(FORWARDED))}")
         try:
             while not stopping:
-                _reap()
-                try:
-                    conn, _ = listener.accept()
-                except TimeoutError:
-                    continue
-                with conn:
-                    if os.fork() == 0:
-                        _child(conn, listener, identity, fixed)
+                idle -= _reap()
+                ready, _, _ = select.select([taken_r], [], [], POLL_S)
+                if ready:
+                    news = os.read(taken_r, 512)
+                    idle -= {pid for (pid,) in struct.iter_unpack("q", news)}
+                if not idle:
+                    idle.add(_fork_spare(listener, taken_w, identity, fixed))
         except KeyboardInterrupt:
             pass
+        for pid in idle:
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
         notifier.stopping()
         LOG.info("stopped")
         return 0
@@ -127,21 +132,39 @@ def _listener(option: str | None) -> tuple[socket.socket, Path | None]:
     return sock, path
 
 
-def _reap() -> None:
+def _reap() -> set[int]:
+    """The server's children that ended since the last call."""
+    ended: set[int] = set()
     while True:
         try:
             pid, _ = os.waitpid(-1, os.WNOHANG)
         except ChildProcessError:
-            return
+            return ended
         if pid == 0:
-            return
+            return ended
+        ended.add(pid)
 
 
-def _child(conn: socket.socket, listener: socket.socket, identity: str, fixed: dict[str, str]) -> None:
-    """The process forked for one connection (so that a slow client holds up no other): check who
-    asks and what, then run the command or refuse it; never returns."""
+def _fork_spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, str]) -> int:
+    """Fork a spare worker, which waits for the next connection; it writes its pid to ``taken`` once
+    it has one, and the server then forks the next spare (as it does when a spare ends)."""
+    pid = os.fork()
+    if pid == 0:
+        _spare(listener, taken, identity, fixed)
+    return pid
+
+
+def _spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, str]) -> None:
+    """A worker waiting for one connection, with the parallel kernels loaded as well (this process
+    forks no more, so the threading layer may load); then the command, or its refusal.  Each
+    connection has a process of its own, so a slow client holds up no other.  Never returns."""
     fds: list[int] = []
     try:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        load_cached_kernels(parallel=True)
+        listener.settimeout(None)
+        conn, _ = listener.accept()
+        os.write(taken, struct.pack("q", os.getpid()))
         listener.close()
         conn.settimeout(REQUEST_TIMEOUT_S)
         _, uid, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
