@@ -191,3 +191,12 @@ def test_a_terminated_command_ends_as_it_would_alone(server):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == -signal.SIGTERM and err == b""
+
+
+def test_a_removed_working_folder_gives_what_it_gives_in_process(server, tmp_path):
+    sock, _ = server
+    script = 'mkdir "$1" && cd "$1" && rmdir "$1" && shift && exec "$@"'
+    warm, alone = (subprocess.run(["sh", "-c", script, "sh", str(tmp_path / "gone"), *VIPER, *RENDER, "--out",
+                                   "sky.csv"], capture_output=True, env=_env(s), timeout=300) for s in (sock, ""))
+    assert warm.returncode == alone.returncode != 0
+    assert warm.stderr == alone.stderr and len(warm.stderr.splitlines()) == 1, warm.stderr

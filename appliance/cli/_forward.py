@@ -114,7 +114,11 @@ def forward(argv: Sequence[str], command: str | None) -> int | None:
             sock.connect(str(path))
         except OSError:
             return None
-        request = {"argv": list(argv), "cwd": os.getcwd(), "env": dict(os.environ), "umask": _umask(),
+        try:
+            cwd = os.getcwd()
+        except OSError:  # a working folder since removed: run in process, as ever
+            return None
+        request = {"argv": list(argv), "cwd": cwd, "env": dict(os.environ), "umask": _umask(),
                    "code": code_identity()}
         data = json.dumps(request).encode() + b"\n"
         try:
