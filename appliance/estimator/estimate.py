@@ -20,10 +20,15 @@ Candidates are theta = (node, heading correction phi).  The flow:
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TypeVar
 
+import numba
 import numpy as np
 
 from appliance.errors import EstimationError, InputError
@@ -46,6 +51,8 @@ from appliance.estimator.search import (
     ssd_coarse_best,
     ssd_for_shifts,
 )
+
+_T = TypeVar("_T")
 
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
@@ -127,11 +134,13 @@ class SkylineGrid:
             return self.ground_gradient
         return parallax.ground_gradient_at(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m, nodes)
 
-    def ground_gradient2_at(self, nodes: np.ndarray) -> np.ndarray:
-        """:attr:`ground_gradient2` where only ``nodes`` are filled (0 elsewhere)."""
+    def ground_gradient2_at(self, nodes: np.ndarray,
+                            gradient: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """:attr:`ground_gradient2` where only ``nodes`` are filled (0 elsewhere); ``gradient`` is
+        :meth:`ground_gradient_at` of the same nodes when already made (not made twice)."""
         if self.ground_m is None or "ground_gradient2" in self.__dict__:
             return self.ground_gradient2
-        ge, gn = self.ground_gradient_at(nodes)
+        ge, gn = self.ground_gradient_at(nodes) if gradient is None else gradient
         idx = np.asarray(nodes, dtype=np.int64).ravel()
         g2 = np.zeros(ge.size, dtype=np.float32)
         g2[idx] = (ge[idx] * ge[idx] + gn[idx] * gn[idx]).astype(np.float32)
@@ -304,14 +313,18 @@ class _RefineContext:
         ``beat`` (the look from a fit already made) when one is given."""
         g = self.grid
         assert g.terrain is not None
-        looks = []
+        starts = []
         for cand in nodes:
             node, moved, phi_node, phi_moved = self._start(cand)
-            for start, phi0 in ((node, phi_node), (moved, phi_moved)):
-                cost, phi = screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1],
-                                         float(g.convergence_deg[cand]), phi0, self.bounds, self.height_m, self.sigma,
-                                         self.model, SCREEN_SPREAD_CELLS)
-                looks.append((cost, cand, start, phi))
+            starts += [(cand, node, phi_node), (cand, moved, phi_moved)]
+
+        def look(item: tuple[int, tuple[float, float], float]) -> tuple[float, float]:
+            cand, start, phi0 = item
+            assert g.terrain is not None
+            return screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1], float(g.convergence_deg[cand]),
+                                phi0, self.bounds, self.height_m, self.sigma, self.model, SCREEN_SPREAD_CELLS)
+
+        looks = [(cost, cand, start, phi) for (cand, start, _), (cost, phi) in zip(starts, _map_looks(look, starts))]
         looks.sort(key=lambda v: v[0])
         fits: list[Fit] = []
         refined: list[int] = []
@@ -327,17 +340,40 @@ class _RefineContext:
         return fits
 
 
+_look_pools: dict[int, ThreadPoolExecutor] = {}
+_look_pool_lock = threading.Lock()
+
+
+def _map_looks(look: Callable[[_T], tuple[float, float]], items: list[_T]) -> list[tuple[float, float]]:
+    """``look`` of every item, in their order: on as many threads as the compiled kernels may use
+    (numba's thread count; one, as on a tiled search's own threads, runs them in turn here).  Each
+    look is one render whose ray march releases the GIL, and the same on any thread: the same
+    answers as one after the other."""
+    threads = min(numba.get_num_threads(), len(items))
+    if threads <= 1:
+        return [look(v) for v in items]
+    with _look_pool_lock:
+        pool = _look_pools.get(threads)
+        if pool is None:
+            pool = _look_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="viper-look",
+                                                             initializer=numba.set_num_threads, initargs=(1,))
+    return list(pool.map(look, items))
+
+
 def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
-                sig_ref: float, cap: float,
-                map_sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                sig_ref: float, cap: float, map_sigma_m: float,
+                gradient: tuple[np.ndarray, np.ndarray] | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted residual sums (deg^2), log-normalisers, moves (east m, north m, heading deg, eye m)
     and occluded weights of ``rows`` at whole ``shifts`` under the linearised parallax model
-    (``parallax.py``)."""
+    (``parallax.py``); ``gradient`` is the ground's gradient at those rows when already made
+    (:meth:`SkylineGrid.ground_gradient_at`)."""
     assert grid.distance_codes is not None
     valid = np.isfinite(m)
     jj = np.nonzero(valid)[0].astype(np.int64)
     mj = m[jj].astype(np.float64)
-    ge, gn = grid.ground_gradient_at(rows)  # the kernel reads the rows' nodes only
+    # the kernel reads the rows' nodes only
+    ge, gn = grid.ground_gradient_at(rows) if gradient is None else gradient
     gamma = grid.convergence_deg
     out = np.empty(rows.size)
     pen = np.empty(rows.size)
@@ -789,9 +825,12 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
     (east, north in m, heading in deg, eye in m)."""
     m, w_grid, cap = meas.elevation_deg, meas.weight, meas.cap_deg2
     tau = None
+    gradient = None
     if grid.distance_codes is not None:
-        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore), grid.rho2_m2, grid.inverse_range2,
-                       meas.sigma_ref_deg, meas.map_sigma_m)
+        # the ground's gradient at the plausible nodes, made once for both kernels
+        gradient = grid.ground_gradient_at(rescore)
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore, gradient), grid.rho2_m2,
+                       grid.inverse_range2, meas.sigma_ref_deg, meas.map_sigma_m)
     occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
@@ -808,7 +847,7 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
         k_best = np.argmin(_capped(ssd_r, occ_r, cap), axis=1)
         shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
         ssd_lin, pen_lin, moves_r, occ_lin = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0],
-                                                         meas.sigma_ref_deg, cap, meas.map_sigma_m)
+                                                         meas.sigma_ref_deg, cap, meas.map_sigma_m, gradient)
         ssd_r, occ_r = ssd_lin[:, None], occ_lin[:, None]
         pen_r = 0.5 * pen_lin[:, None]
     return _Rescored(rescore, shifts_r, ssd_r, occ_r, pen_r, moves_r)
