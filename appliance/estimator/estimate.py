@@ -307,10 +307,10 @@ class _RefineContext:
                                SCREEN_SPREAD_CELLS)
         return cost
 
-    def look_and_fit(self, nodes: list[int], beat: float = math.inf) -> list[Fit]:
-        """One look at each node (from the node and from its linearised move); full fits of the
-        best-looking REFINE_NODES of them, of those only whose look comes within LOOK_MARGIN of
-        ``beat`` (the look from a fit already made) when one is given."""
+    def looks(self, nodes: list[int]) -> Callable[[], list[_Look]]:
+        """One look at each node (from the node and from its linearised move), started on the look
+        threads (:func:`_start_looks`): what waits for them, (cost, node, start, heading) in the
+        nodes' order."""
         g = self.grid
         assert g.terrain is not None
         starts = []
@@ -324,11 +324,16 @@ class _RefineContext:
             return screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1], float(g.convergence_deg[cand]),
                                 phi0, self.bounds, self.height_m, self.sigma, self.model, SCREEN_SPREAD_CELLS)
 
-        looks = [(cost, cand, start, phi) for (cand, start, _), (cost, phi) in zip(starts, _map_looks(look, starts))]
-        looks.sort(key=lambda v: v[0])
+        pending = _start_looks(look, starts)
+        return lambda: [(cost, cand, start, phi) for (cand, start, _), (cost, phi) in zip(starts, pending())]
+
+    def fit_looked(self, looks: list[_Look], beat: float = math.inf) -> list[Fit]:
+        """Full fits of the best-looking REFINE_NODES nodes of ``looks`` (:meth:`looks`), of those
+        only whose look comes within LOOK_MARGIN of ``beat`` (the look from a fit already made) when
+        one is given."""
         fits: list[Fit] = []
         refined: list[int] = []
-        for cost, cand, start, phi in looks:
+        for cost, cand, start, phi in sorted(looks, key=lambda v: v[0]):
             if not math.isfinite(cost) or len(refined) >= REFINE_NODES or cost > LOOK_MARGIN * beat:
                 break
             if cand in refined:
@@ -340,24 +345,29 @@ class _RefineContext:
         return fits
 
 
+#: One look of the refinement: its cost, the node, the start (fractional row, col) and the heading (deg).
+_Look = tuple[float, int, tuple[float, float], float]
 _look_pools: dict[int, ThreadPoolExecutor] = {}
 _look_pool_lock = threading.Lock()
 
 
-def _map_looks(look: Callable[[_T], tuple[float, float]], items: list[_T]) -> list[tuple[float, float]]:
-    """``look`` of every item, in their order: on as many threads as the compiled kernels may use
-    (numba's thread count; one, as on a tiled search's own threads, runs them in turn here).  Each
-    look is one render whose ray march releases the GIL, and the same on any thread: the same
-    answers as one after the other."""
+def _start_looks(look: Callable[[_T], tuple[float, float]],
+                 items: list[_T]) -> Callable[[], list[tuple[float, float]]]:
+    """``look`` of every item started on as many threads as the compiled kernels may use (numba's
+    thread count; with one, as on a tiled search's own threads, made here in turn): what waits for
+    them, in the items' order.  Each look is one render whose ray march releases the GIL, and the
+    same on any thread: the same answers as one after the other."""
     threads = min(numba.get_num_threads(), len(items))
     if threads <= 1:
-        return [look(v) for v in items]
+        made = [look(v) for v in items]
+        return lambda: made
     with _look_pool_lock:
         pool = _look_pools.get(threads)
         if pool is None:
             pool = _look_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="viper-look",
                                                              initializer=numba.set_num_threads, initargs=(1,))
-    return list(pool.map(look, items))
+    futures = [pool.submit(look, v) for v in items]
+    return lambda: [f.result() for f in futures]
 
 
 def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
@@ -988,10 +998,13 @@ def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post
     modes = _distinct_nodes(worth, post.node_lower, grid.n_cols, SCREEN_NODES, post.best_node)
     # the best mode first, fitted straight from where its linearised fit moved it; when that comes
     # down to the sensor's noise, a few more looks check for a rival, else all of them
+    # (the looks at those few are made on the look threads while the best mode is fitted)
+    rival_looks = ctx.looks(modes[1 : 1 + RIVAL_LOOKS])
     first = ctx.fit_from_linear(modes[0])
     if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
-        return [first] + ctx.look_and_fit(modes[1 : 1 + RIVAL_LOOKS], ctx.look_at(first))
-    return ([] if first is None else [first]) + ctx.look_and_fit(modes)
+        return [first] + ctx.fit_looked(rival_looks(), ctx.look_at(first))
+    head, tail = ctx.looks(modes[:1]), ctx.looks(modes[1 + RIVAL_LOOKS :])
+    return ([] if first is None else [first]) + ctx.fit_looked(head() + rival_looks() + tail())
 
 
 def _subcell_answer(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,
