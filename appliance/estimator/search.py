@@ -47,6 +47,7 @@ def _ssd_shifts(
     sig2: float,
     use_tau: bool,
     pen: np.ndarray,
+    want_pen: bool,
     wj: np.ndarray,
     cap: float,
     map2: float,
@@ -57,7 +58,8 @@ def _ssd_shifts(
     Works in each node's code units, (m - offset) / step against the uint8 codes, so a skyline is
     never decoded; azimuths where the node has no terrain are left out and the sum rescaled.  With
     ``use_tau`` each term is weighted by sigma^2 / (sigma^2 + tau^2) (``parallax.py``) and pen[r]
-    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.  ``wj`` weighs the
+    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0 (with ``want_pen``, else 0).
+    ``wj`` weighs the
     measured azimuths; a measurement above the model whose weighted square passes ``cap`` (deg^2)
     is an occluder, not evidence against the node: it is left out of the sum and counted (by its
     weight) in occ_out[r, k].
@@ -87,8 +89,9 @@ def _ssd_shifts(
                     t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
                     t2 += map_var_at(dist, i, j, map2, inv_d2)
                     wn[j] = np.float32(sig2 / (sig2 + t2))
-                for t in range(n_t):
-                    p -= wj[t] * math.log(wn[jj[t]])
+                if want_pen:
+                    for t in range(n_t):
+                        p -= wj[t] * math.log(wn[jj[t]])
                 pen[r] = p
             inv = np.float32(1.0 / st)
             for t in range(n_t):
@@ -530,22 +533,23 @@ def ssd_for_shifts(
     occ = np.empty(out.shape, dtype=np.float32) if occluded is None else occluded
     if tau is None:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
-                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, wj, cap, 0.0, occ)
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, False, wj, cap, 0.0, occ)
     else:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
-                    tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2, occ)
+                    tau.inv_d2, tau.sigma_ref**2, True, pen, tau.penalty_wanted, wj, cap, tau.map_sigma_m**2, occ)
         tau.penalty = pen
     return out
 
 
 class TauModel:
     """The parallax model's inputs for the full-resolution kernel (``parallax.py``); ``penalty``
-    receives each scored node's log-normaliser."""
+    receives each scored node's log-normaliser (zeros when not ``penalty_wanted``: a caller that
+    ranks shifts only spares a logarithm per node and azimuth)."""
 
     def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
-                 sigma_ref: float, map_sigma_m: float = 0.0):
+                 sigma_ref: float, map_sigma_m: float = 0.0, penalty_wanted: bool = True):
         self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
-        self.sigma_ref, self.map_sigma_m = sigma_ref, map_sigma_m
+        self.sigma_ref, self.map_sigma_m, self.penalty_wanted = sigma_ref, map_sigma_m, penalty_wanted
         self.penalty = np.zeros(0)
 
 
