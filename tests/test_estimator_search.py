@@ -344,3 +344,27 @@ def test_the_grids_gradient_at_nodes_matches_its_whole_one(window_db):
     np.testing.assert_array_equal(gn_at[nodes], gn[nodes], strict=True)
     np.testing.assert_array_equal(g2_at[nodes], grid.ground_gradient2[nodes], strict=True)
     assert grid.ground_gradient_at(nodes)[0] is ge  # once the whole map's is made, it is the one used
+
+
+def test_ranking_shifts_without_the_normalisers_scores_them_the_same(window_db):
+    from appliance.estimator.search import TauModel, ssd_for_shifts
+    from appliance.position import skyline_grid
+
+    grid = skyline_grid(window_db)
+    assert grid.distance_codes is not None
+    rng = np.random.default_rng(4)
+    rows = np.sort(rng.choice(grid.codes.shape[0], 300, replace=False))
+    measured = grid.skylines_deg(int(rows[7])) + rng.normal(0, 0.2, grid.n_azimuths)
+    shifts = np.arange(-4, 5)
+    out = []
+    for wanted in (True, False):
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rows), grid.rho2_m2, grid.inverse_range2, 0.55,
+                       penalty_wanted=wanted)
+        occ = np.empty((rows.size, shifts.size), dtype=np.float32)
+        ssd = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, measured, shifts, rows=rows, tau=tau,
+                             occluded=occ)
+        out.append((ssd, occ, tau.penalty))
+    (ssd_w, occ_w, pen_w), (ssd_n, occ_n, pen_n) = out
+    np.testing.assert_array_equal(ssd_n, ssd_w, strict=True)
+    np.testing.assert_array_equal(occ_n, occ_w, strict=True)
+    assert (pen_w > 0).any() and not pen_n.any()

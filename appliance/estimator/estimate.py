@@ -20,10 +20,15 @@ Candidates are theta = (node, heading correction phi).  The flow:
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TypeVar
 
+import numba
 import numpy as np
 
 from appliance.errors import EstimationError, InputError
@@ -46,6 +51,8 @@ from appliance.estimator.search import (
     ssd_coarse_best,
     ssd_for_shifts,
 )
+
+_T = TypeVar("_T")
 
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
@@ -127,11 +134,13 @@ class SkylineGrid:
             return self.ground_gradient
         return parallax.ground_gradient_at(self.ground_m, self.n_rows, self.n_cols, self.dx_m, self.dy_m, nodes)
 
-    def ground_gradient2_at(self, nodes: np.ndarray) -> np.ndarray:
-        """:attr:`ground_gradient2` where only ``nodes`` are filled (0 elsewhere)."""
+    def ground_gradient2_at(self, nodes: np.ndarray,
+                            gradient: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """:attr:`ground_gradient2` where only ``nodes`` are filled (0 elsewhere); ``gradient`` is
+        :meth:`ground_gradient_at` of the same nodes when already made (not made twice)."""
         if self.ground_m is None or "ground_gradient2" in self.__dict__:
             return self.ground_gradient2
-        ge, gn = self.ground_gradient_at(nodes)
+        ge, gn = self.ground_gradient_at(nodes) if gradient is None else gradient
         idx = np.asarray(nodes, dtype=np.int64).ravel()
         g2 = np.zeros(ge.size, dtype=np.float32)
         g2[idx] = (ge[idx] * ge[idx] + gn[idx] * gn[idx]).astype(np.float32)
@@ -298,24 +307,33 @@ class _RefineContext:
                                SCREEN_SPREAD_CELLS)
         return cost
 
-    def look_and_fit(self, nodes: list[int], beat: float = math.inf) -> list[Fit]:
-        """One look at each node (from the node and from its linearised move); full fits of the
-        best-looking REFINE_NODES of them, of those only whose look comes within LOOK_MARGIN of
-        ``beat`` (the look from a fit already made) when one is given."""
+    def looks(self, nodes: list[int]) -> Callable[[], list[_Look]]:
+        """One look at each node (from the node and from its linearised move), started on the look
+        threads (:func:`_start_looks`): what waits for them, (cost, node, start, heading) in the
+        nodes' order."""
         g = self.grid
         assert g.terrain is not None
-        looks = []
+        starts = []
         for cand in nodes:
             node, moved, phi_node, phi_moved = self._start(cand)
-            for start, phi0 in ((node, phi_node), (moved, phi_moved)):
-                cost, phi = screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1],
-                                         float(g.convergence_deg[cand]), phi0, self.bounds, self.height_m, self.sigma,
-                                         self.model, SCREEN_SPREAD_CELLS)
-                looks.append((cost, cand, start, phi))
-        looks.sort(key=lambda v: v[0])
+            starts += [(cand, node, phi_node), (cand, moved, phi_moved)]
+
+        def look(item: tuple[int, tuple[float, float], float]) -> tuple[float, float]:
+            cand, start, phi0 = item
+            assert g.terrain is not None
+            return screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1], float(g.convergence_deg[cand]),
+                                phi0, self.bounds, self.height_m, self.sigma, self.model, SCREEN_SPREAD_CELLS)
+
+        pending = _start_looks(look, starts)
+        return lambda: [(cost, cand, start, phi) for (cand, start, _), (cost, phi) in zip(starts, pending())]
+
+    def fit_looked(self, looks: list[_Look], beat: float = math.inf) -> list[Fit]:
+        """Full fits of the best-looking REFINE_NODES nodes of ``looks`` (:meth:`looks`), of those
+        only whose look comes within LOOK_MARGIN of ``beat`` (the look from a fit already made) when
+        one is given."""
         fits: list[Fit] = []
         refined: list[int] = []
-        for cost, cand, start, phi in looks:
+        for cost, cand, start, phi in sorted(looks, key=lambda v: v[0]):
             if not math.isfinite(cost) or len(refined) >= REFINE_NODES or cost > LOOK_MARGIN * beat:
                 break
             if cand in refined:
@@ -327,17 +345,45 @@ class _RefineContext:
         return fits
 
 
+#: One look of the refinement: its cost, the node, the start (fractional row, col) and the heading (deg).
+_Look = tuple[float, int, tuple[float, float], float]
+_look_pools: dict[int, ThreadPoolExecutor] = {}
+_look_pool_lock = threading.Lock()
+
+
+def _start_looks(look: Callable[[_T], tuple[float, float]],
+                 items: list[_T]) -> Callable[[], list[tuple[float, float]]]:
+    """``look`` of every item started on as many threads as the compiled kernels may use (numba's
+    thread count; with one, as on a tiled search's own threads, made here in turn): what waits for
+    them, in the items' order.  Each look is one render whose ray march releases the GIL, and the
+    same on any thread: the same answers as one after the other."""
+    threads = min(numba.get_num_threads(), len(items))
+    if threads <= 1:
+        made = [look(v) for v in items]
+        return lambda: made
+    with _look_pool_lock:
+        pool = _look_pools.get(threads)
+        if pool is None:
+            pool = _look_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="viper-look",
+                                                             initializer=numba.set_num_threads, initargs=(1,))
+    futures = [pool.submit(look, v) for v in items]
+    return lambda: [f.result() for f in futures]
+
+
 def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
-                sig_ref: float, cap: float,
-                map_sigma_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                sig_ref: float, cap: float, map_sigma_m: float,
+                gradient: tuple[np.ndarray, np.ndarray] | None = None,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Weighted residual sums (deg^2), log-normalisers, moves (east m, north m, heading deg, eye m)
     and occluded weights of ``rows`` at whole ``shifts`` under the linearised parallax model
-    (``parallax.py``)."""
+    (``parallax.py``); ``gradient`` is the ground's gradient at those rows when already made
+    (:meth:`SkylineGrid.ground_gradient_at`)."""
     assert grid.distance_codes is not None
     valid = np.isfinite(m)
     jj = np.nonzero(valid)[0].astype(np.int64)
     mj = m[jj].astype(np.float64)
-    ge, gn = grid.ground_gradient_at(rows)  # the kernel reads the rows' nodes only
+    # the kernel reads the rows' nodes only
+    ge, gn = grid.ground_gradient_at(rows) if gradient is None else gradient
     gamma = grid.convergence_deg
     out = np.empty(rows.size)
     pen = np.empty(rows.size)
@@ -789,15 +835,19 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
     (east, north in m, heading in deg, eye in m)."""
     m, w_grid, cap = meas.elevation_deg, meas.weight, meas.cap_deg2
     tau = None
+    gradient = None
     if grid.distance_codes is not None:
-        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore), grid.rho2_m2, grid.inverse_range2,
-                       meas.sigma_ref_deg, meas.map_sigma_m)
+        # the ground's gradient at the plausible nodes, made once for both kernels; the shifts are
+        # only ranked here (the linearised fit below makes the scores and normalisers)
+        gradient = grid.ground_gradient_at(rescore)
+        tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore, gradient), grid.rho2_m2,
+                       grid.inverse_range2, meas.sigma_ref_deg, meas.map_sigma_m, penalty_wanted=False)
     occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
     ssd_r = ssd_r.astype(np.float64)
     occ_r = occ_r32.astype(np.float64)
-    pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
+    pen_r = np.zeros((rescore.size, 1))
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
     shifts_r = np.asarray(shifts)
@@ -808,7 +858,7 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
         k_best = np.argmin(_capped(ssd_r, occ_r, cap), axis=1)
         shifts_r = shifts_r[np.arange(rescore.size), k_best][:, None]
         ssd_lin, pen_lin, moves_r, occ_lin = _linearised(grid, m, w_grid, rescore, shifts_r[:, 0],
-                                                         meas.sigma_ref_deg, cap, meas.map_sigma_m)
+                                                         meas.sigma_ref_deg, cap, meas.map_sigma_m, gradient)
         ssd_r, occ_r = ssd_lin[:, None], occ_lin[:, None]
         pen_r = 0.5 * pen_lin[:, None]
     return _Rescored(rescore, shifts_r, ssd_r, occ_r, pen_r, moves_r)
@@ -949,10 +999,13 @@ def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post
     modes = _distinct_nodes(worth, post.node_lower, grid.n_cols, SCREEN_NODES, post.best_node)
     # the best mode first, fitted straight from where its linearised fit moved it; when that comes
     # down to the sensor's noise, a few more looks check for a rival, else all of them
+    # (the looks at those few are made on the look threads while the best mode is fitted)
+    rival_looks = ctx.looks(modes[1 : 1 + RIVAL_LOOKS])
     first = ctx.fit_from_linear(modes[0])
     if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
-        return [first] + ctx.look_and_fit(modes[1 : 1 + RIVAL_LOOKS], ctx.look_at(first))
-    return ([] if first is None else [first]) + ctx.look_and_fit(modes)
+        return [first] + ctx.fit_looked(rival_looks(), ctx.look_at(first))
+    head, tail = ctx.looks(modes[:1]), ctx.looks(modes[1 + RIVAL_LOOKS :])
+    return ([] if first is None else [first]) + ctx.fit_looked(head() + rival_looks() + tail())
 
 
 def _subcell_answer(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,

@@ -176,6 +176,15 @@ def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarr
     s2_hi = sigma_hi * sigma_hi
     log_lo = math.log(sigma_lo)
     log_hi = math.log(sigma_hi)
+    log_s2_lo = math.log(s2_lo)
+    log_s2_hi = math.log(s2_hi)
+    den_lo = 2.0 * s2_lo
+    den_hi = 2.0 * s2_hi
+    # with no mixture every row has the same n: its terms in sigma alone are made once
+    k_lo = -0.5 * n * (LOG_2PI + log_s2_lo)
+    k_hi = -0.5 * n * (LOG_2PI + log_s2_hi)
+    u_lo = -0.5 * n * (LOG_2PI + 2.0 * log_lo)
+    u_hi = -0.5 * n * (LOG_2PI + 2.0 * log_hi)
     scored = 0
     for i in numba.prange(n_rows):
         k = 0
@@ -190,16 +199,28 @@ def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarr
         if mixture:
             n_i = max(n - o, 1.0)
             const = o * log_occ + n_i * log_clear
+            h = -0.5 * n_i
+            a_lo = h * (LOG_2PI + log_s2_lo)
+            a_hi = h * (LOG_2PI + log_s2_hi)
+            b_lo = h * (LOG_2PI + 2.0 * log_lo)
+            b_hi = h * (LOG_2PI + 2.0 * log_hi)
         else:
             n_i = n
             const = 0.0
+            a_lo, a_hi, b_lo, b_hi = k_lo, k_hi, u_lo, u_hi
         star = math.sqrt(max(c, 0.0) / max(n_i, 1.0))
-        s_best = min(max(star, sigma_lo), sigma_hi)
-        # at either end of the interval its logarithm is known (most nodes lie far off)
-        log_s = log_hi if s_best == sigma_hi else (log_lo if s_best == sigma_lo else math.log(s_best))
-        up = -0.5 * n_i * (LOG_2PI + 2.0 * log_s) - c / (2.0 * (s_best * s_best))
-        ll_lo = -0.5 * n_i * (LOG_2PI + math.log(s2_lo)) - c / (2.0 * s2_lo)
-        ll_hi = -0.5 * n_i * (LOG_2PI + math.log(s2_hi)) - c / (2.0 * s2_hi)
+        q_lo = c / den_lo
+        q_hi = c / den_hi
+        # sigma* clamped into the interval: at either end (most nodes lie far off) the upper bound
+        # shares the lower one's division, and its logarithm is known
+        if star >= sigma_hi:
+            up = b_hi - q_hi
+        elif star <= sigma_lo:
+            up = b_lo - q_lo
+        else:
+            up = -0.5 * n_i * (LOG_2PI + 2.0 * math.log(star)) - c / (2.0 * (star * star))
+        ll_lo = a_lo - q_lo
+        ll_hi = a_hi - q_hi
         lo = min(ll_lo, ll_hi)
         if math.isnan(ll_lo) or math.isnan(ll_hi):
             lo = np.nan

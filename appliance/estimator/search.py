@@ -47,6 +47,7 @@ def _ssd_shifts(
     sig2: float,
     use_tau: bool,
     pen: np.ndarray,
+    want_pen: bool,
     wj: np.ndarray,
     cap: float,
     map2: float,
@@ -57,10 +58,10 @@ def _ssd_shifts(
     Works in each node's code units, (m - offset) / step against the uint8 codes, so a skyline is
     never decoded; azimuths where the node has no terrain are left out and the sum rescaled.  With
     ``use_tau`` each term is weighted by sigma^2 / (sigma^2 + tau^2) (``parallax.py``) and pen[r]
-    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0.  ``wj`` weighs the
-    measured azimuths; a measurement above the model whose weighted square passes ``cap`` (deg^2)
-    is an occluder, not evidence against the node: it is left out of the sum and counted (by its
-    weight) in occ_out[r, k].
+    is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0 (0 unless ``want_pen``).
+    ``wj`` weighs the measured azimuths; a measurement above the model whose weighted square passes
+    ``cap`` (deg^2) is an occluder, not evidence against the node: it is left out of the sum and
+    counted (by its weight) in occ_out[r, k].
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
@@ -87,8 +88,9 @@ def _ssd_shifts(
                     t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
                     t2 += map_var_at(dist, i, j, map2, inv_d2)
                     wn[j] = np.float32(sig2 / (sig2 + t2))
-                for t in range(n_t):
-                    p -= wj[t] * math.log(wn[jj[t]])
+                if want_pen:
+                    for t in range(n_t):
+                        p -= wj[t] * math.log(wn[jj[t]])
                 pen[r] = p
             inv = np.float32(1.0 / st)
             for t in range(n_t):
@@ -158,18 +160,20 @@ def decimated(codes: np.ndarray, offset_deg: np.ndarray, factor: int) -> tuple[n
     return out, partial
 
 
-@numba.njit(cache=True, fastmath=FAST_FINITE)
-def _node_weights(trow: np.ndarray, w: np.ndarray, lut: np.ndarray, use_tau: bool, ww: np.ndarray) -> float:
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _node_weights(trow: np.ndarray, w: np.ndarray, lut_w: np.ndarray, lut_p: np.ndarray, use_tau: bool,
+                  ww: np.ndarray) -> float:
     """A node's parallax weight per decimated azimuth into ``ww`` (1 without ``use_tau``), from its
-    tau^2 codes ``trow``, and its log-normaliser at shift 0 (0 without ``use_tau``).  ``lut`` holds
-    each code's weight (real part) and normaliser (imaginary part): one load for both."""
+    tau^2 codes ``trow``, and its log-normaliser at shift 0 (0 without ``use_tau``).  ``lut_w`` and
+    ``lut_p`` hold each code's weight and normaliser (float32).  Inlined in the kernels: the loop is
+    bound by its loads, and a call per node with one complex64 table cost some 5 % more."""
     d = ww.size
     p = 0.0
     if use_tau:
         for t in range(d):
-            z = lut[trow[t]]
-            ww[t] = z.real
-            p += w[t] * z.imag
+            c = trow[t]
+            ww[t] = lut_w[c]
+            p += w[t] * lut_p[c]
     else:
         for t in range(d):
             ww[t] = 1.0
@@ -214,7 +218,7 @@ def _gappy_shift(row: np.ndarray, ww: np.ndarray, mt: np.ndarray, w: np.ndarray,
 
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
-                w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, lut: np.ndarray,
+                w: np.ndarray, shifts: np.ndarray, out: np.ndarray, T: np.ndarray, lut_w: np.ndarray, lut_p: np.ndarray,
                 use_tau: bool, pen: np.ndarray, cap: float, occ_out: np.ndarray) -> None:
     """out[i, k] = sum_t w_t v_t (m_t - s_i[t + shifts[k]])^2 on decimated codes, in code units;
     v = sigma^2 / (sigma^2 + tau^2) from the tau^2 codes T with ``use_tau`` (else 1), and pen[i] the
@@ -255,7 +259,7 @@ def _ssd_coarse(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np
                     occ_out[i, k] = 0.0
                 continue
             ww = vf[pad_lo : pad_lo + d]
-            pen[i] = _node_weights(T[i if use_tau else 0], w, lut, use_tau, ww)
+            pen[i] = _node_weights(T[i if use_tau else 0], w, lut_w, lut_p, use_tau, ww)
             scale, cap_c = _code_units(m, o, step[i], cap, mt)
             row = C[i]
             if not partial[i]:
@@ -321,7 +325,7 @@ SHIFT_RUN = 32
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partial: np.ndarray, m: np.ndarray,
                      w: np.ndarray, out: np.ndarray, occ_out: np.ndarray, arg_out: np.ndarray, T: np.ndarray,
-                     lut: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float,
+                     lut_w: np.ndarray, lut_p: np.ndarray, use_tau: bool, pen: np.ndarray, cap: float,
                      rank_cap: bool) -> None:
     """Every circular shift k = 0 .. d-1 of each node's decimated codes scored as in
     :func:`_ssd_coarse`, keeping only the best: arg_out[i] = the k of least out + cap * occ (the first
@@ -354,7 +358,7 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
                 occ_out[i] = 0.0
                 arg_out[i] = 0
                 continue
-            pen[i] = _node_weights(T[i if use_tau else 0], w, lut, use_tau, ww)
+            pen[i] = _node_weights(T[i if use_tau else 0], w, lut_w, lut_p, use_tau, ww)
             scale, cap_c = _code_units(m, o, step[i], cap, mt)
             row = C[i]
             if not partial[i]:
@@ -438,19 +442,15 @@ def _ssd_coarse_best(C: np.ndarray, offset: np.ndarray, step: np.ndarray, partia
 def _coarse_inputs(measured_dec: np.ndarray, weights_dec: np.ndarray | None,
                    tau: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
     """The first-pass kernels' inputs: the decimated measurements (0 where missing) and their
-    weights (0 where missing) in float32, the tau^2 codes, their weight and normaliser tables as
-    one complex64 table (weight + i normaliser), and whether to use them (placeholders without
-    ``tau``)."""
+    weights (0 where missing) in float32, the tau^2 codes, their weight and normaliser tables
+    (float32), and whether to use them (placeholders without ``tau``)."""
     valid = np.isfinite(measured_dec)
     m = np.where(valid, measured_dec, 0.0).astype(np.float32)
     w = valid.astype(np.float32) if weights_dec is None else np.where(valid, weights_dec, 0.0).astype(np.float32)
-    lut = np.empty(256, dtype=np.complex64)
     if tau is None:
-        lut.real, lut.imag = 1.0, 0.0
-        return m, w, np.zeros((1, 1), np.uint8), lut, False
+        return m, w, np.zeros((1, 1), np.uint8), np.ones(256, np.float32), np.zeros(256, np.float32), False
     codes, w_lut, p_lut = tau
-    lut.real, lut.imag = np.asarray(w_lut, np.float32), np.asarray(p_lut, np.float32)
-    return m, w, codes, lut, True
+    return m, w, codes, np.asarray(w_lut, np.float32), np.asarray(p_lut, np.float32), True
 
 
 def ssd_coarse_best(
@@ -464,13 +464,13 @@ def ssd_coarse_best(
     node, without the (n_nodes, n_shifts) array; sums may differ from it in the last bits (their
     terms are added in azimuth order)."""
     C, partial = coarse
-    m, w, T, lut, use = _coarse_inputs(measured_dec, weights_dec, tau)
+    m, w, T, lut_w, lut_p, use = _coarse_inputs(measured_dec, weights_dec, tau)
     n = C.shape[0]
     out = np.empty(n, dtype=np.float32)
     occ = np.empty(n, dtype=np.float32)
     arg = np.empty(n, dtype=np.int64)
     pen = np.empty(n, dtype=np.float32)
-    _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, lut, use, pen,
+    _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, lut_w, lut_p, use, pen,
                      float(min(cap_deg2, 1e30)), math.isfinite(cap_deg2))
     return out, occ, arg, pen
 
@@ -486,11 +486,11 @@ def ssd_coarse(
     weighs the measured azimuths (default 1); ``cap_deg2`` is the occlusion cap, and ``occluded``
     (same shape as the result) receives the weight of the measurements taken for occluders."""
     C, partial = coarse
-    m, w, T, lut, use = _coarse_inputs(measured_dec, weights_dec, tau)
+    m, w, T, lut_w, lut_p, use = _coarse_inputs(measured_dec, weights_dec, tau)
     out = np.empty((C.shape[0], len(shifts)), dtype=np.float32)
     pen = np.empty(C.shape[0], dtype=np.float32)
     occ = np.empty_like(out) if occluded is None else occluded
-    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, lut,
+    _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, lut_w, lut_p,
                 use, pen, float(min(cap_deg2, 1e30)), occ)
     return out, pen
 
@@ -530,22 +530,23 @@ def ssd_for_shifts(
     occ = np.empty(out.shape, dtype=np.float32) if occluded is None else occluded
     if tau is None:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
-                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, wj, cap, 0.0, occ)
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, False, wj, cap, 0.0, occ)
     else:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
-                    tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2, occ)
+                    tau.inv_d2, tau.sigma_ref**2, True, pen, tau.penalty_wanted, wj, cap, tau.map_sigma_m**2, occ)
         tau.penalty = pen
     return out
 
 
 class TauModel:
     """The parallax model's inputs for the full-resolution kernel (``parallax.py``); ``penalty``
-    receives each scored node's log-normaliser."""
+    receives each scored node's log-normaliser (zeros when not ``penalty_wanted``: a caller that
+    ranks shifts only spares a logarithm per node and azimuth)."""
 
     def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
-                 sigma_ref: float, map_sigma_m: float = 0.0):
+                 sigma_ref: float, map_sigma_m: float = 0.0, penalty_wanted: bool = True):
         self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
-        self.sigma_ref, self.map_sigma_m = sigma_ref, map_sigma_m
+        self.sigma_ref, self.map_sigma_m, self.penalty_wanted = sigma_ref, map_sigma_m, penalty_wanted
         self.penalty = np.zeros(0)
 
 

@@ -70,7 +70,7 @@ def block_maxima(Z: np.ndarray, block: int = BLOCK_CELLS) -> np.ndarray:
     return np.ascontiguousarray(np.maximum(edge_c, corner))
 
 
-@numba.njit(cache=True, fastmath=FAST_FINITE)
+@numba.njit(cache=True, nogil=True, fastmath=FAST_FINITE)
 def march(
     Z: np.ndarray,
     dx_m: float,
