@@ -32,8 +32,9 @@ from typing import Any
 #: Commands that a server runs: one-shot commands whose start-up is most of their time.
 FORWARDED = frozenset({"estimate", "render", "skyline"})
 #: Environment variables whose values a server fixed at start and a worker cannot change: numba's
-#: and the BLAS's settings, read once at import, and where Python finds modules and how it hashes.
-FIXED_PREFIXES = ("NUMBA_", "OMP_", "OPENBLAS_", "MKL_")
+#: and the BLAS's settings, read once at import, PROJ's and GDAL's (which may cache them once
+#: loaded), and where Python finds modules and how it hashes.
+FIXED_PREFIXES = ("NUMBA_", "OMP_", "OPENBLAS_", "MKL_", "PROJ_", "GDAL_")
 FIXED_NAMES = frozenset({"PYTHONPATH", "PYTHONHASHSEED", "PYTHONHOME", "PYTHONSAFEPATH"})
 #: The longest request accepted (argv, folder and environment), bytes.
 MAX_REQUEST_BYTES = 1 << 20
