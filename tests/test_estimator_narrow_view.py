@@ -72,6 +72,14 @@ def test_the_weights_made_on_the_arcs_give_the_whole_circles_numbers(view, per_r
     assert np.array_equal(got, ref)
     assert np.array_equal(occ, ref_occ)
     assert np.array_equal(tau.penalty, ref_pen)
+    # the sums alone (the estimator's second pass): the same sums, no normaliser made
+    bare = TauModel(dist, g2, rho2, inv_d2, 0.5, 3.0, with_penalty=False)
+    occ_bare = np.empty(shifts.shape, dtype=np.float32)
+    got_bare = ssd_for_shifts(codes, off, step, m, shifts, rows=rows, tau=bare, weights=w, cap_deg2=cap,
+                              occluded=occ_bare)
+    assert np.array_equal(got_bare, ref)
+    assert np.array_equal(occ_bare, ref_occ)
+    assert bare.penalty.size == 0
 
 
 def test_the_arcs_of_a_view():

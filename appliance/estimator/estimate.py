@@ -790,14 +790,15 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
     m, w_grid, cap = meas.elevation_deg, meas.weight, meas.cap_deg2
     tau = None
     if grid.distance_codes is not None:
+        # the sums pick each node's shift; its normaliser is the linearised fit's, below
         tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore), grid.rho2_m2, grid.inverse_range2,
-                       meas.sigma_ref_deg, meas.map_sigma_m)
+                       meas.sigma_ref_deg, meas.map_sigma_m, with_penalty=False)
     occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)
     ssd_r = ssd_r.astype(np.float64)
     occ_r = occ_r32.astype(np.float64)
-    pen_r = np.zeros((rescore.size, 1)) if tau is None else 0.5 * tau.penalty[:, None]
+    pen_r = np.zeros((rescore.size, 1))
     if not np.isfinite(ssd_r).any():
         raise EstimationError("no candidate node has terrain along the measured azimuths")
     shifts_r = np.asarray(shifts)

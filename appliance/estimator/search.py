@@ -89,7 +89,7 @@ def _ssd_shifts(
     weight) in occ_out[r, k].  ``reach`` >= 0 says the measured azimuths lie among the ``arc`` from
     ``start`` on and every azimuth the shifts of row r read among the ``reach`` from ``start`` +
     shifts[r, 0] on (circularly): the weights are made there only, a narrow view's few dozen azimuths
-    rather than the whole circle (the same numbers); -1: everywhere.
+    rather than the whole circle (the same numbers), and pen[r] = 0 when ``arc`` is 0; -1: everywhere.
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
@@ -118,10 +118,12 @@ def _ssd_shifts(
                     for t in range(n_t):
                         p -= wj[t] * math.log(wn[jj[t]])
                 else:
-                    # the normaliser's weights over the measured arc, then the shifts' over theirs
-                    _tau_arc(codes, dist, i, start, arc, o, st, az_step, g2[i], rho2, inv_d2, map2, sig2, wp)
-                    for t in range(n_t):
-                        p -= wj[t] * math.log(wp[jj[t]])
+                    # the normaliser's weights over the measured arc (none asked for: arc 0), then the
+                    # shifts' over theirs
+                    if arc > 0:
+                        _tau_arc(codes, dist, i, start, arc, o, st, az_step, g2[i], rho2, inv_d2, map2, sig2, wp)
+                        for t in range(n_t):
+                            p -= wj[t] * math.log(wp[jj[t]])
                     _tau_arc(codes, dist, i, (start + shifts[r, 0]) % n_az, reach, o, st, az_step, g2[i], rho2,
                              inv_d2, map2, sig2, wn)
                 pen[r] = p
@@ -569,10 +571,13 @@ def ssd_for_shifts(
                     -1)
     else:
         start, arc, reach = _shift_reach(jj, sh, codes.shape[1])
+        if not tau.with_penalty:
+            arc = 0
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
                     tau.inv_d2, tau.sigma_ref**2, True, pen, wj, cap, tau.map_sigma_m**2, occ, start, arc,
                     reach)
-        tau.penalty = pen
+        if tau.with_penalty:
+            tau.penalty = pen
     return out
 
 
@@ -600,12 +605,14 @@ def _shift_reach(jj: np.ndarray, shifts: np.ndarray, n_az: int) -> tuple[int, in
 
 class TauModel:
     """The parallax model's inputs for the full-resolution kernel (``parallax.py``); ``penalty``
-    receives each scored node's log-normaliser."""
+    receives each scored node's log-normaliser, unless ``with_penalty`` is False (a caller that
+    wants the sums only: a narrow view's kernel then skips the normaliser's weights)."""
 
     def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
-                 sigma_ref: float, map_sigma_m: float = 0.0):
+                 sigma_ref: float, map_sigma_m: float = 0.0, with_penalty: bool = True):
         self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
         self.sigma_ref, self.map_sigma_m = sigma_ref, map_sigma_m
+        self.with_penalty = with_penalty
         self.penalty = np.zeros(0)
 
 
