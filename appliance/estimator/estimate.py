@@ -837,11 +837,11 @@ def _rescore(grid: SkylineGrid, meas: _Measurement, rescore: np.ndarray, shifts:
     tau = None
     gradient = None
     if grid.distance_codes is not None:
-        # the ground's gradient at the plausible nodes, made once for both kernels; the shifts are
-        # only ranked here (the linearised fit below makes the scores and normalisers)
+        # the ground's gradient at the plausible nodes, made once for both kernels; the sums pick
+        # each node's shift, its normaliser is the linearised fit's, below
         gradient = grid.ground_gradient_at(rescore)
         tau = TauModel(grid.distance_codes, grid.ground_gradient2_at(rescore, gradient), grid.rho2_m2,
-                       grid.inverse_range2, meas.sigma_ref_deg, meas.map_sigma_m, penalty_wanted=False)
+                       grid.inverse_range2, meas.sigma_ref_deg, meas.map_sigma_m, with_penalty=False)
     occ_r32 = np.empty((rescore.size, shifts.shape[1]), dtype=np.float32)
     ssd_r = ssd_for_shifts(grid.codes, grid.offset_deg, grid.step_deg, m, shifts, rows=rescore,
                            tau=tau, weights=w_grid, cap_deg2=cap, occluded=occ_r32)

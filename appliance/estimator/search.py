@@ -30,6 +30,29 @@ MAX_MISSING_FRACTION = 0.1
 BLOCK = 256
 
 
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _tau_weights(codes: np.ndarray, dist: np.ndarray, i: int, lo: int, hi: int, o: float, st: float, az_step: float,
+                 g2: float, rho2: float, inv_d2: np.ndarray, map2: float, sig2: float, wn: np.ndarray) -> None:
+    """wn[j] = sigma^2 / (sigma^2 + tau^2) (float32) of node i at azimuths lo <= j < hi (``parallax.py``)."""
+    n_az = codes.shape[1]
+    for j in range(lo, hi):
+        t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2, rho2, inv_d2)
+        t2 += map_var_at(dist, i, j, map2, inv_d2)
+        wn[j] = np.float32(sig2 / (sig2 + t2))
+
+
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _tau_arc(codes: np.ndarray, dist: np.ndarray, i: int, first: int, count: int, o: float, st: float,
+             az_step: float, g2: float, rho2: float, inv_d2: np.ndarray, map2: float, sig2: float,
+             wn: np.ndarray) -> None:
+    """:func:`_tau_weights` over ``count`` azimuths from ``first`` on, round the circle."""
+    n_az = codes.shape[1]
+    end = first + count
+    _tau_weights(codes, dist, i, first, min(end, n_az), o, st, az_step, g2, rho2, inv_d2, map2, sig2, wn)
+    if end > n_az:
+        _tau_weights(codes, dist, i, 0, end - n_az, o, st, az_step, g2, rho2, inv_d2, map2, sig2, wn)
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _ssd_shifts(
     codes: np.ndarray,
@@ -52,6 +75,9 @@ def _ssd_shifts(
     cap: float,
     map2: float,
     occ_out: np.ndarray,
+    start: int,
+    arc: int,
+    reach: int,
 ) -> None:
     """out[r, k] = sum_t w_t (mj[t] - s_i[jj[t] + shifts[r, k]])^2 for node i = rows[r].
 
@@ -61,7 +87,11 @@ def _ssd_shifts(
     is the node's log-normaliser, sum_t log(1 + tau^2 / sigma^2) at shift 0 (0 unless ``want_pen``).
     ``wj`` weighs the measured azimuths; a measurement above the model whose weighted square passes
     ``cap`` (deg^2) is an occluder, not evidence against the node: it is left out of the sum and
-    counted (by its weight) in occ_out[r, k].
+    counted (by its weight) in occ_out[r, k].  ``reach`` >= 0 says the measured azimuths lie among
+    the ``arc`` from ``start`` on and every azimuth the shifts of row r read among the ``reach`` from
+    ``start`` + shifts[r, 0] on (circularly): the weights are made there only, a narrow view's few
+    dozen azimuths rather than the whole circle (the same numbers), and pen[r] = 0 when ``arc`` is 0;
+    -1: everywhere.
     """
     n_az = codes.shape[1]
     n_shift = shifts.shape[1]
@@ -72,6 +102,7 @@ def _ssd_shifts(
     for b in numba.prange(n_blocks):
         mt = np.empty(n_t, dtype=np.float32)
         wn = np.ones(n_az, dtype=np.float32)
+        wp = np.ones(n_az, dtype=np.float32)
         for r in range(b * BLOCK, min(n_rows, (b + 1) * BLOCK)):
             i = rows[r]
             o = offset[i]
@@ -84,13 +115,20 @@ def _ssd_shifts(
             st = step[i]
             if use_tau:
                 p = 0.0
-                for j in range(n_az):
-                    t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2[i], rho2, inv_d2)
-                    t2 += map_var_at(dist, i, j, map2, inv_d2)
-                    wn[j] = np.float32(sig2 / (sig2 + t2))
-                if want_pen:
-                    for t in range(n_t):
-                        p -= wj[t] * math.log(wn[jj[t]])
+                if reach < 0:
+                    _tau_weights(codes, dist, i, 0, n_az, o, st, az_step, g2[i], rho2, inv_d2, map2, sig2, wn)
+                    if want_pen:
+                        for t in range(n_t):
+                            p -= wj[t] * math.log(wn[jj[t]])
+                else:
+                    # the normaliser's weights over the measured arc (none asked for: arc 0), then the
+                    # shifts' over theirs
+                    if arc > 0:
+                        _tau_arc(codes, dist, i, start, arc, o, st, az_step, g2[i], rho2, inv_d2, map2, sig2, wp)
+                        for t in range(n_t):
+                            p -= wj[t] * math.log(wp[jj[t]])
+                    _tau_arc(codes, dist, i, (start + shifts[r, 0]) % n_az, reach, o, st, az_step, g2[i], rho2,
+                             inv_d2, map2, sig2, wn)
                 pen[r] = p
             inv = np.float32(1.0 / st)
             for t in range(n_t):
@@ -530,23 +568,52 @@ def ssd_for_shifts(
     occ = np.empty(out.shape, dtype=np.float32) if occluded is None else occluded
     if tau is None:
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, np.zeros((1, 1), np.uint8),
-                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, False, wj, cap, 0.0, occ)
+                    np.zeros(1, np.float32), 0.0, np.zeros(256, np.float32), 1.0, False, pen, False, wj, cap, 0.0, occ,
+                    0, 0, -1)
     else:
+        start, arc, reach = _shift_reach(jj, sh, codes.shape[1])
+        if not tau.with_penalty:
+            arc = 0
         _ssd_shifts(codes, offset_deg, step_deg, jj, mj, idx, sh, out, tau.distance_codes, tau.g2, tau.rho2,
-                    tau.inv_d2, tau.sigma_ref**2, True, pen, tau.penalty_wanted, wj, cap, tau.map_sigma_m**2, occ)
-        tau.penalty = pen
+                    tau.inv_d2, tau.sigma_ref**2, True, pen, tau.with_penalty, wj, cap, tau.map_sigma_m**2, occ, start,
+                    arc, reach)
+        if tau.with_penalty:
+            tau.penalty = pen
     return out
+
+
+def _shift_reach(jj: np.ndarray, shifts: np.ndarray, n_az: int) -> tuple[int, int, int]:
+    """Where the measured azimuths ``jj`` lie and where the shifts of each row read them (the
+    ``start``, ``arc`` and ``reach`` of :func:`_ssd_shifts`): the shortest arc holding ``jj``, and
+    that arc widened by the spread of a row's shifts.  (0, 0, -1), the whole circle, when the two
+    arcs together cover more than half of it (the weights of every azimuth, made in one sweep, cost
+    no more) or the rows' shifts are not one pattern moved along it."""
+    if jj.size == 0 or shifts.shape[0] == 0:
+        return 0, 0, -1
+    # the arc starts after the widest gap between measured azimuths (circularly)
+    gaps = np.diff(np.append(jj, jj[0] + n_az))
+    widest = int(np.argmax(gaps))
+    start = int(jj[(widest + 1) % jj.size])
+    arc = n_az - int(gaps[widest]) + 1
+    if 2 * arc > n_az // 2:
+        return 0, 0, -1
+    rel = (shifts - shifts[:, :1]) % n_az
+    if not (rel == rel[:1]).all():
+        return 0, 0, -1
+    reach = arc + int(rel[0].max())
+    return (start, arc, reach) if arc + reach <= n_az // 2 else (0, 0, -1)
 
 
 class TauModel:
     """The parallax model's inputs for the full-resolution kernel (``parallax.py``); ``penalty``
-    receives each scored node's log-normaliser (zeros when not ``penalty_wanted``: a caller that
-    ranks shifts only spares a logarithm per node and azimuth)."""
+    receives each scored node's log-normaliser, unless ``with_penalty`` is False (a caller that
+    wants the sums only: a narrow view's kernel then skips the normaliser's weights)."""
 
     def __init__(self, distance_codes: np.ndarray, g2: np.ndarray, rho2: float, inv_d2: np.ndarray,
-                 sigma_ref: float, map_sigma_m: float = 0.0, penalty_wanted: bool = True):
+                 sigma_ref: float, map_sigma_m: float = 0.0, with_penalty: bool = True):
         self.distance_codes, self.g2, self.rho2, self.inv_d2 = distance_codes, g2, rho2, inv_d2
-        self.sigma_ref, self.map_sigma_m, self.penalty_wanted = sigma_ref, map_sigma_m, penalty_wanted
+        self.sigma_ref, self.map_sigma_m = sigma_ref, map_sigma_m
+        self.with_penalty = with_penalty
         self.penalty = np.zeros(0)
 
 
