@@ -8,6 +8,9 @@ output; a replaced file keeps its mode.  Every ``OSError`` (a missing folder, a 
 folder should be, a folder where the file should be, a read-only folder, a full disk) becomes one
 :class:`OutputError` line naming the path.
 
+:func:`scratch_file` gives a writer an unnamed file beside its output for intermediate data (the
+skyline database's build spills its skylines there), gone when it closes, even after a kill.
+
 :func:`check_output_path` is what commands call before the work starts: it refuses an output that
 is one of the inputs, an existing file without ``--force``, and a path whose folder cannot take it.
 """
@@ -183,6 +186,62 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
         _remove(tmp)
         raise
     fsync_folder(folder)
+
+
+@contextmanager
+def scratch_file(path: str | Path, *, preallocate: int = 0) -> Iterator[int]:
+    """Yield the descriptor of an unnamed scratch file in ``path``'s folder, for a writer's
+    intermediate data (read and written with ``os.pwrite``/``os.preadv``); it is gone when the block
+    exits, whatever happens.
+
+    The file has no name from the start (``O_TMPFILE``; where the file system lacks it, a name that
+    is unlinked at once), so not even a killed process leaves it behind: its disk space returns when
+    the descriptor closes.  ``preallocate`` > 0 reserves that many bytes on disk first, so a full disk
+    fails here, before the work.  Every ``OSError`` becomes one :class:`OutputError` line naming
+    ``path``: "cannot write its scratch file: ..." when the file cannot be made or allocated, and
+    "cannot write: ..." (as :func:`atomic_output` says) from the body."""
+    p = Path(path)
+    folder = p.parent if str(p.parent) else Path(".")
+    try:
+        fd = _unnamed_file(folder, p.name)
+        try:
+            _preallocate(fd, preallocate)
+        except BaseException:
+            os.close(fd)
+            raise
+    except OSError as exc:
+        raise output_error(p, exc, "cannot write its scratch file") from None
+    try:
+        try:
+            yield fd
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        if isinstance(exc, ViperError):
+            raise
+        raise output_error(p, exc) from None
+
+
+def _unnamed_file(folder: Path, name: str) -> int:
+    """A new file in ``folder`` that no name refers to, open for reading and writing."""
+    flags = os.O_RDWR | os.O_CLOEXEC
+    tmpfile = getattr(os, "O_TMPFILE", 0)
+    if tmpfile:
+        try:
+            return os.open(folder, flags | tmpfile, 0o600)
+        except OSError as exc:
+            # no O_TMPFILE on this file system (EOPNOTSUPP) or kernel (EISDIR, EINVAL): a named file
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
+                raise
+    tmp = folder / f".{name}.{secrets.token_hex(4)}{TMP_MARK}.scratch"
+    fd = os.open(tmp, flags | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        tmp.unlink()
+    except BaseException:
+        os.close(fd)
+        _remove(tmp)
+        raise
+    return fd
 
 
 def _remove(tmp: Path) -> None:

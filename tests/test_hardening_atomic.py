@@ -20,6 +20,7 @@ from appliance.atomic import (
     check_output_folder,
     check_output_path,
     remove_stale_temporaries,
+    scratch_file,
     umask_mode,
     write_bytes_atomic,
     write_text_atomic,
@@ -236,3 +237,51 @@ def test_a_killed_writers_temporary_is_removed_by_the_next_write(tmp_path):
         assert remove_stale_temporaries(tmp_path, out.name) == []  # a live writer's is kept
     assert out.read_bytes() == b"whole"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, other.name])
+
+
+def open_files_under(folder: Path) -> list[str]:
+    """What this process's open descriptors name under ``folder`` (an unnamed file shows as
+    ``folder/#inode (deleted)`` or ``folder/.name (deleted)``)."""
+    found = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith(str(folder) + "/"):
+            found.append(target)
+    return found
+
+
+@pytest.mark.parametrize("tmpfile", [True, False], ids=["O_TMPFILE", "named-then-unlinked"])
+def test_a_scratch_file_has_no_name_and_is_gone_after_the_block(tmp_path, monkeypatch, tmpfile):
+    if not tmpfile:
+        monkeypatch.delattr(os, "O_TMPFILE", raising=False)
+    out = tmp_path / "map.viperdb"
+    with scratch_file(out, preallocate=10_000) as fd:
+        assert list(tmp_path.iterdir()) == []  # nothing a killed writer could leave behind
+        assert os.fstat(fd).st_size == 10_000
+        os.pwrite(fd, b"spilled", 5_000)
+        assert os.pread(fd, 7, 5_000) == b"spilled"
+        assert [t.endswith("(deleted)") for t in open_files_under(tmp_path)] == [True]
+    assert open_files_under(tmp_path) == [] and list(tmp_path.iterdir()) == []
+    with pytest.raises(ZeroDivisionError):
+        with scratch_file(out):
+            raise ZeroDivisionError
+    assert open_files_under(tmp_path) == [] and list(tmp_path.iterdir()) == []
+
+
+def test_a_scratch_file_on_a_full_disk_or_in_a_bad_place_is_one_line(full_disk, tmp_path):
+    before = snapshot(full_disk)
+    reached = []
+    with pytest.raises(OutputError, match=r"map.viperdb: cannot write its scratch file: no space left on device"):
+        with scratch_file(full_disk / "map.viperdb", preallocate=1 << 20):
+            reached.append(True)
+    assert reached == [] and snapshot(full_disk) == before and open_files_under(full_disk) == []
+    with pytest.raises(OutputError, match="map.viperdb: cannot write: input/output error"):
+        with scratch_file(tmp_path / "map.viperdb"):
+            raise OSError(errno.EIO, "a failing disk")  # what a write in the block may raise
+    with pytest.raises(OutputError, match="cannot write its scratch file: folder .*missing does not exist"):
+        with scratch_file(tmp_path / "missing" / "map.viperdb"):
+            pass
+    assert list(tmp_path.iterdir()) == [full_disk]

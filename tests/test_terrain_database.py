@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -12,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from appliance.cli.main import main
-from appliance.errors import DatabaseError, InputError
+from appliance.errors import DatabaseError, InputError, OutputError
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline
@@ -284,6 +286,108 @@ def test_the_stored_first_pass_is_what_the_estimator_would_make(jacksboro_db):
     assert np.array_equal(partial, np.asarray(db.coarse_partial))
     assert np.array_equal(fresh.coarse_tau2(0.0), np.asarray(db.coarse_tau2))
     assert stored.coarse_tau2(0.0) is db.coarse_tau2
+
+
+
+# ---- the build's memory: skylines spilled to an unnamed scratch file, written a chunk at a time ----
+
+
+def _small_build(dem, out, **kw):
+    return build_database(dem, out, INNER, max_range_m=SHORT_REACH_M, n_azimuths=72, **kw)
+
+
+def test_the_bytes_do_not_depend_on_the_chunks(tmp_path, monkeypatch):
+    """Chunks of nodes turned, quantised and written one after the other give the file that every
+    node at once (the former whole-array build) gives."""
+    from appliance.terrain import database
+
+    dem = load_dem("jacksboro")
+
+    def build(name: str, chunk: int, part: int) -> bytes:
+        monkeypatch.setattr(database, "CHUNK_NODES", chunk)
+        monkeypatch.setattr(database, "THREAD_NODES", part)
+        _small_build(dem, tmp_path / name, progress=None, workers=2)
+        return (tmp_path / name).read_bytes()
+
+    whole = build("whole.viperdb", 1 << 40, 1 << 40)
+    n = load_database(tmp_path / "whole.viperdb").grid.n_nodes
+    assert n == 625
+    assert build("chunks.viperdb", 97, 13) == whole  # neither divides the node count
+    assert build("one.viperdb", n, 1) == whole
+
+
+def test_a_build_spills_to_a_file_without_a_name_and_leaves_nothing(tmp_path):
+    from tests.test_hardening_atomic import open_files_under
+
+    dem = load_dem("jacksboro")
+    out = tmp_path / "x.viperdb"
+    seen = []
+
+    def look(done, total, label):
+        if done == 10:
+            seen.append(([p.name for p in tmp_path.iterdir()], open_files_under(tmp_path)))
+
+    _small_build(dem, out, progress=look)
+    (names, files), = seen
+    assert len(names) == 1 and names[0].startswith(".x.viperdb.")  # the output's temporary alone
+    assert sum(f.endswith("(deleted)") for f in files) == 1  # the spill: open, nameless
+    assert [p.name for p in tmp_path.iterdir()] == ["x.viperdb"]
+    assert open_files_under(tmp_path) == []  # the spill's disk space is back
+
+
+@pytest.mark.parametrize("fault", ["interrupt", "read error"])
+def test_a_build_failing_while_it_writes_leaves_nothing(tmp_path, monkeypatch, fault):
+    """A failure after the sweep, while the spilled skylines are read back and the file written:
+    nothing is left, the spill's space is back, and an OSError is one line naming the output."""
+    from appliance.terrain import database
+    from tests.test_hardening_atomic import open_files_under
+
+    dem = load_dem("jacksboro")
+    out = tmp_path / "x.viperdb"
+    out.write_bytes(b"previous")
+    real, calls = database.pread_into, []
+
+    def failing(fd, arr, offset):
+        calls.append(offset)
+        if len(calls) == 100:
+            if fault == "interrupt":
+                raise KeyboardInterrupt
+            raise OSError(errno.EIO, "Input/output error")
+        real(fd, arr, offset)
+
+    monkeypatch.setattr(database, "pread_into", failing)
+    if fault == "interrupt":
+        with pytest.raises(KeyboardInterrupt):
+            _small_build(dem, out, progress=None, workers=1)
+    else:
+        with pytest.raises(OutputError, match=r"^\S*x.viperdb: cannot write: input/output error$"):
+            _small_build(dem, out, progress=None, workers=1)
+    assert len(calls) == 100
+    assert [p.name for p in tmp_path.iterdir()] == ["x.viperdb"] and out.read_bytes() == b"previous"
+    assert open_files_under(tmp_path) == []
+
+
+def test_a_build_on_a_full_disk_fails_before_its_sweep(tmp_path):
+    """The output and the spill are allocated before the sweep: a disk without room for both is a
+    one-line error before any azimuth is swept, and leaves nothing."""
+    from tests.test_hardening_atomic import mount_tmpfs, open_files_under, snapshot
+
+    dem = load_dem("jacksboro")
+    _small_build(dem, tmp_path / "probe.viperdb", progress=None)
+    size = (tmp_path / "probe.viperdb").stat().st_size
+    spill = 3 * 72 * load_database(tmp_path / "probe.viperdb").grid.n_nodes
+    swept: list = []
+    for room, message in ((size + spill // 2, "cannot write its scratch file: no space left on device"),
+                          (size // 2, "cannot write: no space left on device")):
+        where = tmp_path / f"disk{room}"
+        mount_tmpfs(where, size=f"{-(-room // 4096) * 4}k")
+        try:
+            before = snapshot(where)
+            with pytest.raises(OutputError, match=f"x.viperdb: {message}"):
+                _small_build(dem, where / "x.viperdb", progress=lambda *a: swept.append(a))
+            assert swept == [] and snapshot(where) == before and open_files_under(where) == []
+        finally:
+            subprocess.run(["umount", str(where)], check=False)
 
 
 # ---- records of verified databases: a changed file is checked again ----

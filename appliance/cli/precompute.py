@@ -30,7 +30,7 @@ from appliance.terrain.tiled import DEFAULT_TILE_NODES, TiledPlan, build_tiled, 
 from appliance.terrain.whole_body import DEFAULT_BAND_DEG, DEFAULT_CAP_DEG, build_whole_body
 
 MAX_TERRAIN_NODES = 50_000_000  # the terrain grid the horizons are swept over (float64 work arrays)
-MAX_DATABASE_BYTES = 16 * 2**30  # the skylines held in memory while they are built
+MAX_DATABASE_BYTES = 16 * 2**30  # the skylines of one build: spilled to disk as they are swept, then written
 
 
 def parse_bounds(text: str) -> tuple[float, float, float, float]:

@@ -34,21 +34,24 @@ made at build time so that no estimate has to make them.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import time
 import zlib
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
-from appliance.atomic import atomic_output
+from appliance.atomic import atomic_output, scratch_file
 from appliance.errors import DatabaseError, DemError, InputError
+from appliance.estimator import parallax
 from appliance.estimator.estimate import COARSE_STRIDE, SkylineGrid
+from appliance.estimator.search import decimated
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import NodeGrid, grid_convergence_deg, lattice_of, plan_grids, terrain_on_grid
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
@@ -155,7 +158,12 @@ def build_database(
     single-threaded kernels that release the GIL: a busy machine slows the build in proportion,
     with no threads spinning at barriers.  A node's horizon comes from the terrain within
     ``max_range_m`` of it and nothing beyond (an exact cut-off, see HorizonSweeper), so a build in
-    tiles, each with a halo of that range, equals a build of the whole map node for node."""
+    tiles, each with a halo of that range, equals a build of the whole map node for node.
+
+    Memory: each azimuth's skylines go to an unnamed scratch file beside the output as they are
+    swept (3 bytes per node and azimuth on disk, besides the output), and are read back a chunk of
+    nodes at a time to be turned, quantised and written, so that the build holds the terrain, the
+    sweep's work arrays and one chunk, not every skyline."""
     _check_sampling(n_azimuths, height_m)
     cand, terr, offset = plan_grids(dem, search_bounds, spacing_m, max_range_m)
     origin, shape = lattice_of(dem, terr)
@@ -208,25 +216,9 @@ def build_on_grids(
     gamma = grid_convergence_deg(cand, dem.crs.geodetic_crs or dem.crs)
     step_az = 360.0 / n_azimuths
     n = cand.n_nodes
-    cdeg = np.empty((n_azimuths, n), dtype=np.int16)  # centidegrees at grid azimuths, one row per azimuth
-    dgrid = np.empty((n_azimuths, n), dtype=np.uint8)  # ranges at grid azimuths
     sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff, (ro, co, cand.n_rows, cand.n_cols),
                              lattice_origin, lattice_shape, max_range_m)
-
-    def one_azimuth(j: int) -> None:
-        tan, far = sweeper.horizons(j * step_az)
-        store_centidegrees(tan, far, cdeg[j], dgrid[j])
-
-    done = 0
-    for _ in run_threads(one_azimuth, range(n_azimuths), workers):
-        done += 1
-        if progress is not None:
-            progress(done, n_azimuths, "skylines")
-    if keep is not None:
-        left_out = ~np.asarray(keep, dtype=bool)
-        cdeg[:, left_out] = MISSING_CDEG
-        dgrid[:, left_out] = MISSING_CODE
-
+    left_out = None if keep is None else ~np.asarray(keep, dtype=bool)
     header = {
         "format": "viper-skyline-db",
         "format_version": FORMAT_VERSION,
@@ -247,70 +239,182 @@ def build_on_grids(
         "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
     }
     ground = Z[ro : ro + cand.n_rows, co : co + cand.n_cols].ravel().astype(np.float32)
-    if keep is not None:
-        ground[~np.asarray(keep, dtype=bool)] = np.nan
-    _write(out_path, header, cdeg, dgrid, gamma.ravel(), step_az, ground, Z.astype(np.float32), cand, workers)
+    if left_out is not None:
+        ground[left_out] = np.nan
+    plan = _FilePlan.of(header, n, n_azimuths, Z.size)
+    # the output and the spill are both allocated on disk before the sweep: a full disk fails now
+    with atomic_output(out_path, preallocate=plan.file_bytes) as tmp, \
+            scratch_file(out_path, preallocate=3 * n_azimuths * n) as spill:
+
+        def one_azimuth(j: int) -> None:
+            tan, far = sweeper.horizons(j * step_az)
+            cdeg = np.empty(n, dtype=np.int16)  # centidegrees at grid azimuth j
+            dgrid = np.empty(n, dtype=np.uint8)  # ranges at grid azimuth j
+            store_centidegrees(tan, far, cdeg, dgrid)
+            if left_out is not None:
+                cdeg[left_out] = MISSING_CDEG
+                dgrid[left_out] = MISSING_CODE
+            pwrite_all(spill, cdeg, 2 * n * j)
+            pwrite_all(spill, dgrid, 2 * n * n_azimuths + n * j)
+
+        done = 0
+        for _ in run_threads(one_azimuth, range(n_azimuths), workers):
+            done += 1
+            if progress is not None:
+                progress(done, n_azimuths, "skylines")
+        fd = os.open(tmp, os.O_RDWR | os.O_CLOEXEC)
+        try:
+            _write(fd, plan, spill, gamma.ravel(), step_az, ground, Z.astype(np.float32), cand, workers)
+        finally:
+            os.close(fd)
     return header
 
 
-def _write(out_path: str | Path, header: dict, cdeg: np.ndarray, dgrid: np.ndarray, gamma_deg: np.ndarray,
-           step_az: float, ground: np.ndarray, terrain: np.ndarray, cand: NodeGrid, workers: int | None) -> None:
-    n_az, n = cdeg.shape
+#: Nodes turned, quantised and written together (their arrays are held in memory at once, two
+#: chunks at most), and nodes per thread within them (their skylines read back from the spill with
+#: one read per azimuth).
+CHUNK_NODES = 1 << 15
+THREAD_NODES = 8192
+
+
+@dataclass(frozen=True)
+class _FilePlan:
+    """Where everything goes in a database file: its header bytes, where the arrays start, each
+    array's offset from there, the checksum table's offset and block count, and the file's size."""
+
+    n_az: int
+    head: bytes
+    data_start: int
+    layout: dict[str, int]
+    table: int
+    n_blocks: int
+
+    @property
+    def file_bytes(self) -> int:
+        return self.data_start + self.table + 4 * (1 + self.n_blocks)
+
+    @classmethod
+    def of(cls, header: dict, n: int, n_az: int, terrain_size: int) -> _FilePlan:
+        n_coarse = n_az // COARSE_STRIDE
+        layout = {}
+        pos = 0
+        sizes = (("codes", n * n_az), ("distance", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n),
+                 ("ground_m", 4 * n), ("convergence_deg", 4 * n), ("terrain_m", 4 * terrain_size),
+                 ("coarse_codes", n * n_coarse), ("coarse_partial", n), ("coarse_tau2", n * n_coarse))
+        for name, nbytes in sizes:
+            layout[name] = pos
+            pos += -(-nbytes // ALIGN) * ALIGN
+        n_blocks = -(-pos // CHECKSUM_BLOCK)
+        checksum = {"algorithm": "crc32", "block_bytes": CHECKSUM_BLOCK, "offset": pos, "blocks": n_blocks}
+        header = dict(header, arrays=layout, n_nodes=n, checksum=checksum)
+        raw = json.dumps(header).encode()
+        hlen = -(-(len(raw) + 12) // ALIGN) * ALIGN - 12
+        head = MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" ")
+        return cls(n_az, head, 12 + hlen, layout, pos, n_blocks)
+
+    def at(self, name: str, byte: int = 0) -> int:
+        """The file offset of byte ``byte`` of array ``name``."""
+        return self.data_start + self.layout[name] + byte
+
+
+def _write(fd: int, plan: _FilePlan, spill: int, gamma_deg: np.ndarray, step_az: float, ground: np.ndarray,
+           terrain: np.ndarray, cand: NodeGrid, workers: int | None) -> None:
+    """Write the database into the preallocated file ``fd`` from the skylines at grid azimuths in
+    ``spill`` (int16 centidegrees of every node, azimuth after azimuth, then the uint8 ranges likewise),
+    a chunk of nodes at a time: each chunk's columns are read back, turned to true azimuths and
+    quantised, its first-pass arrays made, and its rows written; two chunks at most are in memory."""
+    n, n_az = ground.size, plan.n_az
     n_coarse = n_az // COARSE_STRIDE
-    layout = {}
-    pos = 0
-    sizes = (("codes", n * n_az), ("distance", n * n_az), ("offset_deg", 4 * n), ("step_deg", 4 * n),
-             ("ground_m", 4 * n), ("convergence_deg", 4 * n), ("terrain_m", 4 * terrain.size),
-             ("coarse_codes", n * n_coarse), ("coarse_partial", n), ("coarse_tau2", n * n_coarse))
-    for name, nbytes in sizes:
-        layout[name] = pos
-        pos += -(-nbytes // ALIGN) * ALIGN
-    n_blocks = -(-pos // CHECKSUM_BLOCK)
-    checksum = {"algorithm": "crc32", "block_bytes": CHECKSUM_BLOCK, "offset": pos, "blocks": n_blocks}
-    header = dict(header, arrays=layout, n_nodes=n, checksum=checksum)
-    raw = json.dumps(header).encode()
-    hlen = -(-(len(raw) + 12) // ALIGN) * ALIGN - 12
-    data_start = 12 + hlen
-    head = MAGIC + np.uint32(hlen).tobytes() + raw.ljust(hlen, b" ")
-    # allocated in full before the memory map touches it: a full disk is a one-line error, not SIGBUS
-    with atomic_output(out_path, preallocate=data_start + pos + 4 * (1 + n_blocks)) as tmp:
-        with tmp.open("r+b") as fh:
-            fh.write(head)
-        mm = np.memmap(tmp, mode="r+", dtype=np.uint8, offset=data_start, shape=(pos,))
-        codes = mm[layout["codes"] : layout["codes"] + n * n_az].reshape(n, n_az)
-        dist = mm[layout["distance"] : layout["distance"] + n * n_az].reshape(n, n_az)
-        offs = np.empty(n, np.float32)
-        steps = np.empty(n, np.float32)
-        shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
-        chunk = 4096
+    offs = np.empty(n, np.float32)
+    steps = np.empty(n, np.float32)
+    shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
+    # the per-node inputs of the estimator's first pass (ground gradient, offset variance, range
+    # table), as the estimator makes them, from a grid with no skylines
+    per_node = SkylineGrid(np.empty((n, 0), np.uint8), offs, steps, cand.n_rows, cand.n_cols, cand.dx_m, cand.dy_m,
+                           None, ground, distance_min_m=DISTANCE_MIN_M, distance_log_step=DISTANCE_LOG_STEP)
+    g2, rho2, inv_d2 = per_node.ground_gradient2, per_node.rho2_m2, per_node.inverse_range2
 
-        def quantize_chunk(lo: int) -> None:
-            turn_and_quantize(cdeg, dgrid, shift, codes, dist, offs, steps, lo, min(lo + chunk, n))
+    def write_chunk(lo: int, codes: np.ndarray, dist: np.ndarray, coarse: np.ndarray, partial: np.ndarray,
+                    tau2: np.ndarray) -> None:
+        pwrite_all(fd, codes, plan.at("codes", lo * n_az))
+        pwrite_all(fd, dist, plan.at("distance", lo * n_az))
+        pwrite_all(fd, coarse, plan.at("coarse_codes", lo * n_coarse))
+        pwrite_all(fd, partial.view(np.uint8), plan.at("coarse_partial", lo))
+        pwrite_all(fd, tau2, plan.at("coarse_tau2", lo * n_coarse))
 
-        for _ in run_threads(quantize_chunk, range(0, n, chunk), workers):
-            pass
-        gam = np.asarray(gamma_deg, dtype=np.float32)
-        for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground), ("convergence_deg", gam),
-                          ("terrain_m", np.ascontiguousarray(terrain, dtype=np.float32).ravel())):
-            mm[layout[name] : layout[name] + 4 * arr.size] = arr.view(np.uint8)
-        # the estimator's first pass, exactly as it would make it from the arrays above
-        grid = SkylineGrid(codes, offs, steps, cand.n_rows, cand.n_cols, cand.dx_m, cand.dy_m, dist, ground,
-                           distance_min_m=DISTANCE_MIN_M, distance_log_step=DISTANCE_LOG_STEP)
-        coarse, partial = grid.coarse
-        for name, arr in (("coarse_codes", coarse), ("coarse_partial", partial.view(np.uint8)),
-                          ("coarse_tau2", grid.coarse_tau2(0.0))):
-            mm[layout[name] : layout[name] + arr.size] = np.ascontiguousarray(arr).ravel()
-        del grid, coarse, partial
-        mm.flush()
-        crcs = [zlib.crc32(head)] + block_checksums(mm)
-        with tmp.open("r+b") as fh:
-            fh.seek(data_start + pos)
-            fh.write(np.asarray(crcs, dtype="<u4").tobytes())
+    # a chunk is written on a thread of its own while the next one is made: two chunks at most in memory
+    with ThreadPoolExecutor(max_workers=1) as writer:
+        written: Future[None] | None = None
+        for lo in range(0, n, CHUNK_NODES):
+            hi = min(lo + CHUNK_NODES, n)
+            codes = np.empty((hi - lo, n_az), np.uint8)
+            dist = np.empty((hi - lo, n_az), np.uint8)
+
+            def quantize_part(a: int, lo: int = lo, hi: int = hi, codes: np.ndarray = codes,
+                              dist: np.ndarray = dist) -> None:
+                b = min(a + THREAD_NODES, hi)
+                cdeg = np.empty((n_az, b - a), np.int16)
+                dgrid = np.empty((n_az, b - a), np.uint8)
+                for j in range(n_az):  # this part's column of every azimuth's row
+                    pread_into(spill, cdeg[j], 2 * (n * j + a))
+                    pread_into(spill, dgrid[j], 2 * n * n_az + n * j + a)
+                turn_and_quantize(cdeg, dgrid, shift[a:b], codes[a - lo : b - lo], dist[a - lo : b - lo], offs[a:b],
+                                  steps[a:b], 0, b - a)
+
+            for _ in run_threads(quantize_part, range(lo, hi, THREAD_NODES), workers):
+                pass
+            # the estimator's first pass, exactly as it would make it from the arrays above (per node)
+            coarse, partial = decimated(codes, offs[lo:hi], COARSE_STRIDE)
+            tau2 = parallax.coarse_tau2_codes(codes, dist, offs[lo:hi], steps[lo:hi], g2[lo:hi], rho2, inv_d2,
+                                              COARSE_STRIDE, 0.0)
+            if written is not None:
+                written.result()
+            written = writer.submit(write_chunk, lo, codes, dist, coarse, partial, tau2)
+            del codes, dist, coarse, partial, tau2
+        if written is not None:
+            written.result()
+    for name, arr in (("offset_deg", offs), ("step_deg", steps), ("ground_m", ground),
+                      ("convergence_deg", np.asarray(gamma_deg, dtype=np.float32)),
+                      ("terrain_m", np.ascontiguousarray(terrain, dtype=np.float32))):
+        pwrite_all(fd, arr, plan.at(name))
+    crcs = [zlib.crc32(plan.head)] + file_block_checksums(fd, plan.data_start, plan.table, workers)
+    pwrite_all(fd, np.asarray(crcs, dtype="<u4"), plan.data_start + plan.table)
+    pwrite_all(fd, np.frombuffer(plan.head, np.uint8), 0)
 
 
-def block_checksums(body: np.ndarray) -> list[int]:
-    """CRC32 of each CHECKSUM_BLOCK bytes of a database's array section."""
-    return [zlib.crc32(body[i : i + CHECKSUM_BLOCK].data) for i in range(0, body.size, CHECKSUM_BLOCK)]
+def pwrite_all(fd: int, arr: np.ndarray, offset: int) -> None:
+    """Write the bytes of the contiguous array ``arr`` at ``offset`` of ``fd``."""
+    view = np.ascontiguousarray(arr).data.cast("B")
+    while view:
+        k = os.pwrite(fd, view, offset)
+        view = view[k:]
+        offset += k
+
+
+def pread_into(fd: int, arr: np.ndarray, offset: int) -> None:
+    """Fill the contiguous array ``arr`` with the bytes at ``offset`` of ``fd``."""
+    view = arr.data.cast("B")
+    while view:
+        k = os.preadv(fd, [view], offset)
+        if k == 0:
+            raise OSError(errno.EIO, f"the file ends {len(view)} bytes short")
+        view = view[k:]
+        offset += k
+
+
+def file_block_checksums(fd: int, start: int, size: int, workers: int | None = None) -> list[int]:
+    """CRC32 of each CHECKSUM_BLOCK bytes of the ``size`` bytes at ``start`` of ``fd`` (a database's
+    array section), read back a block at a time."""
+    crcs = {}
+
+    def one(lo: int) -> None:
+        buf = np.empty(min(CHECKSUM_BLOCK, size - lo), np.uint8)
+        pread_into(fd, buf, start + lo)
+        crcs[lo] = zlib.crc32(buf.data)
+
+    for _ in run_threads(one, range(0, size, CHECKSUM_BLOCK), workers):
+        pass
+    return [crcs[lo] for lo in range(0, size, CHECKSUM_BLOCK)]
 
 
 def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray, identity: FileIdentity | None = None,
