@@ -6,6 +6,8 @@ run as a user runs it, with the server's socket in VIPER_SOCKET.
 
 from __future__ import annotations
 
+import array
+import json
 import os
 import signal
 import socket
@@ -200,3 +202,18 @@ def test_a_removed_working_folder_gives_what_it_gives_in_process(server, tmp_pat
                                    "sky.csv"], capture_output=True, env=_env(s), timeout=300) for s in (sock, ""))
     assert warm.returncode == alone.returncode != 0
     assert warm.stderr == alone.stderr and len(warm.stderr.splitlines()) == 1, warm.stderr
+
+
+def test_a_folder_the_server_cannot_enter_is_refused_before_anything_runs(server, tmp_path):
+    """A request as the client sends it, for a folder the server cannot enter (here one that is
+    gone): the answer is a refusal, so that the client runs the command itself."""
+    sock, _ = server
+    request = {"argv": RENDER, "cwd": str(tmp_path / "gone"), "env": dict(os.environ, VIPER_SOCKET=""),
+               "umask": 0o022, "code": _forward.code_identity()}
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
+        conn.connect(str(sock))
+        conn.sendmsg([json.dumps(request).encode() + b"\n"],
+                     [(socket.SOL_SOCKET, socket.SCM_RIGHTS, array.array("i", [0, 1, 2]))])
+        reply = _forward.LineReader(conn).read()
+    assert reply is not None and reply["refused"].startswith("its folder: ")
+    assert "No such file or directory" in reply["refused"]

@@ -185,6 +185,12 @@ def _spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, 
             send_message(conn, {"refused": reason})
         else:
             assert request is not None
+            try:
+                os.chdir(request["cwd"])
+            except OSError as exc:  # a folder this server cannot enter: the client runs the command itself
+                LOG.debug("refused a command: its folder: %s", exc)
+                send_message(conn, {"refused": f"its folder: {exc}"})
+                return
             LOG.debug("worker %d: viper %s", os.getpid(), " ".join(request["argv"]))
             _worker(conn, fds, request)
     except (OSError, ValueError) as exc:
@@ -214,8 +220,8 @@ def _refusal(request: dict[str, Any] | None, uid: int, fds: list[int], identity:
 
 
 def _worker(conn: socket.socket, fds: list[int], request: dict[str, Any]) -> None:
-    """Take the client's streams, folder, environment and umask, then run the command line as
-    ``viper`` runs it; never returns."""
+    """Take the client's streams, environment and umask (its folder is already this process's),
+    then run the command line as ``viper`` runs it; never returns."""
     code = 1
     try:
         conn.settimeout(None)
@@ -232,7 +238,6 @@ def _worker(conn: socket.socket, fds: list[int], request: dict[str, Any]) -> Non
         sys.stderr = io.TextIOWrapper(io.FileIO(2, "w", closefd=False), encoding="utf-8", errors="backslashreplace",
                                       line_buffering=True)
         send_message(conn, {"pid": os.getpid()})
-        os.chdir(request["cwd"])
         os.umask(request["umask"])
         os.environ.clear()
         os.environ.update(request["env"])
