@@ -102,8 +102,8 @@ def test_a_command_whose_numba_settings_differ_runs_in_process(server):
     assert "refused a command: numba's" in log.read_text()
 
 
-def test_an_interrupt_reaches_the_worker(server):
-    sock, log = server
+def _long_render_running(sock: Path, log: Path) -> subprocess.Popen:
+    """A client whose long render (36,000 azimuths) a worker of the server has started."""
     before = len(_workers(log))
     proc = subprocess.Popen([*VIPER, "render", "jacksboro", "--lat", "36.5521", "--lon", "-84.1911",
                              "--azimuths", "36000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -113,6 +113,11 @@ def test_an_interrupt_reaches_the_worker(server):
         assert time.monotonic() < deadline and proc.poll() is None
         time.sleep(0.05)
     time.sleep(0.5)
+    return proc
+
+
+def test_an_interrupt_reaches_the_worker(server):
+    proc = _long_render_running(*server)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130
@@ -180,16 +185,7 @@ def test_a_client_that_sends_nothing_holds_up_no_other(server):
 
 
 def test_a_terminated_command_ends_as_it_would_alone(server):
-    sock, log = server
-    before = len(_workers(log))
-    proc = subprocess.Popen([*VIPER, "render", "jacksboro", "--lat", "36.5521", "--lon", "-84.1911",
-                             "--azimuths", "36000"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            env=_env(sock))
-    deadline = time.monotonic() + 60
-    while len(_workers(log)) == before:
-        assert time.monotonic() < deadline and proc.poll() is None
-        time.sleep(0.05)
-    time.sleep(0.5)
+    proc = _long_render_running(*server)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == -signal.SIGTERM and err == b""
