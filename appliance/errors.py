@@ -37,6 +37,11 @@ class DemError(ViperError, OSError):
     """A DEM cannot be read or is unusable (unreadable, unknown CRS, all nodata...)."""
 
 
+class NodataCandidatesError(DemError):
+    """Every candidate node of a database to build lies on nodata: an error for one database, a
+    void tile (left out of the index) in a tiled build."""
+
+
 class DatabaseError(ViperError, OSError):
     """A skyline database is corrupt, of another format version, or built from another DEM."""
 

@@ -9,9 +9,12 @@ can see a different horizon than the whole map gives, so a non-zero count is exp
 
     python bench/tiled_build.py [--tile-nodes 600,600] [--workers 2] [--azimuths 360]
     python bench/tiled_build.py --probe-spacing 30   # one tile of the 30 m build: a worker's peak memory
+    python bench/tiled_build.py --full-spacing 30 --out DIR   # the whole 30 m build on the local cluster
 
-The 30 m build of the whole mosaic is too long for a shared two-core machine; the probe builds its
-tile with the largest terrain window in this process, the peak memory a worker needs for it.
+The probe builds the tile with the largest terrain window in this process: the peak memory a worker
+needs for it.  The full build writes the whole tiled database into DIR (kept, so that an interrupted
+run resumes with the missing tiles) and appends its wall time, the largest worker's peak memory,
+the storage and the rate per worker to tiled_build_30m.md.
 """
 
 from __future__ import annotations
@@ -133,6 +136,63 @@ def probe(args: argparse.Namespace) -> int:
     return 0
 
 
+def full(args: argparse.Namespace) -> int:
+    """The whole tiled build at ``--full-spacing`` into ``--out`` on a local cluster; appended to the results."""
+    from distributed import Client, LocalCluster
+
+    from appliance.atomic import write_text_atomic
+    from appliance.terrain.mosaic import open_map
+    from appliance.terrain.tiled import build_tiled
+
+    tile_nodes = tuple(int(v) for v in args.tile_nodes.split(","))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    load_before = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    started = time.perf_counter()
+
+    def show(done: int, total: int, unit: str) -> None:
+        print(f"{time.perf_counter() - started:7.0f} s  {done}/{total} {unit}", flush=True)
+
+    with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=50) as cluster, Client(cluster) as client:
+        source = open_map(TILES, out / "mosaic.vrt")
+        result = build_tiled(source, out, spacing_m=args.full_spacing, n_azimuths=args.azimuths,
+                             tile_nodes=tile_nodes, client=client, progress=show)  # type: ignore[arg-type]
+    wall = time.perf_counter() - started
+    load_after = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    lat = result.index["lattice"]
+    n_nodes = int(lat["n_rows"]) * int(lat["n_cols"])
+    tile_bytes = sum((out / t["file"]).stat().st_size for t in result.index["tiles"])
+    built_nodes = sum(t["n_rows"] * t["n_cols"] for t in result.index["tiles"] if t["file"] in result.built)
+    rate = built_nodes / (wall * args.workers)
+    lines = [
+        "",
+        f"## The whole {args.full_spacing:g} m build ({date.today().isoformat()}, {platform.machine()})",
+        "",
+        f"`python bench/tiled_build.py --full-spacing {args.full_spacing:g} --tile-nodes {args.tile_nodes} "
+        f"--workers {args.workers} --azimuths {args.azimuths}`: SRTM N43E006 + N43E007, {lat['n_rows']} x "
+        f"{lat['n_cols']} = {n_nodes:,} candidates ({lat['dx_m']:.1f} x {lat['dy_m']:.1f} m) in "
+        f"{len(result.index['tiles'])} tiles, LocalCluster of {args.workers} single-threaded worker processes.",
+        "",
+        f"- tiles built in this run: {len(result.built)} ({built_nodes:,} candidates); kept from an earlier run: "
+        f"{len(result.kept)}",
+        f"- wall time: **{wall / 60:.1f} min**; {rate:,.0f} candidates per second per worker",
+        f"- peak RSS of the largest worker: **{result.peak_rss_bytes / 2**20:.0f} MiB** (target 2 GB per worker)",
+        f"- storage: {tile_bytes / 2**30:.1f} GiB in {len(result.index['tiles'])} tile files "
+        f"({tile_bytes / max(n_nodes, 1):.0f} bytes per candidate, each tile's terrain window included)",
+        "",
+        f"Load before: `{load_before}`",
+        "",
+        f"Load after: `{load_after}`",
+        "",
+    ]
+    res = HERE / "results" / f"tiled_build_{args.full_spacing:g}m.md"
+    old = res.read_text() if res.exists() else ""
+    write_text_atomic(res, old + "\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
 def main() -> int:
     from appliance.atomic import write_text_atomic
 
@@ -141,7 +201,13 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--azimuths", type=int, default=360)
     ap.add_argument("--probe-spacing", type=float, help="build only the largest tile at this spacing (m)")
+    ap.add_argument("--full-spacing", type=float, help="build the whole tiled database at this spacing (m)")
+    ap.add_argument("--out", help="with --full-spacing: the database folder (kept; a rerun resumes)")
     args = ap.parse_args()
+    if args.full_spacing:
+        if not args.out:
+            ap.error("--full-spacing needs --out")
+        return full(args)
     if args.probe_spacing:
         return probe(args)
     tile_nodes = tuple(int(v) for v in args.tile_nodes.split(","))

@@ -188,3 +188,47 @@ def test_cli_refuses_different_crs_in_one_line(tiles, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1 and "different CRSs" in err
     assert "left.tif" in err and "utm.tif" in err
+
+
+def test_tile_wholly_on_nodata_is_left_out_of_the_index(client, tmp_path):
+    # one map whose north-west corner, a whole tile of candidates and more, is a void
+    z = _heights(SIDE, 2 * SIDE - 1)
+    z[: TILE_NODES[0] + 2, : TILE_NODES[1] + 2] = NODATA
+    path = _write_tile(tmp_path / "void_corner.tif", z, WEST)
+    source = open_map([str(path)], None)
+    build_database(source.load(), tmp_path / "single.viperdb", n_azimuths=N_AZ, progress=None)
+    single = load_database(tmp_path / "single.viperdb")
+    out = tmp_path / "tiled"
+    out.mkdir()
+    result = build_tiled(source, out, n_azimuths=N_AZ, tile_nodes=TILE_NODES, client=client)
+    index = json.loads((out / INDEX).read_text())
+    names = [t["file"] for t in index["tiles"]]
+    assert "tile_r000_c000.viperdb" not in names and not (out / "tile_r000_c000.viperdb").exists()
+    assert sorted(result.built) == sorted(names) and len(names) >= 5
+    g = single.grid
+    for t in index["tiles"]:
+        db = load_database(out / t["file"])
+        rows = np.arange(t["row0"], t["row0"] + t["n_rows"])
+        cols = np.arange(t["col0"], t["col0"] + t["n_cols"])
+        idx = (rows[:, None] * g.n_cols + cols[None, :]).ravel()
+        np.testing.assert_array_equal(db.codes, single.codes[idx])
+        np.testing.assert_array_equal(db.offset_deg, single.offset_deg[idx])
+    # the nodes the index leaves out are nodata in the single build too
+    assert np.isnan(single.offset_deg.reshape(g.n_rows, g.n_cols)[: TILE_NODES[0], : TILE_NODES[1]]).all()
+    # a rerun finds the void tile void again and keeps the others
+    again = build_tiled(source, out, n_azimuths=N_AZ, tile_nodes=TILE_NODES, client=client)
+    assert not again.built and sorted(again.kept) == sorted(names)
+    assert json.loads((out / INDEX).read_text())["tiles"] == index["tiles"]
+
+
+def test_tiled_build_of_a_map_wholly_on_nodata_fails_in_one_line(client, tmp_path):
+    z = np.full((SIDE, SIDE), NODATA, dtype=np.float32)
+    z[0, 0] = 500.0  # one valid pixel, so the map itself opens
+    path = _write_tile(tmp_path / "void.tif", z, WEST)
+    out = tmp_path / "tiled"
+    out.mkdir()
+    with pytest.raises(DemError, match="nodata") as err:
+        build_tiled(open_map([str(path)], None), out, n_azimuths=N_AZ, tile_nodes=(4, 4), client=client,
+                    search_bounds=(WEST + 0.05, NORTH - 0.15, WEST + 0.15, NORTH - 0.05))
+    assert "\n" not in str(err.value)
+    assert not (out / INDEX).exists()

@@ -48,7 +48,7 @@ from typing import BinaryIO
 import numpy as np
 
 from appliance.atomic import atomic_output, scratch_file
-from appliance.errors import DatabaseError, DemError, InputError
+from appliance.errors import DatabaseError, InputError, NodataCandidatesError
 from appliance.estimator import parallax
 from appliance.estimator.estimate import COARSE_STRIDE, SkylineGrid
 from appliance.estimator.search import decimated
@@ -211,7 +211,7 @@ def build_on_grids(
     ro, co = offset
     Z = terrain_on_grid(dem, terr)
     if not np.isfinite(Z[ro : ro + cand.n_rows, co : co + cand.n_cols]).any():
-        raise DemError(f"{dem.source}: every candidate node inside the search bounds is nodata")
+        raise NodataCandidatesError(f"{dem.source}: every candidate node inside the search bounds is nodata")
     r_eff = dem.body.effective_radius_m(refraction)
     gamma = grid_convergence_deg(cand, dem.crs.geodetic_crs or dem.crs)
     step_az = 360.0 / n_azimuths

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from appliance.atomic import atomic_output, remove_stale_temporaries
-from appliance.errors import DatabaseError, InputError, OutputError
+from appliance.errors import DatabaseError, DemError, InputError, NodataCandidatesError, OutputError
 from appliance.terrain.database import build_on_grids, load_database
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import NodeGrid, _dem_pixel_origin, lattice_of, plan_grids
@@ -282,28 +282,40 @@ def run_tile_jobs(source: MapSource, out: Path, index: dict, keys: tuple[str, ..
             raise OutputError(f"{out / job.file}: built with other parameters; pass --force to build it again")
         (kept if state == "kept" else todo).append(job)
     built: list[str] = []
+    void: set[str] = set()
     peak = 0
     if todo:
         from distributed import as_completed
 
         if client is None:
             raise InputError("a tiled build needs a Dask client")
-        futures = [client.submit(job.task, *job.args, pure=False) for job in todo]
+        futures = {client.submit(job.task, *job.args, pure=False): job.file for job in todo}
         done = len(kept)
         if progress is not None:
             progress(done, len(jobs), unit)
         try:
             for fut in as_completed(futures):
-                res = fut.result()
-                built.append(res["file"])
-                peak = max(peak, int(res["peak_rss_bytes"]))
+                try:
+                    res = fut.result()
+                except NodataCandidatesError:
+                    # a tile wholly on nodata (off the map's edge, in a void) holds no candidate:
+                    # it has no file and the index leaves it out (a rerun finds it void again)
+                    void.add(futures[fut])
+                    res = None
+                if res is not None:
+                    built.append(res["file"])
+                    peak = max(peak, int(res["peak_rss_bytes"]))
+                    log.debug("%s built in %.1f s", res["file"], res["seconds"])
                 done += 1
-                log.debug("%s built in %.1f s", res["file"], res["seconds"])
                 if progress is not None:
                     progress(done, len(jobs), unit)
         finally:
-            client.cancel(futures)
+            client.cancel(list(futures))
     remove_tile_temporaries(out)
+    if void:
+        index = dict(index, tiles=[t for t in index["tiles"] if t["file"] not in void])
+        if not index["tiles"]:
+            raise DemError(f"{source.name}: every candidate node is nodata; no {unit[:-1]} to build")
     with atomic_output(old_path) as tmp:
         tmp.write_text(json.dumps(index, indent=1) + "\n")
     return TiledResult(index, tuple(built), tuple(job.file for job in kept), peak, time.perf_counter() - t_start)
