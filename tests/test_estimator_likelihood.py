@@ -85,7 +85,7 @@ def test_prior_enters_both_bounds():
     assert tilted.lower[0] > flat.lower[0] > tilted.lower[1]
 
 
-def test_best_column_bounds_equal_the_numpy_form_bit_for_bit():
+def test_best_column_bounds_equal_the_numpy_form():
     from appliance.estimator.likelihood import best_column_bounds, mixture_log_likelihood_bounds, occlusion_cap_deg2
 
     rng = np.random.default_rng(5)
@@ -105,5 +105,14 @@ def test_best_column_bounds_equal_the_numpy_form_bit_for_bit():
         c, o = ssd[rows, k].astype(np.float64), occ[rows, k].astype(np.float64)
         ref_lo, ref_up = mixture_log_likelihood_bounds(c, 80.0, o, 0.3, 0.8, weight)
         assert np.array_equal(lo, ref_lo - 0.5 * pen + lp)
-        assert np.array_equal(up, ref_up - 0.5 * pen + lp)
+        # where sigma* lies inside the interval the upper bound takes its logarithm: numpy's log is
+        # vectorised on some CPUs (AVX-512) and may round its last bit unlike the C library's, which
+        # the kernel calls; there the two agree to rounding, elsewhere bit for bit
+        n_i = np.maximum(80.0 - o, 1.0) if weight > 0 else np.full(n_rows, 80.0)
+        star = np.sqrt(np.maximum(c, 0.0) / n_i)
+        inside = np.isfinite(c) & (star > 0.3) & (star < 0.8)
+        assert 0 < inside.sum() < n_rows
+        ref = ref_up - 0.5 * pen + lp
+        assert np.array_equal(up[~inside], ref[~inside])
+        np.testing.assert_allclose(up[inside], ref[inside], rtol=1e-14, atol=0)
         assert scored == int(np.isfinite(c).sum())
