@@ -7,7 +7,7 @@ tiled database differ from the single build (codes, ranges, offset or step).  Un
 the horizon off exactly at the maximum range, a tile whose terrain window is clipped at the reach
 can see a different horizon than the whole map gives, so a non-zero count is expected and reported.
 
-    python bench/tiled_build.py [--tile-nodes 600,600] [--workers 2] [--azimuths 360]
+    python bench/tiled_build.py [--tile-nodes 1201,1201] [--workers 2] [--azimuths 360]
     python bench/tiled_build.py --probe-spacing 30   # one tile of the 30 m build: a worker's peak memory
     python bench/tiled_build.py --full-spacing 30 --out DIR   # the whole 30 m build on the local cluster
 
@@ -197,7 +197,7 @@ def main() -> int:
     from appliance.atomic import write_text_atomic
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tile-nodes", default="600,600")
+    ap.add_argument("--tile-nodes", default="1201,1201")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--azimuths", type=int, default=360)
     ap.add_argument("--probe-spacing", type=float, help="build only the largest tile at this spacing (m)")

@@ -45,7 +45,7 @@ def parse_tile_nodes(text: str) -> tuple[int, int]:
     try:
         rows, cols = (int(v) for v in text.split(","))
     except ValueError:
-        raise InputError(f"--tile-nodes {text!r}: expected ROWS,COLS, e.g. 600,600") from None
+        raise InputError(f"--tile-nodes {text!r}: expected ROWS,COLS, e.g. 1201,1201") from None
     if rows < 1 or cols < 1:
         raise InputError(f"--tile-nodes {text!r}: both counts must be positive")
     return rows, cols
