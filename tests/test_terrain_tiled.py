@@ -205,6 +205,7 @@ def test_tile_wholly_on_nodata_is_left_out_of_the_index(client, tmp_path):
     names = [t["file"] for t in index["tiles"]]
     assert "tile_r000_c000.viperdb" not in names and not (out / "tile_r000_c000.viperdb").exists()
     assert sorted(result.built) == sorted(names) and len(names) >= 5
+    assert result.void == ("tile_r000_c000.viperdb",)
     g = single.grid
     for t in index["tiles"]:
         db = load_database(out / t["file"])
@@ -217,8 +218,23 @@ def test_tile_wholly_on_nodata_is_left_out_of_the_index(client, tmp_path):
     assert np.isnan(single.offset_deg.reshape(g.n_rows, g.n_cols)[: TILE_NODES[0], : TILE_NODES[1]]).all()
     # a rerun finds the void tile void again and keeps the others
     again = build_tiled(source, out, n_azimuths=N_AZ, tile_nodes=TILE_NODES, client=client)
-    assert not again.built and sorted(again.kept) == sorted(names)
+    assert not again.built and sorted(again.kept) == sorted(names) and again.void == result.void
     assert json.loads((out / INDEX).read_text())["tiles"] == index["tiles"]
+
+
+def test_cli_names_the_tiles_left_out_on_nodata(client, tmp_path, capsys):
+    from appliance.cli.main import main
+
+    z = _heights(SIDE, 2 * SIDE - 1)
+    z[: TILE_NODES[0] + 2, : TILE_NODES[1] + 2] = NODATA
+    path = _write_tile(tmp_path / "void_corner.tif", z, WEST)
+    argv = ["precompute", str(path), "--out", str(tmp_path / "cli"), "--tiles", "--azimuths", str(N_AZ),
+            "--tile-nodes", f"{TILE_NODES[0]},{TILE_NODES[1]}", "--scheduler", client.scheduler_info()["address"]]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "1 wholly on nodata left out" in out
+    n_tiles = len(json.loads((tmp_path / "cli" / INDEX).read_text())["tiles"])
+    assert f"{n_tiles} tiles ({n_tiles} built, 0 kept, 1 wholly" in out
 
 
 def test_tiled_build_of_a_map_wholly_on_nodata_fails_in_one_line(client, tmp_path):

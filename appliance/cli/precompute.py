@@ -190,7 +190,8 @@ def run_tiled(args: argparse.Namespace) -> int:
               f"{result.index['max_range_m'] / 1000:.0f} km, in {time.perf_counter() - t0:.1f} s")
         return 0
     lat = result.index["lattice"]
-    print(f"{out}: {len(result.index['tiles'])} tiles ({len(result.built)} built, {len(result.kept)} kept) of "
+    void = f", {len(result.void)} wholly on nodata left out" if result.void else ""
+    print(f"{out}: {len(result.index['tiles'])} tiles ({len(result.built)} built, {len(result.kept)} kept{void}) of "
           f"{lat['n_rows']} x {lat['n_cols']} nodes ({lat['dx_m']:.1f} x {lat['dy_m']:.1f} m) x "
           f"{result.index['n_azimuths']} azimuths in {time.perf_counter() - t0:.1f} s")
     return 0

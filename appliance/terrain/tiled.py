@@ -80,6 +80,8 @@ class TiledResult:
     #: the largest peak resident memory (bytes) of a worker process that built a tile
     peak_rss_bytes: int
     seconds: float
+    #: the tiles wholly on nodata, left out of the index
+    void: tuple[str, ...] = ()
 
 
 def _window(grid: NodeGrid, r0: int, c0: int, n_rows: int, n_cols: int) -> NodeGrid:
@@ -322,4 +324,5 @@ def run_tile_jobs(source: MapSource, out: Path, index: dict, keys: tuple[str, ..
             raise DemError(f"{source.name}: every candidate node is nodata; no {unit[:-1]} to build")
     with atomic_output(old_path) as tmp:
         tmp.write_text(json.dumps(index, indent=1) + "\n")
-    return TiledResult(index, tuple(built), tuple(job.file for job in kept), peak, time.perf_counter() - t_start)
+    return TiledResult(index, tuple(built), tuple(job.file for job in kept), peak, time.perf_counter() - t_start,
+                       tuple(sorted(void)))
