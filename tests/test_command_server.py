@@ -30,24 +30,51 @@ def _env(sock: Path | str, **extra: str) -> dict[str, str]:
     return env
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    """A running `viper --log-level debug serve` and its socket; its stderr lines in a file."""
-    where = tmp_path_factory.mktemp("serve")
+def _start_server(where: Path) -> tuple[subprocess.Popen, Path]:
+    """A `viper --log-level debug serve` on a socket in ``where``, once it serves; its stderr in where/serve.log."""
     sock = where / "run" / "commands.sock"
-    log = (where / "serve.log").open("w")
-    proc = subprocess.Popen([*VIPER, "--log-level", "debug", "serve", "--socket", str(sock)],
-                            stdout=subprocess.DEVNULL, stderr=log, env=_env(""))
+    with (where / "serve.log").open("w") as log:
+        proc = subprocess.Popen([*VIPER, "--log-level", "debug", "serve", "--socket", str(sock)],
+                                stdout=subprocess.DEVNULL, stderr=log, env=_env(""))
     deadline = time.monotonic() + 60
     while "serving" not in (where / "serve.log").read_text():
         assert proc.poll() is None, (where / "serve.log").read_text()
         assert time.monotonic() < deadline, "the server did not start"
         time.sleep(0.1)
-    yield sock, where / "serve.log"
+    return proc, sock
+
+
+def _living_with(text: str) -> list[int]:
+    """The processes alive (not zombies) whose command line holds ``text``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if text in cmdline and state != "Z":
+            found.append(int(entry.name))
+    return found
+
+
+def _stop_server(proc: subprocess.Popen, sock: Path) -> None:
+    """Stop it as systemd does (SIGTERM): it ends cleanly, removes its socket and leaves no worker behind."""
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
-    log.close()
     assert not sock.exists(), "the server left its socket behind"
+    assert _living_with(str(sock)) == [], "a worker outlived the server"
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """A running `viper --log-level debug serve` and its socket; its stderr lines in a file."""
+    where = tmp_path_factory.mktemp("serve")
+    proc, sock = _start_server(where)
+    yield sock, where / "serve.log"
+    _stop_server(proc, sock)
 
 
 def _workers(log: Path) -> list[str]:
@@ -200,16 +227,35 @@ def test_a_removed_working_folder_gives_what_it_gives_in_process(server, tmp_pat
     assert warm.stderr == alone.stderr and len(warm.stderr.splitlines()) == 1, warm.stderr
 
 
-def test_a_folder_the_server_cannot_enter_is_refused_before_anything_runs(server, tmp_path):
-    """A request as the client sends it, for a folder the server cannot enter (here one that is
-    gone): the answer is a refusal, so that the client runs the command itself."""
-    sock, _ = server
-    request = {"argv": RENDER, "cwd": str(tmp_path / "gone"), "env": dict(os.environ, VIPER_SOCKET=""),
+def _refused_for_its_folder(sock: Path, folder: Path) -> dict:
+    """A request as the client sends it, for ``folder``; the server's reply."""
+    request = {"argv": RENDER, "cwd": str(folder), "env": dict(os.environ, VIPER_SOCKET=""),
                "umask": 0o022, "code": _forward.code_identity()}
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
         conn.connect(str(sock))
         conn.sendmsg([json.dumps(request).encode() + b"\n"],
                      [(socket.SOL_SOCKET, socket.SCM_RIGHTS, array.array("i", [0, 1, 2]))])
         reply = _forward.LineReader(conn).read()
-    assert reply is not None and reply["refused"].startswith("its folder: ")
+    assert reply is not None
+    return reply
+
+
+def test_a_folder_the_server_cannot_enter_is_refused_before_anything_runs(server, tmp_path):
+    """A folder the server cannot enter (here one that is gone): the answer is a refusal, so that
+    the client runs the command itself."""
+    reply = _refused_for_its_folder(server[0], tmp_path / "gone")
+    assert reply["refused"].startswith("its folder: ")
     assert "No such file or directory" in reply["refused"]
+
+
+def test_a_server_stopped_just_after_a_command_leaves_no_worker_behind(tmp_path):
+    """A refusal comes back at once, and the server forks the next spare worker as it goes: stopped
+    right then, the new spare must end with it rather than wait for a connection forever."""
+    for k in range(3):
+        where = tmp_path / f"s{k}"
+        where.mkdir()
+        proc, sock = _start_server(where)
+        try:
+            assert "refused" in _refused_for_its_folder(sock, tmp_path / "gone")
+        finally:
+            _stop_server(proc, sock)

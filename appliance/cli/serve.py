@@ -7,6 +7,7 @@ import array
 import importlib
 import io
 import logging
+import math
 import os
 import select
 import signal
@@ -14,6 +15,7 @@ import socket
 import stat
 import struct
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,8 @@ WARM_MODULES = ("appliance.tiled_search", "appliance.estimate_outputs", "numpy.m
                 "numba.cpython.charseq", "numba.cpython.randomimpl", "numba.misc.mergesort")
 #: Seconds between the server's checks for finished workers and a request to stop.
 POLL_S = 0.5
+#: How long a stopping server waits for its spare workers to end before killing them (s).
+STOP_WAIT_S = 5.0
 #: Seconds a client has to send its request once connected.
 REQUEST_TIMEOUT_S = 10.0
 
@@ -82,11 +86,7 @@ def run(args: argparse.Namespace) -> int:
                     idle.add(_fork_spare(listener, taken_w, identity, fixed))
         except KeyboardInterrupt:
             pass
-        for pid in idle:
-            try:
-                os.kill(pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+        _stop_spares(idle)
         notifier.stopping()
         LOG.info("stopped")
         return 0
@@ -147,11 +147,47 @@ def _reap() -> set[int]:
 
 def _fork_spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, str]) -> int:
     """Fork a spare worker, which waits for the next connection; it writes its pid to ``taken`` once
-    it has one, and the server then forks the next spare (as it does when a spare ends)."""
-    pid = os.fork()
-    if pid == 0:
-        _spare(listener, taken, identity, fixed)
+    it has one, and the server then forks the next spare (as it does when a spare ends).
+
+    SIGTERM is blocked across the fork: a spare stopped before it has put back the default action
+    would otherwise run the server's handler instead, and wait for a connection that never comes;
+    blocked, the signal waits until the default is in place, and then ends the spare."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    try:
+        pid = os.fork()
+        if pid == 0:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+            _spare(listener, taken, identity, fixed)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
     return pid
+
+
+def _stop_spares(idle: set[int]) -> None:
+    """End the spare workers still waiting for a connection, and wait for them (SIGKILL after
+    STOP_WAIT_S), so that none outlives the server, even as a zombie under an init that does not reap."""
+    for pid in idle:
+        try:
+            os.kill(pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+    deadline = time.monotonic() + STOP_WAIT_S
+    left = set(idle)
+    while left:
+        for pid in list(left):
+            try:
+                done, _ = os.waitpid(pid, os.WNOHANG)
+            except ChildProcessError:
+                done = pid
+            if done:
+                left.discard(pid)
+        if left and time.monotonic() > deadline:
+            for pid in left:
+                os.kill(pid, signal.SIGKILL)
+            deadline = math.inf
+        if left:
+            time.sleep(0.01)
 
 
 def _spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, str]) -> None:
@@ -160,7 +196,6 @@ def _spare(listener: socket.socket, taken: int, identity: str, fixed: dict[str, 
     connection has a process of its own, so a slow client holds up no other.  Never returns."""
     fds: list[int] = []
     try:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         load_cached_kernels(parallel=True)
         listener.settimeout(None)
         conn, _ = listener.accept()
