@@ -175,7 +175,7 @@ def full(args: argparse.Namespace) -> int:
         f"{len(result.index['tiles'])} tiles, LocalCluster of {args.workers} single-threaded worker processes.",
         "",
         f"- tiles built in this run: {len(result.built)} ({built_nodes:,} candidates); kept from an earlier run: "
-        f"{len(result.kept)}",
+        f"{len(result.kept)}; wholly on nodata, left out: {len(result.void)}",
         f"- wall time: **{wall / 60:.1f} min**; {rate:,.0f} candidates per second per worker",
         f"- peak RSS of the largest worker: **{result.peak_rss_bytes / 2**20:.0f} MiB** (target 2 GB per worker)",
         f"- storage: {tile_bytes / 2**30:.1f} GiB in {len(result.index['tiles'])} tile files "
