@@ -35,14 +35,12 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.estimator import SkylineGrid, estimate  # noqa: E402
 from appliance.position import skyline_grid  # noqa: E402
-from appliance.terrain.database import build_database, load_database  # noqa: E402
-from appliance.terrain.dem import load_dem  # noqa: E402
+from bench.estimator_speed import tile_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
 # the module, not the function the package exports under its name
 estimate_module = importlib.import_module("appliance.estimator.estimate")
-TILE = HERE.parent.parent / "shared" / "data" / "dem_srtm_hgt" / "N44W072.hgt"
 NOISE_DEG = 0.2
 SIGMA_DEG = (0.3, 0.8)
 
@@ -74,15 +72,10 @@ def main() -> int:
     ap.add_argument("--fov", type=float, default=55.0, help="field of view, deg")
     ap.add_argument("--kernel-from", default=None, metavar="REV")
     args = ap.parse_args()
-    if not TILE.exists():
-        print(f"{TILE} absent: nothing to measure")
+    loaded = tile_database()
+    if loaded is None:
         return 0
-    dem = load_dem(TILE)
-    path = HERE / "cache" / "n44w072-full.viperdb"
-    if not path.exists():
-        path.parent.mkdir(exist_ok=True)
-        build_database(dem, path, progress=None)
-    db = load_database(path, dem)
+    dem, db = loaded
     grid = skyline_grid(db)
     cell = math.sqrt(grid.dx_m * grid.dy_m)
     kernels = {"new": estimate_module.ssd_for_shifts}

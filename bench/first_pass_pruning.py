@@ -56,12 +56,10 @@ from appliance.estimator.search import (  # noqa: E402
 )
 from appliance.numerics import FAST_FINITE  # noqa: E402
 from appliance.position import skyline_grid  # noqa: E402
-from appliance.terrain.database import build_database, load_database  # noqa: E402
-from appliance.terrain.dem import load_dem  # noqa: E402
+from bench.estimator_speed import bench_skyline, tile_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 
 EST = importlib.import_module("appliance.estimator.estimate")
-TILE = HERE.parent.parent / "shared" / "data" / "dem_srtm_hgt" / "N44W072.hgt"
 MARGINS_NATS = (250.0, 1000.0)
 #: float32 sums of the bounds may exceed the full sums by a few units in the last place
 ROUNDING = 1.0 - 1e-4
@@ -307,22 +305,12 @@ def upper_from_floor(floor: np.ndarray, pen: np.ndarray, meas: Any, weight: floa
 
 
 def main() -> int:
-    if not TILE.exists():
-        print(f"{TILE} absent: nothing to measure")
+    loaded = tile_database()
+    if loaded is None:
         return 0
-    dem = load_dem(TILE)
-    path = HERE / "cache" / "n44w072-full.viperdb"
-    if not path.exists():
-        (HERE / "cache").mkdir(exist_ok=True)
-        build_database(dem, path, progress=None)
-    db = load_database(path, dem)
+    _, db = loaded
     g = skyline_grid(db)
-    # the skyline of estimator_speed.py
-    rng = np.random.default_rng(3)
-    node = 70 * g.n_cols + 600
-    az = np.arange(360.0)
-    el = np.roll(db.skylines_deg(node), -2) + rng.normal(0, 0.2, 360)
-    el[rng.choice(360, 36, replace=False)] = np.nan
+    az, el = bench_skyline(db)
     coarse = g.coarse
     partial = coarse[1]
     rows = []
