@@ -22,10 +22,11 @@ from typing import Any
 import numpy as np
 
 from appliance.atomic import atomic_output, write_text_atomic
+from appliance.estimator.exact import EYE_SIGMA_M
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
-from appliance.position import Position, truth_error_m
+from appliance.position import Position, altitude_m, truth_error_m
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -154,9 +155,7 @@ def write_estimate_records(log: Logbook, time_ns: int, db: SkylineDatabase, pos:
     (FrameTransform), lower posterior (Grid) and the skyline rendered at the estimate; returns the
     record with its error against ``truth``."""
     rec = estimate_record(db, pos, skyline, truth)
-    cell_m = math.sqrt(pos.cell_size_m[0] * pos.cell_size_m[1])
-    log.write_proto(t.ESTIMATE_FIX, m.location_fix(time_ns, pos.lat, pos.lon, sigma_m=cell_m, frame_id="estimate"),
-                    time_ns)
+    log.write_proto(t.ESTIMATE_FIX, estimate_fix(db, pos, time_ns, "estimate"), time_ns)
     log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
     log.write_proto(t.REGION, m.geojson(region_features(db, pos)), time_ns)
     log.write_proto(t.TF, posterior_transform(db, pos, time_ns), time_ns)
@@ -164,6 +163,18 @@ def write_estimate_records(log: Logbook, time_ns: int, db: SkylineDatabase, pos:
     log.write_json(t.SKYLINE_RENDERED, "viper.Skyline", skyline_payload(rendered_skyline(db, pos)), time_ns)
     log.flush()
     return rec
+
+
+def estimate_fix(db: SkylineDatabase, pos: Position, time_ns: int, frame_id: str) -> m.LocationFix:
+    """The estimate as a LocationFix: the map's altitude plus the eye's height, and the covariance
+    (east, north from the estimate; up: the map's height error under the camera)."""
+    cov = pos.result.covariance_m2
+    enu = None
+    if cov is not None:
+        enu = np.zeros((3, 3))
+        enu[:2, :2] = cov
+        enu[2, 2] = EYE_SIGMA_M**2
+    return m.location_fix(time_ns, pos.lat, pos.lon, altitude_m(db, pos), frame_id=frame_id, covariance_enu_m2=enu)
 
 
 def write_region_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:

@@ -20,6 +20,7 @@ from appliance.estimator import (
     FirstPass,
     PositionPrior,
     SkylineGrid,
+    confidence,
     estimate,
     transport_fix,
     transport_prior,
@@ -87,6 +88,10 @@ class Position:
                 "cells": cells,
                 "cells_truncated": int(r.region_nodes.size) > len(cells),
             },
+            "covariance_m2": covariance_json(r.covariance_m2),
+            "radius95_m": None if r.covariance_m2 is None else round(confidence.radius_m(r.covariance_m2), 2),
+            "altitude_m": _round_or_none(altitude_m(db, self), 2),
+            "independent_azimuths": _round_or_none(r.independent_azimuths, 1),
             "ambiguous": r.ambiguous,
             "status": estimate_status(db, self, truth),
             "rms_residual_deg": round(r.rms_residual_deg, 4),
@@ -101,26 +106,82 @@ class Position:
         return out
 
 
+def covariance_json(cov: np.ndarray | None) -> list[list[float]] | None:
+    """[[ee, en], [en, nn]] (m^2) as the JSON record carries it; None without one."""
+    if cov is None:
+        return None
+    return [[round(float(cov[0, 0]), 4), round(float(cov[0, 1]), 4)],
+            [round(float(cov[1, 0]), 4), round(float(cov[1, 1]), 4)]]
+
+
+def _round_or_none(v: float, digits: int) -> float | None:
+    return round(v, digits) if math.isfinite(v) else None
+
+
+def altitude_m(db: SkylineDatabase, pos: Position) -> float:
+    """The camera's altitude (m, the map's vertical datum): the map's surface under the answer plus
+    the camera's height and the eye's offset the exact fit found; NaN off the map."""
+    r = pos.result
+    rows, cols = db.terrain_m.shape
+    tr = r.row + db.terrain_origin[0]
+    tc = r.col + db.terrain_origin[1]
+    if not (0.0 <= tr <= rows - 1 and 0.0 <= tc <= cols - 1):
+        return math.nan
+    r0, c0 = min(int(tr), rows - 2), min(int(tc), cols - 2)
+    fr, fc = tr - r0, tc - c0
+    h = db.terrain_m[r0:r0 + 2, c0:c0 + 2].astype(np.float64)
+    ground = float((h[0, 0] * (1 - fc) + h[0, 1] * fc) * (1 - fr) + (h[1, 0] * (1 - fc) + h[1, 1] * fc) * fr)
+    eye = r.eye_offset_m if math.isfinite(r.eye_offset_m) else 0.0
+    return ground + float(db.height_m) + eye
+
+
 def truth_error_m(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> float:
     """Geodesic distance (m) on the database's body from the estimate to ``truth`` (lat, lon)."""
     return geodesic_distance_m(pos.lat, pos.lon, truth[0], truth[1], body_named(db.header["body"]))
 
 
+def truth_offset_m(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> np.ndarray:
+    """Where the true (lat, lon) lies from the estimate: metres east and north, along the geodesic
+    on the database's body."""
+    az, _, dist = body_named(db.header["body"]).geod.inv(pos.lon, pos.lat, truth[1], truth[0])
+    a = math.radians(float(az))
+    return np.array([dist * math.sin(a), dist * math.cos(a)])
+
+
+def truth_in_ellipse(db: SkylineDatabase, pos: Position, truth: tuple[float, float],
+                     level: float = confidence.LEVEL) -> bool:
+    """Whether the true (lat, lon) lies inside the estimate's covariance ellipse at ``level``."""
+    cov = pos.result.covariance_m2
+    return cov is not None and confidence.inside_ellipse(truth_offset_m(db, pos, truth), cov, level)
+
+
 def truth_in_region(db: SkylineDatabase, pos: Position, truth: tuple[float, float]) -> bool:
-    """Whether the node nearest the true (lat, lon) belongs to the estimate's region."""
+    """Whether the true (lat, lon) lies inside the estimate's 95 % region: the answer's ellipse, or a
+    cell of a rival place (the node nearest the truth among the region's rival nodes)."""
+    if truth_in_ellipse(db, pos, truth):
+        return True
     x, y = db.grid.lonlat_to_xy(truth[1], truth[0])
     fr, fc = db.grid.xy_to_rc(x, y)
     r, c = int(round(float(fr))), int(round(float(fc)))
     if not (0 <= r < db.grid.n_rows and 0 <= c < db.grid.n_cols):
         return False
-    return bool(np.isin(r * db.grid.n_cols + c, pos.result.region_nodes))
+    return bool(np.isin(r * db.grid.n_cols + c, pos.result.rival_nodes))
 
 
 def estimate_status(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None = None) -> str:
-    """'ambiguous' when the region is too large, or the truth (where known) lies outside it; else 'ok'."""
+    """'ambiguous' when rival places share the posterior, or the truth (where known) lies outside the
+    region; else 'ok'."""
     if pos.result.ambiguous or (truth is not None and not truth_in_region(db, pos, truth)):
         return "ambiguous"
     return "ok"
+
+
+def fix_status(pos: Position) -> str:
+    """"ok +- R m" (R: the 95 % ellipse's semi-major axis) or "ambiguous": what a person reads."""
+    r = pos.result
+    if r.ambiguous or r.covariance_m2 is None:
+        return "ambiguous"
+    return f"ok ± {confidence.radius_m(r.covariance_m2):.1f} m"
 
 
 def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
@@ -169,16 +230,17 @@ def locate(
     refine: bool = True,
     rescore_floor: float | None = None,
     first: FirstPass | None = None,
+    learn_noise: bool = True,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
     its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine``,
-    ``rescore_floor`` and ``first`` are those of :func:`appliance.estimator.estimate`."""
+    ``rescore_floor``, ``first`` and ``learn_noise`` are those of :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
                    map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine,
-                   rescore_floor=rescore_floor, first=first)
+                   rescore_floor=rescore_floor, first=first, learn_noise=learn_noise)
     return place(db, res, source)
 
 

@@ -359,7 +359,8 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
         db, grid, first = _tile_first_pass(folder, tile, skyline, params, expect)
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source, grid=grid,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
-                     map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor, first=first)
+                     map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor, first=first,
+                     learn_noise=False)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result

@@ -33,10 +33,12 @@ sys.path.insert(0, str(HERE.parent))
 from appliance.acquisition.onboard import stitch_frames  # noqa: E402
 from appliance.acquisition.platform import Frame  # noqa: E402
 from appliance.acquisition.procedures import TaggedFrame, capture_angles  # noqa: E402
+from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.config import EstimatorConfig, SessionConfig  # noqa: E402
 from appliance.position import locate, skyline_grid, truth_in_region  # noqa: E402
 from appliance.sim.demo import demo_database  # noqa: E402
 from appliance.sim.field_session import random_position  # noqa: E402
+from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from appliance.vision.camera import CameraPose  # noqa: E402
@@ -61,7 +63,15 @@ def world_skyline_fn(dem, lat: float, lon: float, height_m: float):
     return fn
 
 
-def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: EstimatorConfig, ses: SessionConfig):
+def session_skyline(seed: int, dem, db, intr: CameraIntrinsics, ses: SessionConfig,
+                    cache: Path | None = None) -> tuple[float, float, Skyline]:
+    """The true (lat, lon) of ``seed`` and the skyline its session detects; with ``cache``, kept
+    there as ``seed_N.csv`` (the truth in its first line's comment) and read back on the next run."""
+    path = None if cache is None else cache / f"seed_{seed}.csv"
+    if path is not None and path.exists():
+        head, _, body = path.read_text().partition("\n")
+        lat, lon = (float(v) for v in head.lstrip("# ").split(","))
+        return lat, lon, parse_skyline_csv(body, str(path))
     rng = np.random.default_rng(seed)
     lat, lon = random_position(dem, db, rng)
     heading = float(rng.uniform(0.0, 360.0))
@@ -75,6 +85,14 @@ def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: Estimator
         frame = Frame(i, img)
         frames.append(TaggedFrame(i, frame, float(stage), (true_yaw + compass_error) % 360.0, roll, pitch))
     sky = detect_skyline(stitch_frames(frames, intr))
+    if path is not None:
+        write_text_atomic(path, f"# {lat!r},{lon!r}\n" + format_skyline_csv(sky))
+    return lat, lon, sky
+
+
+def one_session(seed: int, dem, db, grid, intr: CameraIntrinsics, est: EstimatorConfig, ses: SessionConfig,
+                cache: Path | None = None):
+    lat, lon, sky = session_skyline(seed, dem, db, intr, ses, cache)
     # as the session's onboard estimate does (acquisition/onboard.locate_skyline)
     pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid, occlusion_weight=est.occlusion_weight,
                  map_sigma_m=est.map_vertical_sigma_m)
@@ -97,7 +115,12 @@ def _setup() -> None:
 
 def _run(seed: int) -> tuple:
     st = _STATE
-    err, pos, inside, seen = one_session(seed, st["dem"], st["db"], st["grid"], st["intr"], st["est"], st["ses"])
+    if st.get("only"):
+        session_skyline(seed, st["dem"], st["db"], st["intr"], st["ses"], st["cache"])
+        print(f"seed {seed}: skyline kept", flush=True)
+        return None
+    err, pos, inside, seen = one_session(seed, st["dem"], st["db"], st["grid"], st["intr"], st["est"], st["ses"],
+                                         st["cache"])
     r = pos.result
     cells = err / st["cell_m"]
     flag = "ambiguous" if r.ambiguous else "ok"
@@ -112,7 +135,13 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=100)
     ap.add_argument("--first", type=int, default=1)
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (each loads the database)")
+    ap.add_argument("--skylines", type=Path, help="keep each seed's detected skyline in this folder, and "
+                    "read it from there on later runs (the estimator alone is then rerun)")
+    ap.add_argument("--skylines-only", action="store_true", help="only detect and keep the skylines")
     args = ap.parse_args()
+    if args.skylines is not None:
+        args.skylines.mkdir(parents=True, exist_ok=True)
+    _STATE.update(cache=args.skylines, only=args.skylines_only)
     _setup()  # builds the database once, before any worker starts
     cell_m = _STATE["cell_m"]
     seeds = list(range(args.first, args.first + args.seeds))
@@ -125,6 +154,8 @@ def main() -> int:
     else:
         rows = [_run(seed) for seed in seeds]
     wall = time.monotonic() - t0
+    if args.skylines_only:
+        return 0
     cells = np.array([x[1] for x in rows])
     inside = np.array([x[2] for x in rows])
     region = np.array([x[3] for x in rows])

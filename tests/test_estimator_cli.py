@@ -58,7 +58,11 @@ def test_json_estimate_within_two_cells_between_nodes(db_path, tmp_path, capsys)
     assert rec["truth"]["error_m"] <= 2 * cell
     assert rec["heading_correction_deg"] == pytest.approx(2.3, abs=1.0)
     assert rec["crs"] == "EPSG:4326"
-    assert rec["region"]["area_m2"] == pytest.approx(len(rec["region"]["cells"]) * db.grid.dx_m * db.grid.dy_m)
+    # the 95 % region is the answer's covariance ellipse (no rival place here), its radius the major axis
+    cov = np.array(rec["covariance_m2"])
+    assert rec["status"] == "ok" and cov.shape == (2, 2)
+    assert rec["region"]["area_m2"] == pytest.approx(np.pi * 5.991 * np.sqrt(np.linalg.det(cov)), rel=1e-2)
+    assert rec["radius95_m"] == pytest.approx(np.sqrt(5.991 * np.linalg.eigvalsh(cov)[-1]), rel=1e-2)
     assert 0.0 <= rec["lower"] <= rec["upper"] <= 1.0
     # the report opens as what it claims to be
     rep = tmp_path / "rep"

@@ -114,8 +114,11 @@ def test_the_camera_height_is_given_per_estimate(valley_db):
     g = skyline_grid(db)
     right = estimate(g, sky.azimuth_deg, sky.elevation_deg, (0.3, 0.8), 4.0, height_m=12.0)
     assert _error_m(dem, place(db, right), lat, lon) < 5.0
+    assert abs(right.eye_offset_m) < 1.0
+    # given the database's 1.5 m, the fit at the learned sigma finds the roof: the eye 10.5 m higher
     wrong = estimate(g, sky.azimuth_deg, sky.elevation_deg, (0.3, 0.8), 4.0)
-    assert wrong.rms_residual_deg > 3 * right.rms_residual_deg
+    assert wrong.eye_offset_m == pytest.approx(12.0 - 1.5, abs=1.5)
+    assert _error_m(dem, place(db, wrong), lat, lon) < 5.0
 
 
 def test_the_occlusion_cap_is_where_the_mixture_levels_off():

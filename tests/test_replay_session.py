@@ -102,7 +102,8 @@ def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, wi
     out = tmp_path / "the report"
     results, page = replay_logs([odd, truncated, junk], window_db, EstimatorConfig(sigma_deg=(0.3, 0.8)), out)
     ok, cut, bad = results
-    assert ok.position is not None and ok.position.result.sigma_deg == (0.3, 0.8)
+    # sigma is learned from the skyline within the interval the search was given
+    assert ok.position is not None and 0.0 < ok.position.result.sigma_deg[0] <= ok.position.result.sigma_deg[1] <= 0.8
     # the truncated log gives what it holds, and says so
     assert not cut.data.complete and 0 < len(cut.data.frames) < 9
     assert "incomplete" in cut.notes[0]

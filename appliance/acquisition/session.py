@@ -320,7 +320,8 @@ class Session:
         if self.db is None:
             self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
-        from appliance.estimate_outputs import skyline_payload, write_estimate_records
+        from appliance.estimate_outputs import estimate_fix, skyline_payload, write_estimate_records
+        from appliance.position import fix_status
         from appliance.vision.skyline_detect import detect_skyline
 
         pano = onboard.stitch_frames(frames, self.p.camera.intrinsics)
@@ -350,15 +351,15 @@ class Session:
 
             self.result.estimate_alone = pos
             self.result.error_alone_m = None if where is None else truth_error_m(self.db, pos, where)
-            self.log.write_proto(t.ESTIMATE_ALONE_FIX, m.location_fix(self.now(), pos.lat, pos.lon,
-                                                                     frame_id="estimate_alone"), self.now())
+            self.log.write_proto(t.ESTIMATE_ALONE_FIX, estimate_fix(self.db, pos, self.now(), "estimate_alone"),
+                                 self.now())
             self.on_status("estimate: fusing with the previous stop")
             pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id,
                                          log_prior=self.log_prior, position_prior=self.position_prior)
         self.result.estimate = pos
         rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
-        flag = "ambiguous" if pos.result.ambiguous else "ok"
+        flag = fix_status(pos)
         fused = " fused with the previous stop" if self.log_prior is not None else ""
         if rec.error_m is not None:
             self.say("info", f"estimate{fused} {pos.lat:.6f} {pos.lon:.6f} ({flag}): {rec.error_m:.0f} m from the "

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if args.skyline_only:
         return run_skyline_only(args)
     from appliance.acquisition.replay import session_report
-    from appliance.position import truth_error_m
+    from appliance.position import fix_status, truth_error_m
     from appliance.sim.field_session import run_field_session
 
     out = check_output_folder(args.out)
@@ -95,8 +95,8 @@ def run(args: argparse.Namespace) -> int:
         p = r.estimate
         cell = (p.cell_size_m[0] * p.cell_size_m[1]) ** 0.5
         err = "no GPS truth" if r.error_m is None else f"{r.error_m:.0f} m from the GPS truth"
-        flag = "AMBIGUOUS" if p.result.ambiguous else "ok"
-        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {flag}: {err} ({truth_error_m(db, p, (lat, lon)):.0f} m "
+        true_m = truth_error_m(db, p, (lat, lon))
+        print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {fix_status(p)}: {err} ({true_m:.0f} m "
               f"from the true position; database nodes {cell:.0f} m apart)")
         for note in p.result.notes:
             print(f"  note       {note}")
@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
+    from appliance.position import fix_status
     from appliance.sim.demo import run_demo
 
     check_output_folder(args.out)
@@ -121,7 +122,7 @@ def run_skyline_only(args: argparse.Namespace) -> int:
     print(f"  truth      {r.truth_lat:.6f}, {r.truth_lon:.6f}  (camera 1.5 m above the ground)")
     print(f"  skyline    {r.skyline_path}: noise 0.2 deg, {360 - p.result.n_valid} of 360 azimuths missing, "
           f"compass error {r.compass_error_deg:+.1f} deg")
-    print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {'AMBIGUOUS' if p.result.ambiguous else 'ok'}"
+    print(f"  estimate   {p.lat:.6f}, {p.lon:.6f}  {fix_status(p)}"
           f"  heading correction {p.result.heading_correction_deg:+.1f} deg"
           f"  in {p.result.elapsed_s * 1e3:.0f} ms over {p.result.candidates} candidates")
     print(f"  error      {r.error_m:.0f} m ({r.error_m / cell:.2f} cells of {cell:.0f} m)")

@@ -15,7 +15,7 @@ from typing import Any
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
-from appliance.position import Move, locate, locate_sequence
+from appliance.position import Move, fix_status, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
@@ -155,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(record), flush=True)
         else:
             err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
-            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  {record['status']}"
+            status = fix_status(pos) if record["status"] == "ok" else record["status"]
+            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  {status}"
                   f"  heading correction {pos.result.heading_correction_deg:+.1f} deg"
                   f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")

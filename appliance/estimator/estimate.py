@@ -32,8 +32,8 @@ import numba
 import numpy as np
 
 from appliance.errors import EstimationError, InputError
-from appliance.estimator import parallax
-from appliance.estimator.exact import Fit, Model, PositionPrior, Terrain
+from appliance.estimator import confidence, parallax
+from appliance.estimator.exact import Fit, Model, PositionPrior, Terrain, marginal_position_covariance
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
 from appliance.estimator.likelihood import (
@@ -59,8 +59,6 @@ COARSE_STRIDE = 4
 #: lower log-likelihood are rescored on every azimuth.
 RESCORE_MARGIN_NATS = 200.0
 MIN_RESCORE = 64
-#: A region wider than this many map cells is reported as ambiguous.
-AMBIGUOUS_CELLS = 25
 #: How many of the region's most likely nodes (at least two cells apart) get one exact render, and
 #: how many of those the refinement fits in full.
 SCREEN_NODES = 40
@@ -74,6 +72,14 @@ LOOK_MARGIN = 2.0
 SCREEN_MARGIN_NATS = 30.0
 #: A look stands for the neighbourhood of its point, this spread (1 sigma, cells) around it.
 SCREEN_SPREAD_CELLS = 0.3
+#: A region (sigma as given, not learned) wider than this many map cells is reported as ambiguous.
+AMBIGUOUS_CELLS = 25
+#: A best fit that leaves more than this share of the azimuths to occluders has not explained the skyline.
+MAX_OCCLUDED_SHARE = 0.5
+#: The prior on a levelled head's residual tilt (deg, 1 sigma per axis), fitted with the learned sigma.
+TILT_SIGMA_DEG = 0.3
+#: The position's spread (cells) when the best fit is fitted again at the learned sigma.
+POLISH_SPREAD_CELLS = 0.05
 #: Refined fits closer than this (cells) to the best are the same answer.
 SAME_ANSWER_CELLS = 2.0
 #: The smallest field of view (deg of valid azimuths) a skyline must cover.
@@ -233,6 +239,17 @@ class EstimateResult:
     log_upper_unnormalised_map: np.ndarray | None = None
     #: how many nodes the first pass let through to be scored on every azimuth
     rescored: int = 0
+    #: the answer's covariance (east, north; m^2) at sigma learned from the skyline; None without one
+    covariance_m2: np.ndarray | None = None
+    #: how many independent azimuths the skyline is worth (its residuals' autocorrelation)
+    independent_azimuths: float = math.nan
+    #: the credible region's nodes that belong to other modes than the answer's (rival places)
+    rival_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    #: posterior share of the answer's mode and of the rival modes
+    main_mass: float = math.nan
+    rival_mass: float = 0.0
+    #: the eye's height found by the exact fit above the map's surface under it (m), NaN without one
+    eye_offset_m: float = math.nan
 
 
 class _RefineContext:
@@ -525,6 +542,7 @@ def estimate(
     position_prior: PositionPrior | None = None,
     rescore_floor: float | None = None,
     first: FirstPass | None = None,
+    learn_noise: bool = True,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -542,7 +560,10 @@ def estimate(
     another part of the same lattice (:attr:`FirstPass.best_lower` on another tile): the nodes here are
     rescored only if they come within reach of it too, as one search over both parts would do.
     ``first`` is this skyline's :func:`first_pass` on this grid, made earlier (ValueError if it was
-    made for another skyline or other arguments); None makes it here.
+    made for another skyline or other arguments); None makes it here.  ``learn_noise`` (with an exact
+    fit) replaces ``sigma_deg`` by the interval the best fit's residuals give and tempers the
+    likelihood by the skyline's share of independent azimuths (``confidence.py``); ``sigma_deg`` then
+    only steers the search.  A search over several grids keeps one sigma for all (False).
     """
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
@@ -566,27 +587,132 @@ def estimate(
     rescored = _rescore(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
-    region, rival = post.region, False
+    fits: list[Fit] = []
+    best_fit: Fit | None = None
     notes: list[str] = []
     if refine:
-        answer, region, rival, notes = _refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
-                                                height_m, position_prior)
+        answer, fits, best_fit, notes = _refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
+                                                 height_m, position_prior)
+    searched, temper, learned = meas, 1.0, False
+    if learn_noise and best_fit is not None and best_fit.residual_deg is not None:
+        meas, _ = _learned(meas, best_fit)
+        polished = _polished(grid, meas, best_fit, heading_tolerance_deg, height_m, position_prior)
+        if polished is not None:
+            best_fit = polished
+            answer = _Answer(polished.row, polished.col, polished.heading_deg, polished.rms_deg,
+                             polished.covariance_cells)
+        meas, temper = _learned(searched, best_fit)
+        learned = True
+        lo, up, scored = _first_pass_bounds(first.scores, meas)
+        plausible = _Plausible(plausible.nodes, lo * temper + lp, up * temper + lp, scored)
+        post = _posteriors(meas, lp, plausible, rescored, temper)
+    rivals = [] if best_fit is None else _rival_fits(fits, best_fit, grid, lp, meas, temper, position_prior)
+    conf = confidence.modes(post.posterior_mid, grid.n_rows, grid.n_cols, answer.row, answer.col,
+                            same_cells=SAME_ANSWER_CELLS)
+    cov_cells = _answer_covariance(best_fit, meas, temper, conf)
+    answer_node = _nearest_node(grid, answer.row, answer.col)
+    cov_m2 = confidence.grid_to_east_north(cov_cells, grid.dx_m, grid.dy_m,
+                                           float(grid.convergence_deg[answer_node]))
+    fit_cells = [_nearest_node(grid, f.row, f.col) for f in rivals]
     cell_area = grid.dx_m * grid.dy_m
-    area = region.size * cell_area
-    notes += _quality_notes(region.size, area, rival, answer.rms_deg, meas.sigma_hi_deg)
+    hidden = 0.0 if best_fit is None else best_fit.occluded / max(best_fit.n, 1)
+    poor = answer.rms_deg > searched.sigma_hi_deg or hidden > MAX_OCCLUDED_SHARE
+    if learned:
+        # the 95 % region: the answer's ellipse and the cells of the rival places
+        rival_cells = np.union1d(conf.rivals, fit_cells).astype(np.int64)
+        region = np.union1d(np.union1d(conf.region, rival_cells), [answer_node]).astype(np.int64)
+        area = confidence.ellipse_area_m2(cov_m2) + rival_cells.size * cell_area
+        ambiguous = bool(rival_cells.size) or poor
+        notes += _quality_notes(conf, rival_cells.size * cell_area, bool(rivals), answer.rms_deg, searched.sigma_hi_deg)
+        if hidden > MAX_OCCLUDED_SHARE:
+            notes.append(f"ambiguous: poor match: {hidden:.0%} of the skyline stands above the map's terrain at the "
+                         "best place; the skyline may not come from this map")
+    else:
+        # sigma as given: the nodes whose upper posterior reaches the best's lower one
+        rival_cells = np.zeros(0, dtype=np.int64)
+        region = np.union1d(post.region, [answer_node] + fit_cells).astype(np.int64)
+        area = region.size * cell_area
+        ambiguous = region.size > AMBIGUOUS_CELLS or bool(rivals) or poor
+        notes += _region_notes(region.size, area)
+        notes += _quality_notes(conf, 0.0, bool(rivals), answer.rms_deg, searched.sigma_hi_deg)
     return EstimateResult(
         row=answer.row, col=answer.col, node=post.best_node, heading_correction_deg=answer.heading_deg,
         lower=float(np.exp(post.best_log_lower)), upper=float(np.exp(post.best_log_upper)),
         log_lower=post.best_log_lower,
         region_nodes=region, region_area_m2=area, log_lower_map=post.node_lower, log_upper_map=post.node_upper,
         posterior_map=post.posterior_mid, rms_residual_deg=answer.rms_deg, n_valid=meas.n_valid,
-        sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=region.size > AMBIGUOUS_CELLS or rival,
+        sigma_deg=(meas.sigma_lo_deg, meas.sigma_hi_deg), ambiguous=ambiguous,
         candidates=plausible.scored_nodes * first.scores.band.size,
-        elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=answer.covariance_cells,
+        elapsed_s=time.perf_counter() - t0, notes=notes, covariance_cells=cov_cells,
         log_evidence_lower=post.log_sum_lo, log_evidence_upper=post.log_sum_up, log_evidence_mid=post.log_sum_mid,
         log_lower_unnormalised=post.best_lo_unnormalised, log_upper_unnormalised=post.best_up_unnormalised,
         log_upper_unnormalised_map=post.node_upper_unnormalised, rescored=int(plausible.nodes.size),
+        covariance_m2=cov_m2, independent_azimuths=meas.n_eff * temper, rival_nodes=rival_cells,
+        main_mass=conf.main_mass, rival_mass=conf.rival_mass,
+        eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m,
     )
+
+
+def _learned(meas: _Measurement, fit: Fit) -> tuple[_Measurement, float]:
+    """The measurement with sigma's interval learned from ``fit``'s residuals, and the tempering of
+    its likelihood: independent azimuths over measured ones (``confidence.py``)."""
+    r = fit.residual_deg
+    assert r is not None
+    rms = math.sqrt(float(np.nanmean(r * r))) if np.isfinite(r).any() else meas.sigma_ref_deg
+    independent = confidence.independent_azimuths(r)
+    lo, hi = confidence.sigma_interval(rms, independent)
+    temper = min(1.0, independent / max(float(np.isfinite(r).sum()), 1.0))
+    learned = _Measurement(meas.elevation_deg, meas.weight, meas.valid, meas.n_valid, meas.n_eff, lo, hi,
+                           0.5 * (lo + hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)
+    return learned, temper
+
+
+def _polished(grid: SkylineGrid, meas: _Measurement, fit: Fit, heading_tolerance_deg: float | None,
+              height_m: float | None, position_prior: PositionPrior | None) -> Fit | None:
+    """``fit`` fitted again from where it stands at the measurement's (learned) sigma: the weights,
+    the occlusion cap and the point where the fit is at the noise follow the noise the skyline has,
+    not the search's.  None when the new fit fails."""
+    assert grid.terrain is not None
+    sigma, step = meas.sigma_ref_deg, grid.az_step_deg
+    tol = heading_tolerance_deg
+    bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+    node = _nearest_node(grid, fit.row, fit.col)
+    n_row, n_col = divmod(node, grid.n_cols)
+    model = Model(meas.weight, occlusion_cap_deg2(meas.occlusion_weight, sigma), meas.map_sigma_m)
+    return refine_exact(grid.terrain, grid.dx_m, grid.dy_m, meas.elevation_deg, n_row, n_col, grid.n_cols,
+                        fit.heading_deg, height_m, (fit.row, fit.col), sigma, bounds, model, position_prior,
+                        start_spread_cells=POLISH_SPREAD_CELLS, tilt_sigma_deg=TILT_SIGMA_DEG)
+
+
+def _rival_fits(fits: list[Fit], best: Fit, grid: SkylineGrid, lp: np.ndarray, meas: _Measurement, temper: float,
+                position_prior: PositionPrior | None) -> list[Fit]:
+    """The exact fits at other places (more than SAME_ANSWER_CELLS from ``best``) whose upper
+    log-posterior, at the measurement's sigma interval and tempering, reaches ``best``'s lower one."""
+    others = [f for f in fits if math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
+    if not others:
+        return []
+    n = meas.n_eff
+    ssd = np.array([f.ssd * n / max(f.n, 1) for f in [best] + others])
+    occ = np.array([f.occluded * n / max(f.n, 1) for f in [best] + others])
+    lo, up = mixture_log_likelihood_bounds(ssd, n, occ, meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
+    if position_prior is not None:
+        prior = np.array([-0.5 * position_prior.cost(np.array([f.row, f.col])) for f in [best] + others])
+    else:
+        prior = np.array([lp[_nearest_node(grid, f.row, f.col)] for f in [best] + others])
+    lo, up = temper * lo + prior, temper * up + prior
+    return [f for i, f in enumerate(others, start=1) if up[i] >= lo[0]]
+
+
+def _answer_covariance(fit: Fit | None, meas: _Measurement, temper: float,
+                       conf: confidence.Modes) -> np.ndarray:
+    """The answer's (row, col) covariance (cells^2): the exact fit's curvature at the learned sigma,
+    tempered, with its priors; without one, the spread of the answer's mode over its nodes."""
+    if fit is not None and fit.curvature is not None and fit.prior_information is not None:
+        sig2 = meas.sigma_ref_deg**2 * confidence.COVARIANCE_SCALE
+        cov = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+        if cov is not None:
+            return cov
+    return conf.main_covariance_cells
 
 
 @dataclass(frozen=True)
@@ -885,14 +1011,17 @@ class _Posteriors:
     node_upper_unnormalised: np.ndarray  # (n_nodes,) unnormalised log upper posterior of each node's best heading
 
 
-def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, rescored: _Rescored) -> _Posteriors:
+def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, rescored: _Rescored,
+                temper: float = 1.0) -> _Posteriors:
     """Steps 3 and 4: exact posterior bounds over the rescored candidates, the best candidate and the
     region.  The other nodes lie hundreds of nats below the best: their share of the sums is nil, and
-    their own posteriors are their first-pass likelihood over the (unchanged) sum of the rest."""
+    their own posteriors are their first-pass likelihood over the (unchanged) sum of the rest.  The
+    log-likelihood counts ``temper`` of itself (each azimuth that share of an independent one)."""
     sig_lo, sig_hi, n_eff, occlusion_weight = meas.sigma_lo_deg, meas.sigma_hi_deg, meas.n_eff, meas.occlusion_weight
     rescore, ssd_r, occ_r = rescored.nodes, rescored.ssd, rescored.occluded
-    lp_r = lp[rescore, None] - rescored.half_penalty
+    lp_r = lp[rescore, None] - temper * rescored.half_penalty
     lo_r, up_r = mixture_log_likelihood_bounds(ssd_r, n_eff, occ_r, sig_lo, sig_hi, occlusion_weight)
+    lo_r, up_r = temper * lo_r, temper * up_r
     post = posterior_bounds(lo_r + lp_r, up_r + lp_r)
     best_flat = int(np.argmax(post.log_lower))
     best_r, best_k = divmod(best_flat, ssd_r.shape[1])
@@ -913,7 +1042,7 @@ def _posteriors(meas: _Measurement, lp: np.ndarray, plausible: _Plausible, resco
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     # (nil at the nodes not rescored)
     mid = 0.5 * (sig_lo + sig_hi)
-    ll_mid = mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
+    ll_mid = temper * mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid_r = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
     log_sum_mid = float(np.logaddexp.reduce(node_mid_r))
     posterior_mid = np.zeros(node_lower.size)
@@ -956,29 +1085,26 @@ def _nearest_node(grid: SkylineGrid, row: float, col: float) -> int:
 
 def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _Rescored, post: _Posteriors,
              answer: _Answer, heading_tolerance_deg: float | None, height_m: float | None,
-             position_prior: PositionPrior | None) -> tuple[_Answer, np.ndarray, bool, list[str]]:
-    """Step 5: the answer refined between nodes, the region (node indices) with the cells of the
-    exact fit and of its rivals, whether a rival fits as well at another place, and the notes."""
+             position_prior: PositionPrior | None) -> tuple[_Answer, list[Fit], Fit | None, list[str]]:
+    """Step 5: the answer refined between nodes, the exact fits made (the best's rivals among them),
+    the best fit (None without terrain or fit) and the notes."""
     in_rescore = np.zeros(post.node_lower.size, dtype=bool)
     in_rescore[rescored.nodes] = True
     scored = post.region[in_rescore[post.region]]
     if grid.terrain is None:
-        return _subcell_answer(grid, meas, lp, rescored, post, scored, answer), post.region, False, []
+        return _subcell_answer(grid, meas, lp, rescored, post, scored, answer), [], None, []
     fits = _exact_fits(grid, meas, rescored, post, scored, heading_tolerance_deg, height_m, position_prior)
     if not fits:
-        return answer, post.region, False, []
-    best_fit, rivals = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                                 meas.occlusion_weight, position_prior)
+        return answer, [], None, []
+    best_fit, _ = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
+                            meas.occlusion_weight, position_prior)
     notes: list[str] = []
     if best_fit.occluded > 0.05 * best_fit.n:
         notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
                      "terrain (trees, buildings, masts?) and were left out")
-    # the cells of the exact fit and of its rivals belong to the region
-    cells = [_nearest_node(grid, best_fit.row, best_fit.col)] + [_nearest_node(grid, f.row, f.col) for f in rivals]
     rms = math.sqrt(best_fit.ssd / max(best_fit.n - best_fit.occluded, 1.0))
     return (_Answer(best_fit.row, best_fit.col, best_fit.heading_deg, rms, best_fit.covariance_cells),
-            np.union1d(post.region, cells),
-            bool(rivals), notes)
+            fits, best_fit, notes)
 
 
 def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post: _Posteriors, scored: np.ndarray,
@@ -1036,22 +1162,32 @@ def _subcell_answer(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, resco
     return _Answer(frow, fcol, heading, rms)
 
 
-def _quality_notes(region_cells: int, area_m2: float, rival: bool, rms_deg: float, sigma_hi_deg: float) -> list[str]:
-    """Notes on an answer the skyline does not single out (a wide region, a rival) or fits poorly."""
+def _quality_notes(conf: confidence.Modes, rival_area_m2: float, rival_fit: bool, rms_deg: float,
+                   sigma_hi_deg: float) -> list[str]:
+    """Notes on an answer the skyline does not single out (rival places) or fits poorly."""
     notes: list[str] = []
-    if region_cells > AMBIGUOUS_CELLS:
+    if conf.rivals.size:
         notes.append(
-            f"ambiguous: {region_cells} cells ({area_m2 / 1e6:.2f} km^2) are as likely as the best; "
+            f"ambiguous: {conf.rival_mass:.0%} of the posterior lies at other places "
+            f"({conf.rivals.size} cells, {rival_area_m2 / 1e6:.2f} km^2) inside the {confidence.LEVEL:.0%} region; "
             "the skyline does not single out one position"
         )
-    if rival:
+    if rival_fit:
         notes.append(
             f"ambiguous: exact renders at another place, more than {SAME_ANSWER_CELLS:.0f} cells away, "
             "fit as well as the best"
         )
-    if rms_deg > 3.0 * sigma_hi_deg:
+    if rms_deg > sigma_hi_deg:
         notes.append(
-            f"poor match: residual {rms_deg:.2f} deg RMS against sigma up to {sigma_hi_deg:.2f} deg; "
-            "the skyline may not come from this map"
+            f"ambiguous: poor match: residual {rms_deg:.2f} deg RMS, more than the {sigma_hi_deg:.2f} deg the "
+            "search allows; the skyline may not come from this map"
         )
     return notes
+
+
+def _region_notes(region_cells: int, area_m2: float) -> list[str]:
+    """The note on a region (sigma as given) too wide to single out one position."""
+    if region_cells <= AMBIGUOUS_CELLS:
+        return []
+    return [f"ambiguous: {region_cells} cells ({area_m2 / 1e6:.2f} km^2) are as likely as the best; "
+            "the skyline does not single out one position"]

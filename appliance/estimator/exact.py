@@ -165,6 +165,14 @@ class Fit:
     eye_offset_m: float = 0.0
     occluded: float = 0.0  # weight of the measurements taken for occluders (not in ssd)
     covariance_cells: np.ndarray | None = None
+    #: (n_az,) measured minus rendered (deg) on the azimuth grid, NaN where missing or occluded
+    residual_deg: np.ndarray | None = None
+    #: (4, 4) Gauss-Newton curvature of the residual sum over (row, col, heading, eye) at unit sigma
+    #: (J^T diag(u) J, u the measurement weights), and the priors' information (P) on the same parameters
+    curvature: np.ndarray | None = None
+    prior_information: np.ndarray | None = None
+    #: the head's residual tilt fitted (deg): the elevation change t1 cos(a) + t2 sin(a) over azimuth a
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     @property
     def rms_deg(self) -> float:
@@ -314,6 +322,7 @@ def refine(
     position_prior: PositionPrior | None = None,
     max_offset_cells: float = MAX_OFFSET_CELLS,
     start_spread_cells: float = START_SPREAD_CELLS,
+    tilt_sigma_deg: float = 0.0,
 ) -> Fit | None:
     """Fit (row, col, heading, eye height) to ``measured`` (deg on the azimuth grid j * 360 / n,
     NaN where missing; azimuths in the heading sensor's frame: true = j * step + heading) from a
@@ -324,7 +333,9 @@ def refine(
     Mahalanobis term to what the fit minimises, so the answer between nodes weighs the odometry as
     the grid's posterior does; ``ssd`` stays the measurements' own cost.  The fit stays within
     ``max_offset_cells`` of the node along each axis; ``start_spread_cells`` is the position's
-    spread when the annealing starts (below)."""
+    spread when the annealing starts (below).  With ``tilt_sigma_deg`` > 0 the head's residual tilt is
+    fitted too: two more parameters, the elevation change t1 cos(a) + t2 sin(a) over the sensor's
+    azimuth a (a pitch and a roll of the levelled head), each under a Gaussian prior of that sigma (deg)."""
     mdl = Model() if model is None else model
     n_az = measured.size
     step = 360.0 / n_az
@@ -336,11 +347,13 @@ def refine(
     gamma = float(terrain.convergence_deg[node_row * n_cols + node_col])
     sig2 = sigma_deg * sigma_deg
     lo_h, hi_h = heading_bounds_deg
+    tilted = tilt_sigma_deg > 0.0
+    tilt_basis = np.stack([np.cos(np.radians(az)), np.sin(np.radians(az))], axis=1) if tilted else np.zeros((n_az, 0))
 
     def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         s, d, _ = render(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, dist, h_m + p[3])
         ok = valid & np.isfinite(s) & np.isfinite(d)
-        r = np.where(ok, measured - np.where(ok, s, 0.0), 0.0)
+        r = np.where(ok, measured - np.where(ok, s + tilt_basis @ p[4:], 0.0), 0.0)
         if ok.sum() < 0.9 * n_valid or not ok.any():
             return math.inf, r, s, d, ok
         u = mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg)
@@ -353,7 +366,7 @@ def refine(
         return q
 
     r0, c0 = (float(node_row), float(node_col)) if start is None else start
-    p = clamp(np.array([r0, c0, float(heading_deg), 0.0]))
+    p = clamp(np.array([r0, c0, float(heading_deg), 0.0] + [0.0] * tilt_basis.shape[1]))
     cost, r, s, d, ok = evaluate(p)
     if not math.isfinite(cost):
         return None
@@ -363,10 +376,13 @@ def refine(
     # spread shrinks and every azimuth counts fully.  Cauchy weights keep a ridge that jumped to
     # another one near the eye from pulling the fit.
     eye2 = mdl.eye_sigma_m**2
-    spread = np.array([start_spread_cells**2, start_spread_cells**2, (0.5 * step) ** 2, eye2])
-    P = np.zeros((4, 4))
+    spread = np.array([start_spread_cells**2, start_spread_cells**2, (0.5 * step) ** 2, eye2]
+                      + [tilt_sigma_deg**2] * tilt_basis.shape[1])
+    P = np.zeros((p.size, p.size))
     P[3, 3] = 1.0 / eye2
-    mu = np.zeros(4)
+    if tilted:
+        P[4, 4] = P[5, 5] = 1.0 / tilt_sigma_deg**2
+    mu = np.zeros(p.size)
     if position_prior is not None:
         P[:2, :2] = position_prior.information
         mu[:2] = position_prior.row, position_prior.col
@@ -382,7 +398,8 @@ def refine(
         iterations += 1
         okd = ok & np.isfinite(d)
         dd = np.where(okd, d, 1.0)
-        J_all = np.where(okd[:, None], jacobian(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, s, dd), 0.0)
+        J_all = np.where(okd[:, None], np.hstack([jacobian(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, s, dd),
+                                                  tilt_basis]), 0.0)
         u = mdl.weights(ok, dd, sigma_deg)
         var = sig2 + (J_all * J_all) @ spread
         # Cauchy weights keep a ridge that jumped to another one near the eye from pulling the fit;
@@ -424,28 +441,36 @@ def refine(
     ssd_u, occ_u = mdl.split(r, u)
     k = n_valid / max(int(ok.sum()), 1)
     ssd, occ = float(ssd_u) * k, float(occ_u) * k
-    cov = _position_covariance(terrain, dx_m, dy_m, p, az - gamma, s, d, ok, u, r, mdl, sig2, P, ssd, n_valid)
-    return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2, n_valid, iterations,
-               float(p[3]), occ, cov)
-
-
-def _position_covariance(terrain: Terrain, dx_m: float, dy_m: float, p: np.ndarray, grid_azimuth_deg: np.ndarray,
-                         s: np.ndarray, d: np.ndarray, ok: np.ndarray, u: np.ndarray, r: np.ndarray, mdl: Model,
-                         sig2: float, P: np.ndarray, ssd: float, n_valid: int) -> np.ndarray | None:
-    """The (row, col) covariance (cells^2) of a fit: the inverse of the Gauss-Newton curvature of
-    its cost at sigma, over the measurements the terrain explains (occluders left out), heading
-    and eye height marginalised.  Residuals above the noise widen it by the reduced chi-square,
-    so a fit that explains the skyline poorly does not claim the precision of one that does."""
     okd = ok & np.isfinite(d)
-    dd = np.where(okd, d, 1.0)
-    J = np.where(okd[:, None], jacobian(terrain, dx_m, dy_m, p[0], p[1], grid_azimuth_deg + p[2], s, dd), 0.0)
-    w = np.where(okd & ~((r > 0) & (u * r * r > mdl.cap_deg2)), u, 0.0) / sig2
+    explained = okd & ~((r > 0) & (u * r * r > mdl.cap_deg2))
+    J = np.where(okd[:, None], np.hstack([jacobian(terrain, dx_m, dy_m, p[0], p[1], az - gamma + p[2], s,
+                                                   np.where(okd, d, 1.0)), tilt_basis]), 0.0)
+    H = J.T @ (J * np.where(explained, u, 0.0)[:, None])
+    cov = _position_covariance(H, P, sig2, ssd, n_valid)
+    tilt_cost = sig2 * float(np.sum(p[4:] ** 2)) / tilt_sigma_deg**2 if tilted else 0.0
+    return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2 + tilt_cost, n_valid,
+               iterations, float(p[3]), occ, cov, np.where(explained, r, np.nan), H, P.copy(),
+               (float(p[4]), float(p[5])) if tilted else (0.0, 0.0))
+
+
+def _position_covariance(H: np.ndarray, P: np.ndarray, sig2: float, ssd: float, n_valid: int) -> np.ndarray | None:
+    """The (row, col) covariance (cells^2) of a fit: the inverse of the Gauss-Newton curvature ``H``
+    (at unit sigma, over the measurements the terrain explains) at sigma^2 ``sig2`` plus the priors'
+    information ``P``, heading and eye height marginalised.  Residuals above the noise widen it by
+    the reduced chi-square, so a fit that explains the skyline poorly does not claim the precision
+    of one that does."""
     inflation = max(1.0, ssd / max(n_valid * sig2, 1e-300))
+    return marginal_position_covariance(H / (sig2 * inflation) + P)
+
+
+def marginal_position_covariance(information: np.ndarray) -> np.ndarray | None:
+    """The (row, col) block (cells^2) of the inverse of a fit's information matrix (row, col first);
+    None when it is singular or not positive."""
     try:
-        cov = np.linalg.inv(J.T @ (J * w[:, None]) / inflation + P)
+        cov = np.linalg.inv(information)
     except np.linalg.LinAlgError:
         return None
     c = cov[:2, :2]
-    if not (np.all(np.isfinite(c)) and c[0, 0] > 0 and c[1, 1] > 0):
+    if not (np.all(np.isfinite(c)) and c[0, 0] > 0 and c[1, 1] > 0 and np.linalg.det(c) > 0):
         return None
     return 0.5 * (c + c.T)

@@ -81,8 +81,10 @@ def location_fix(
     altitude_m: float | None = None,
     sigma_m: float | None = None,
     frame_id: str = "gps",
+    covariance_enu_m2: np.ndarray | None = None,
 ) -> LocationFix:
-    """A fix; ``sigma_m`` (1-sigma horizontal) fills a diagonal covariance, else it stays UNKNOWN."""
+    """A fix; ``covariance_enu_m2`` (3 x 3, east, north, up) fills a full covariance (KNOWN), else
+    ``sigma_m`` (1-sigma horizontal) a diagonal one, else it stays UNKNOWN."""
     fix = LocationFix(
         timestamp=timestamp(time_ns),
         frame_id=frame_id,
@@ -90,7 +92,10 @@ def location_fix(
         longitude=float(lon_deg),
         altitude=float(altitude_m) if altitude_m is not None and math.isfinite(altitude_m) else 0.0,
     )
-    if sigma_m is not None and math.isfinite(sigma_m):
+    if covariance_enu_m2 is not None and np.all(np.isfinite(covariance_enu_m2)):
+        fix.position_covariance.extend(float(v) for v in np.asarray(covariance_enu_m2, dtype=float).ravel())
+        fix.position_covariance_type = LocationFix.KNOWN
+    elif sigma_m is not None and math.isfinite(sigma_m):
         var = float(sigma_m) ** 2
         fix.position_covariance.extend([var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, var])
         fix.position_covariance_type = LocationFix.DIAGONAL_KNOWN
