@@ -13,6 +13,12 @@ FORWARDED when a server listens on :func:`socket_path` and agrees to take them; 
 from a process of its own user, only for the same installed code (:func:`code_identity`), and only
 when numba's settings in the environment are its own (they are read once, at import).
 
+The client, in turn, sends nothing to a server it cannot trust with its streams and environment: the
+socket and its folder must be its user's, the folder writable by no one else, and the process that
+listens its user's (SO_PEERCRED); otherwise it says why on stderr and runs the command itself.  It
+sends only the environment a command needs (:func:`passed_environment`), and passes its signals on
+only to a child of that process of its user.
+
 Messages are one JSON object per line.  The client sends the request, with its three standard
 streams attached; the server answers ``{"pid": N}`` (the worker, which the client's signals are
 passed on to) or ``{"refused": reason}``, and the worker ends with ``{"exit": code}``.
@@ -25,6 +31,8 @@ import json
 import os
 import signal
 import socket
+import stat
+import struct
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -36,6 +44,12 @@ FORWARDED = frozenset({"estimate", "render", "skyline"})
 #: loaded), and where Python finds modules and how it hashes.
 FIXED_PREFIXES = ("NUMBA_", "OMP_", "OPENBLAS_", "MKL_", "PROJ_", "GDAL_")
 FIXED_NAMES = frozenset({"PYTHONPATH", "PYTHONHASHSEED", "PYTHONHOME", "PYTHONSAFEPATH"})
+#: The environment a command is given: the fixed settings above, the appliance's own (``VIPER_*``),
+#: locale and time zone, the user's folders (``XDG_*``, the units' ``CACHE_DIRECTORY``), the terminal,
+#: and whether stderr is the journal.  Nothing else (tokens, keys, passwords) leaves the client.
+PASSED_PREFIXES = (*FIXED_PREFIXES, "VIPER_", "LC_", "XDG_")
+PASSED_NAMES = FIXED_NAMES | {"PATH", "HOME", "USER", "LOGNAME", "LANG", "LANGUAGE", "TZ", "TMPDIR",
+                              "CACHE_DIRECTORY", "TERM", "COLUMNS", "LINES", "NO_COLOR", "JOURNAL_STREAM"}
 #: The longest request accepted (argv, folder and environment), bytes.
 MAX_REQUEST_BYTES = 1 << 20
 PASSED_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
@@ -74,6 +88,11 @@ def fixed_environment(env: dict[str, str]) -> dict[str, str]:
     return {k: v for k, v in env.items() if k.startswith(FIXED_PREFIXES) or k in FIXED_NAMES}
 
 
+def passed_environment(env: dict[str, str]) -> dict[str, str]:
+    """The variables of ``env`` that a command run by a server is given (PASSED_NAMES, PASSED_PREFIXES)."""
+    return {k: v for k, v in env.items() if k.startswith(PASSED_PREFIXES) or k in PASSED_NAMES}
+
+
 def send_message(sock: socket.socket, message: dict[str, Any]) -> None:
     sock.sendall(json.dumps(message).encode() + b"\n")
 
@@ -109,17 +128,16 @@ def forward(argv: Sequence[str], command: str | None) -> int | None:
     path = socket_path()
     if path is None:
         return None
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    connected = _connect(path)
+    if connected is None:
+        return None
+    sock, server = connected
     try:
-        try:
-            sock.connect(str(path))
-        except OSError:
-            return None
         try:
             cwd = os.getcwd()
         except OSError:  # a working folder since removed: run in process, as ever
             return None
-        request = {"argv": list(argv), "cwd": cwd, "env": dict(os.environ), "umask": _umask(),
+        request = {"argv": list(argv), "cwd": cwd, "env": passed_environment(dict(os.environ)), "umask": _umask(),
                    "code": code_identity()}
         data = json.dumps(request).encode() + b"\n"
         try:
@@ -131,9 +149,103 @@ def forward(argv: Sequence[str], command: str | None) -> int | None:
             return None
         if reply is None or "pid" not in reply:
             return None
-        return _wait(sock, reader, int(reply["pid"]), command)
+        return _wait(reader, _worker(reply["pid"], server), server, command)
     finally:
         sock.close()
+
+
+def _connect(path: Path) -> tuple[socket.socket, int] | None:
+    """A connection to the server listening on ``path`` and the pid of the process that listens, when
+    this user alone could have put the socket there (:func:`_distrust`) and that process is this
+    user's; None otherwise, with the reason on stderr when a socket is there but not trusted.  The
+    socket is reached through its open folder, so that the folder checked is the one connected to."""
+    try:
+        folder = os.open(path.parent, os.O_PATH | os.O_DIRECTORY | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        return _connect_in(folder, path)
+    finally:
+        os.close(folder)
+
+
+def _connect_in(folder: int, path: Path) -> tuple[socket.socket, int] | None:
+    try:
+        reason = _distrust(folder, path.name)
+    except OSError:  # no socket there: no server
+        return None
+    if reason is not None:
+        _not_using(path, reason)
+        return None
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock.connect(f"/proc/self/fd/{folder}/{path.name}")
+    except OSError:
+        sock.close()
+        return None
+    pid, uid, _ = peer_credentials(sock)
+    if uid != os.getuid():
+        sock.close()
+        _not_using(path, f"its server runs as uid {uid}")
+        return None
+    return sock, pid
+
+
+def _not_using(path: Path, reason: str) -> None:
+    _say(f"viper: not using the command server at {path}: {reason}")
+
+
+def _distrust(folder: int, name: str) -> str | None:
+    """Why another user may have put the socket ``name`` in the open ``folder``: the folder is not
+    this user's, or others may write to it, or the socket is not this user's; None when none of these
+    holds.  Raises OSError when there is no file ``name``."""
+    own = os.getuid()
+    sock = os.stat(name, dir_fd=folder, follow_symlinks=False)
+    where = os.fstat(folder)
+    if where.st_uid != own:
+        return f"its folder belongs to uid {where.st_uid}"
+    if where.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"others may write to its folder (mode {stat.S_IMODE(where.st_mode):o})"
+    if not stat.S_ISSOCK(sock.st_mode):
+        return "not a socket"
+    if sock.st_uid != own:
+        return f"the socket belongs to uid {sock.st_uid}"
+    return None
+
+
+def peer_credentials(sock: socket.socket) -> tuple[int, int, int]:
+    """The pid, uid and gid of the process at the other end of a Unix socket (of the process that
+    listened, seen from a client)."""
+    pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
+    return pid, uid, gid
+
+
+def is_own_child(pid: int, parent: int) -> bool:
+    """Whether process ``pid`` is a child of process ``parent`` and runs as this user (all its user
+    ids are this process's), read from /proc."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="utf-8", errors="replace") as f:
+            fields = dict(line.partition(":")[::2] for line in f)
+    except OSError:
+        return False
+    own = str(os.getuid())
+    return fields.get("PPid", "").strip() == str(parent) and set(fields.get("Uid", "").split()) == {own}
+
+
+def _worker(named: object, server: int) -> int | None:
+    """The worker the server named, when it is a child of the server of this user: the one process
+    this process's signals may be passed on to; None (said on stderr) for any other."""
+    if type(named) is int and named > 0 and is_own_child(named, server):
+        return named
+    _say(f"viper: the command server named {named!r} as its worker, not a child of its own: no signal is passed on")
+    return None
+
+
+def _say(line: str) -> None:
+    try:
+        os.write(2, line.encode(errors="backslashreplace") + b"\n")
+    except OSError:
+        pass
 
 
 def _umask() -> int:
@@ -142,29 +254,27 @@ def _umask() -> int:
     return mask
 
 
-def _wait(sock: socket.socket, reader: LineReader, pid: int, command: str) -> int:
-    """The worker's exit status, passing this process's signals on to it meanwhile."""
+def _wait(reader: LineReader, pid: int | None, server: int, command: str) -> int:
+    """The worker's exit status, passing this process's signals on to it meanwhile (to ``pid``, while
+    it is still a child of the server's; none without a worker).  Interrupted without a worker to pass
+    the interrupt on to, this process stops waiting, as the command run alone would."""
 
     passed: list[int] = []
 
     def pass_on(signum: int, frame: object) -> None:
         passed.append(signum)
-        try:
-            os.kill(pid, signum)
-        except ProcessLookupError:
-            pass
-
-    previous = {s: signal.signal(s, pass_on) for s in PASSED_SIGNALS}
-    try:
-        while True:
+        if pid is not None and is_own_child(pid, server):
             try:
-                reply = reader.read()
-                break
-            except InterruptedError:
-                continue
-            except (OSError, ValueError):
-                reply = None
-                break
+                os.kill(pid, signum)
+            except ProcessLookupError:
+                pass
+
+    previous = {s: signal.signal(s, pass_on) for s in PASSED_SIGNALS} if pid is not None else {}
+    try:
+        reply = _read_exit(reader)
+    except KeyboardInterrupt:
+        _say(f"viper {command}: interrupted")
+        return 130
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -173,6 +283,17 @@ def _wait(sock: socket.socket, reader: LineReader, pid: int, command: str) -> in
         signal.signal(passed[-1], signal.SIG_DFL)
         os.kill(os.getpid(), passed[-1])
     if reply is None or not isinstance(reply.get("exit"), int):
-        os.write(2, f"viper {command}: error: the command server's worker ended without an exit status\n".encode())
+        _say(f"viper {command}: error: the command server's worker ended without an exit status")
         return 1
     return int(reply["exit"])
+
+
+def _read_exit(reader: LineReader) -> dict[str, Any] | None:
+    """The worker's last message; None when the connection ends without one."""
+    while True:
+        try:
+            return reader.read()
+        except InterruptedError:
+            continue
+        except (OSError, ValueError):
+            return None

@@ -26,6 +26,7 @@ from appliance.cli._forward import (
     LineReader,
     code_identity,
     fixed_environment,
+    peer_credentials,
     send_message,
     socket_path,
 )
@@ -105,6 +106,7 @@ def _listener(option: str | None) -> tuple[socket.socket, Path | None]:
         sock = socket.socket(fileno=3)
         if sock.family != socket.AF_UNIX or sock.type != socket.SOCK_STREAM:
             raise InputError("the socket passed by systemd is not a Unix stream socket")
+        _listen_as_this_process(sock)
         return sock, None
     path = Path(option) if option else socket_path()
     if path is None:
@@ -130,6 +132,30 @@ def _listener(option: str | None) -> tuple[socket.socket, Path | None]:
         os.umask(old)
     sock.listen(16)
     return sock, path
+
+
+def _listen_as_this_process(listener: socket.socket) -> None:
+    """Listen again on a socket that systemd passed: the credentials a client reads (SO_PEERCRED)
+    become this process's, whose children the workers are (a client passes its signals only to a
+    child of the process that listens).  The connections already waiting, whose clients read the
+    service manager's, are refused: those clients run their commands themselves."""
+    manager, _, _ = peer_credentials(listener)
+    listener.listen(16)
+    if manager == os.getpid():  # systemd-socket-activate listens, then runs the server in its own process
+        return
+    listener.setblocking(False)
+    try:
+        while True:
+            conn, _ = listener.accept()
+            with conn:
+                try:
+                    send_message(conn, {"refused": "connected before the server listened"})
+                except OSError:
+                    pass
+    except BlockingIOError:
+        pass
+    finally:
+        listener.setblocking(True)
 
 
 def _reap() -> set[int]:
