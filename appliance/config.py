@@ -102,14 +102,19 @@ class EstimatorConfig:
     """The position estimator (paper section 4)."""
 
     # sensor noise plus the skyline's change between grid nodes (0.5-1 deg on a 90 m map, camera 1.5 m)
-    sigma_deg: tuple[float, float] = (0.3, 0.8)
+    sigma_deg: tuple[float, float] = (0.3, 0.8)  # the search's interval; the estimate's is learned from the skyline
     heading_tolerance_deg: float = 4.0
     min_valid_fraction: float = 0.2
     # prior share of azimuths hidden by what the map lacks (trees, buildings): one-sided likelihood
     occlusion_weight: float = 0.05
     map_vertical_sigma_m: float = 0.0  # the map's own height error (1 sigma)
-    # the sensor's share of sigma_deg from `viper calibrate theodolite` (a record: the estimator uses sigma_deg)
+    # the sensor's sigma from `viper calibrate theodolite`: the floor of the sigma the estimator learns
     sensor_sigma_deg: tuple[float, float] | None = None
+
+    @property
+    def sigma_floor_deg(self) -> float | None:
+        """The floor of the sigma the estimator learns: the calibrated sensor's lower bound, if any."""
+        return None if self.sensor_sigma_deg is None else self.sensor_sigma_deg[0]
 
     def __post_init__(self) -> None:
         lo, hi = self.sigma_deg

@@ -8,17 +8,16 @@ interval for sigma at level c = 1 - alpha is
 
     [ sqrt((n-1) s^2 / chi2_{1-alpha/2}),  sqrt((n-1) s^2 / chi2_{alpha/2}) ]
 
-where chi2_q is the q-quantile.  This is the sensor's share only: the camera against a perfect
-reference.  The estimator compares the measured skyline with one rendered from a map, so its sigma
-also holds the map's own share (the DEM's smoothing of ridges and its height errors, what a model
-cannot render; the skyline's change between grid nodes is modelled by the estimator itself).  The
-estimator's interval is the two combined in quadrature, bound by bound:
+where chi2_q is the q-quantile.  This is the sensor's share: the camera against a perfect reference.
+The estimator learns the skyline's noise from each skyline's own residuals (the map's share, the
+stitch, a residual tilt: whatever a fit leaves); the sensor's interval is its floor, since no skyline
+is read more finely than the sensor reads it.  A map known to add error of its own may add a share
+(``--map-share``, none by default), combined with the sensor's in quadrature, bound by bound:
 
-    sigma_est = [ sqrt(lo_sensor^2 + lo_map^2),  sqrt(hi_sensor^2 + hi_map^2) ]
+    floor = [ sqrt(lo_sensor^2 + lo_map^2),  sqrt(hi_sensor^2 + hi_map^2) ]
 
-with the map's share MAP_SIGMA_DEG = [0.3, 0.8] deg by default (the estimator's default interval,
-so a perfect sensor leaves the estimator at its defaults).  ``viper calibrate theodolite --config``
-writes both: ``sensor_sigma_deg`` (a record) and ``sigma_deg`` (what the estimator uses).
+``viper calibrate theodolite --config`` writes it as ``[estimator] sensor_sigma_deg``; the search's
+``sigma_deg`` is left as it is.
 All angles are elevations in degrees above the local horizontal.
 """
 
@@ -38,7 +37,7 @@ from calibration.csvtable import read_input, read_rows
 HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
 MIN_POINTS = 3
 #: The map's and model's share of the estimator's sigma (deg, [lo, hi]), combined with the sensor's.
-MAP_SIGMA_DEG = (0.3, 0.8)
+MAP_SIGMA_DEG = (0.0, 0.0)
 ARCSEC_PER_DEG = 3600.0
 
 
@@ -59,7 +58,7 @@ class ElevationPoint:
 @dataclass(frozen=True)
 class SigmaCalibration:
     """The result: residual statistics, the confidence interval for the sensor's sigma (degrees) and the
-    estimator's interval (the sensor's and the map's shares in quadrature)."""
+    floor of the estimator's learned sigma (the sensor's and an optional map share in quadrature)."""
 
     points: tuple[ElevationPoint, ...]
     confidence: float
@@ -70,7 +69,7 @@ class SigmaCalibration:
 
     @property
     def estimator_sigma_deg(self) -> tuple[float, float]:
-        """What the estimator uses: sensor and map shares combined in quadrature, bound by bound."""
+        """The floor of the sigma the estimator learns: sensor and map shares in quadrature, bound by bound."""
         return combine_sigma(self.sigma_deg, self.map_sigma_deg)
 
     @property
@@ -191,7 +190,7 @@ def format_report(result: SigmaCalibration) -> str:
         f"{result.confidence * 100:g}% interval for sigma: [{lo:.6f}, {hi:.6f}] deg"
         f" ([{lo * ARCSEC_PER_DEG:.2f}, {hi * ARCSEC_PER_DEG:.2f}] arcsec): the sensor's share",
         f"map's share: [{result.map_sigma_deg[0]:g}, {result.map_sigma_deg[1]:g}] deg",
-        "estimator's sigma (sensor and map in quadrature): "
+        "floor of the estimator's learned sigma (sensor and map in quadrature): "
         f"[{result.estimator_sigma_deg[0]:.6f}, {result.estimator_sigma_deg[1]:.6f}] deg",
     ]
     return "\n".join(lines)

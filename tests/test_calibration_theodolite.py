@@ -123,17 +123,16 @@ def test_cli_writes_interval_and_keeps_the_rest_of_the_config(tmp_path: Path, ca
     expected = calibrate_sigma(parse_points_csv(EXAMPLE.read_bytes()))
     assert out["s_deg"] == pytest.approx(expected.s_deg, rel=1e-12)
     assert out["sensor_sigma_deg"] == pytest.approx(list(expected.sigma_deg), rel=1e-5)
-    assert out["map_sigma_deg"] == [0.3, 0.8]
-    # the estimator's sigma: the sensor's [0.0084, 0.0172] and the map's [0.3, 0.8] in quadrature
-    assert out["sigma_deg"] == pytest.approx([0.300118, 0.800186], abs=1e-6)
-    lo, hi = out["sigma_deg"]
+    # no map share: the floor of the estimator's learned sigma is the sensor's own interval
+    assert out["map_sigma_deg"] == [0.0, 0.0]
+    assert out["sigma_deg"] == out["sensor_sigma_deg"]
+    assert out["sigma_deg"] == pytest.approx([0.0084, 0.0172], abs=1e-4)
     slo, shi = out["sensor_sigma_deg"]
     text = config.read_text()
-    assert text.replace(f"\nsensor_sigma_deg = [{slo!r}, {shi!r}]", "") == CONFIG_TEXT.replace(
-        "sigma_deg = [0.2, 0.4]  # degrees", f"sigma_deg = [{lo!r}, {hi!r}]  # degrees"
-    )
+    # the search's sigma_deg is left as it was; the floor is added
+    assert text.replace(f"\nsensor_sigma_deg = [{slo!r}, {shi!r}]", "") == CONFIG_TEXT
     cfg = load_config(config).estimator
-    assert cfg.sigma_deg == (lo, hi) and cfg.sensor_sigma_deg == (slo, shi)
+    assert cfg.sigma_deg == (0.2, 0.4) and cfg.sensor_sigma_deg == (slo, shi) and cfg.sigma_floor_deg == slo
     assert [p.name for p in tmp_path.iterdir()] == ["viper.toml"]  # no temporary file left behind
 
 
@@ -189,19 +188,20 @@ def test_estimator_sigma_is_sensor_and_map_in_quadrature() -> None:
     lo, hi = result.sigma_deg
     assert result.estimator_sigma_deg == pytest.approx(((lo**2 + 0.16) ** 0.5, (hi**2 + 0.25) ** 0.5), rel=1e-12)
     assert combine_sigma((0.3, 0.4), (0.4, 0.3)) == pytest.approx((0.5, 0.5))
-    assert MAP_SIGMA_DEG == (0.3, 0.8)
+    assert MAP_SIGMA_DEG == (0.0, 0.0)
     with pytest.raises(InputError, match="map share 0.5,0.2 deg"):
         calibrate_sigma(_points([0.3, -0.2, 0.1]), map_sigma_deg=(0.5, 0.2))
 
 
 def test_cli_map_share_option_and_report(tmp_path: Path, capsys) -> None:
-    assert main(["calibrate", "theodolite", str(EXAMPLE), "--map-share", "0,0", "--json"]) == 0
+    assert main(["calibrate", "theodolite", str(EXAMPLE), "--map-share", "0.3,0.8", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["sigma_deg"] == out["sensor_sigma_deg"]  # no map share: the sensor alone
+    # a map share asked for: the sensor's [0.0084, 0.0172] and the map's [0.3, 0.8] in quadrature
+    assert out["sigma_deg"] == pytest.approx([0.300118, 0.800186], abs=1e-6)
     assert main(["calibrate", "theodolite", str(EXAMPLE)]) == 0
     text = capsys.readouterr().out
-    assert "the sensor's share" in text and "map's share: [0.3, 0.8] deg" in text
-    assert "estimator's sigma (sensor and map in quadrature): [0.300118, 0.800186] deg" in text
+    assert "the sensor's share" in text and "map's share: [0, 0] deg" in text
+    assert "floor of the estimator's learned sigma (sensor and map in quadrature): [0.008" in text
     with pytest.raises(SystemExit) as exited:
         main(["calibrate", "theodolite", str(EXAMPLE), "--map-share", "0.8,0.3"])
     assert exited.value.code == 2

@@ -65,7 +65,7 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
         )
     return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, log_prior, source=source,
                   occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m,
-                  position_prior=position_prior)
+                  position_prior=position_prior, sigma_floor_deg=cfg.sigma_floor_deg)
 
 
 def mask_stage_angles(skyline: Skyline, platform_heading_deg: float,

@@ -40,7 +40,7 @@ def _theodolite(args: argparse.Namespace) -> int:
     lo, hi = (significant(v) for v in result.estimator_sigma_deg)
     if args.config is not None:
         update_toml_table(
-            args.config, "estimator", {"sigma_deg": [lo, hi], "sensor_sigma_deg": sensor},
+            args.config, "estimator", {"sensor_sigma_deg": [lo, hi]},
             validate=_validate_config_text(args.config),
         )
     if args.json:
@@ -60,8 +60,8 @@ def _theodolite(args: argparse.Namespace) -> int:
     else:
         print(format_report(result))
         if args.config is not None:
-            print(f"wrote estimator.sigma_deg = [{lo}, {hi}] (used by the estimator) and estimator.sensor_sigma_deg"
-                  f" = [{sensor[0]}, {sensor[1]}] to {args.config}")
+            print(f"wrote estimator.sensor_sigma_deg = [{lo}, {hi}] (the floor of the sigma the estimator learns) "
+                  f"to {args.config}")
     return 0
 
 
@@ -227,9 +227,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--config", type=Path, help="configuration TOML to receive [estimator] sigma_deg")
     p.add_argument("--confidence", type=_confidence, default=0.95, help="confidence level (default 0.95)")
     p.add_argument(
-        "--map-share", type=_map_share, default=(0.3, 0.8), metavar="LO,HI",
-        help="the map's share of the estimator's sigma (deg), combined in quadrature with the sensor's"
-        " (default 0.3,0.8)",
+        "--map-share", type=_map_share, default=(0.0, 0.0), metavar="LO,HI",
+        help="a share (deg) a map known to add error of its own adds to the floor of the estimator's learned"
+        " sigma, in quadrature with the sensor's (default 0,0: the estimator learns the map's share per skyline)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object with n, s_deg and sigma_deg")
     p.set_defaults(func=_theodolite)

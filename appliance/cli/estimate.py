@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
         positions = locate_sequence(db, skylines, moves, sigma, tolerance, height, occ, map_sigma)
     else:
         positions = [locate(db, sky, sigma, tolerance, source=name, height_m=height, occlusion_weight=occ,
-                            map_sigma_m=map_sigma) for name, sky in skylines]
+                            map_sigma_m=map_sigma, sigma_floor_deg=cfg.sigma_floor_deg) for name, sky in skylines]
     report = Path(args.report) if args.report else None
     if report is not None:
         names = [f"{i + 1:02d}-{Path(s).stem}{e}" for i, s in enumerate(args.skylines) for e in REPORT_FILES]

@@ -543,6 +543,7 @@ def estimate(
     rescore_floor: float | None = None,
     first: FirstPass | None = None,
     learn_noise: bool = True,
+    sigma_floor_deg: float | None = None,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -564,6 +565,8 @@ def estimate(
     fit) replaces ``sigma_deg`` by the interval the best fit's residuals give and tempers the
     likelihood by the skyline's share of independent azimuths (``confidence.py``); ``sigma_deg`` then
     only steers the search.  A search over several grids keeps one sigma for all (False).
+    ``sigma_floor_deg`` is the least sigma learned (the calibrated sensor's; None: the database's
+    quantisation, ``confidence.SIGMA_FLOOR_DEG``).
     """
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
@@ -595,13 +598,15 @@ def estimate(
                                                  height_m, position_prior)
     searched, temper, learned = meas, 1.0, False
     if learn_noise and best_fit is not None and best_fit.residual_deg is not None:
-        meas, _ = _learned(meas, best_fit)
+        floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg,
+                                                                                 confidence.SIGMA_FLOOR_DEG)
+        meas, _ = _learned(meas, best_fit, floor)
         polished = _polished(grid, meas, best_fit, heading_tolerance_deg, height_m, position_prior)
         if polished is not None:
             best_fit = polished
             answer = _Answer(polished.row, polished.col, polished.heading_deg, polished.rms_deg,
                              polished.covariance_cells)
-        meas, temper = _learned(searched, best_fit)
+        meas, temper = _learned(searched, best_fit, floor)
         learned = True
         lo, up, scored = _first_pass_bounds(first.scores, meas)
         plausible = _Plausible(plausible.nodes, lo * temper + lp, up * temper + lp, scored)
@@ -653,14 +658,15 @@ def estimate(
     )
 
 
-def _learned(meas: _Measurement, fit: Fit) -> tuple[_Measurement, float]:
-    """The measurement with sigma's interval learned from ``fit``'s residuals, and the tempering of
-    its likelihood: independent azimuths over measured ones (``confidence.py``)."""
+def _learned(meas: _Measurement, fit: Fit, floor_deg: float) -> tuple[_Measurement, float]:
+    """The measurement with sigma's interval learned from ``fit``'s residuals (each end at least
+    ``floor_deg``), and the tempering of its likelihood: independent azimuths over measured ones
+    (``confidence.py``)."""
     r = fit.residual_deg
     assert r is not None
     rms = math.sqrt(float(np.nanmean(r * r))) if np.isfinite(r).any() else meas.sigma_ref_deg
     independent = confidence.independent_azimuths(r)
-    lo, hi = confidence.sigma_interval(rms, independent)
+    lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
     temper = min(1.0, independent / max(float(np.isfinite(r).sum()), 1.0))
     learned = _Measurement(meas.elevation_deg, meas.weight, meas.valid, meas.n_valid, meas.n_eff, lo, hi,
                            0.5 * (lo + hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)

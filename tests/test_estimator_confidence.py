@@ -1,0 +1,137 @@
+"""How sure an estimate says it is: noise and independent azimuths learned from residuals, the
+credible region's modes, the covariance in metres, and the fix that carries them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter1d
+from scipy.stats import chi2
+
+from appliance.estimator import confidence
+from appliance.logbook.messages import LocationFix
+from appliance.position import altitude_m, fix_status, locate, truth_in_ellipse, truth_in_region
+from appliance.skyline import Skyline
+from appliance.terrain.horizon import render_skyline
+
+
+def test_white_residuals_are_all_independent_and_smooth_ones_are_not():
+    rng = np.random.default_rng(1)
+    white = rng.normal(0.0, 0.2, 360)
+    assert confidence.independent_azimuths(white) == pytest.approx(360, rel=0.25)
+    # a Gaussian autocorrelation of 6 azimuths: sum over all lags of rho = sqrt(2 pi) 6, so n / (sqrt(2 pi) 6)
+    smooth = gaussian_filter1d(rng.normal(0.0, 1.0, 3600), 6.0 / math.sqrt(2.0), mode="wrap")[:360]
+    expected = 360 / (math.sqrt(2 * math.pi) * 6.0)
+    assert confidence.independent_azimuths(smooth) == pytest.approx(expected, rel=0.5)
+    # a tilt left in the residuals: one sinusoid over the circle is worth a handful of azimuths
+    tilt = 0.3 * np.cos(np.radians(np.arange(360.0)))
+    assert confidence.independent_azimuths(tilt) <= 10
+    # missing azimuths are left out, not read as zeros
+    holed = white.copy()
+    holed[100:200] = np.nan
+    assert confidence.independent_azimuths(holed) == pytest.approx(260, rel=0.25)
+
+
+def test_the_sigma_interval_covers_the_true_sigma_at_its_level():
+    rng = np.random.default_rng(2)
+    hits = 0
+    trials = 2000
+    for _ in range(trials):
+        n = int(rng.integers(20, 200))
+        rms = math.sqrt(float(np.mean(rng.normal(0.0, 0.3, n) ** 2)))
+        lo, hi = confidence.sigma_interval(rms, n, floor_deg=1e-6)
+        hits += lo <= 0.3 <= hi
+    assert 0.93 <= hits / trials <= 0.97
+    # against the exact chi-square interval (Wilson-Hilferty within a per cent at 30 dof)
+    lo, hi = confidence.sigma_interval(1.0, 30, floor_deg=1e-6)
+    assert lo == pytest.approx(math.sqrt(30 / chi2.ppf(0.975, 30)), rel=0.01)
+    assert hi == pytest.approx(math.sqrt(30 / chi2.ppf(0.025, 30)), rel=0.01)
+    assert confidence.sigma_interval(0.001, 300, floor_deg=0.05) == (0.05, 0.05)
+
+
+def test_the_credible_region_holds_its_level_and_splits_into_modes():
+    n_rows, n_cols = 40, 50
+    rr, cc = np.mgrid[0:n_rows, 0:n_cols]
+    near = np.exp(-((rr - 10) ** 2 + (cc - 12) ** 2) / (2 * 1.5**2))
+    far = np.exp(-((rr - 30) ** 2 + (cc - 40) ** 2) / (2 * 1.0**2))
+    one = (near / near.sum()).ravel()
+    region = confidence.credible_nodes(one)
+    assert one[region].sum() >= 0.95
+    assert one[region].sum() - one[region].min() < 0.95  # the fewest: one node less falls short
+    single = confidence.modes(one, n_rows, n_cols, 10.2, 11.9)
+    assert single.rivals.size == 0 and single.main_mass >= 0.95
+    # the spread of the mode is the blob's (1.5 cells per axis), plus the cell's own
+    assert np.sqrt(np.diag(single.main_covariance_cells)) == pytest.approx([1.5, 1.5], rel=0.15)
+    two = (0.7 * near / near.sum() + 0.3 * far / far.sum()).ravel()
+    split = confidence.modes(two, n_rows, n_cols, 10.0, 12.0)
+    assert split.rival_mass == pytest.approx(0.3, abs=0.03)
+    rows, cols = np.divmod(split.rivals, n_cols)
+    assert np.all(np.hypot(rows - 30, cols - 40) < 4)
+
+
+def test_grid_covariance_turns_into_east_and_north():
+    cov_rc = np.diag([4.0, 1.0])  # rows (south) 2 cells, columns (east) 1 cell, 1 sigma
+    en = confidence.grid_to_east_north(cov_rc, dx_m=30.0, dy_m=90.0, convergence_deg=0.0)
+    assert en == pytest.approx(np.diag([30.0**2, (2 * 90.0) ** 2]))
+    # grid north 90 degrees east of true north: the grid's y axis is true east
+    turned = confidence.grid_to_east_north(cov_rc, dx_m=30.0, dy_m=90.0, convergence_deg=90.0)
+    assert turned == pytest.approx(np.diag([(2 * 90.0) ** 2, 30.0**2]), abs=1e-6)
+    assert confidence.radius_m(en) == pytest.approx(math.sqrt(5.991) * 180.0, rel=1e-3)
+    assert confidence.ellipse_area_m2(en) == pytest.approx(math.pi * 5.991 * 30.0 * 180.0, rel=1e-3)
+    assert confidence.inside_ellipse(np.array([0.0, 2.4 * 180.0]), en)
+    assert not confidence.inside_ellipse(np.array([0.0, 2.5 * 180.0]), en)
+
+
+def _read(sky: Skyline, rng: np.random.Generator, noise_deg: float, compass_deg: float) -> Skyline:
+    az = sky.azimuth_deg
+    el = np.interp((az + compass_deg) % 360.0, az, sky.elevation_deg, period=360.0)
+    return Skyline(az, el + rng.normal(0.0, noise_deg, az.size))
+
+
+def test_a_right_answer_says_ok_with_a_covariance_that_holds_the_truth(dem, window_db):
+    rng = np.random.default_rng(3)
+    lat, lon = 36.5851, -84.2613
+    truth = render_skyline(dem, lat, lon, 1.5)
+    pos = locate(window_db, _read(truth, rng, 0.1, 1.7), (0.3, 0.8), 4.0)
+    r = pos.result
+    assert not r.ambiguous and fix_status(pos).startswith("ok ± ")
+    # sigma learned from the residuals: near the 0.1 deg of noise, not the search's 0.3-0.8
+    assert 0.06 <= r.sigma_deg[0] <= 0.1 <= r.sigma_deg[1] <= 0.16
+    assert r.independent_azimuths > 200  # white noise: nearly every azimuth counts
+    assert truth_in_ellipse(window_db, pos, (lat, lon)) and truth_in_region(window_db, pos, (lat, lon))
+    radius = confidence.radius_m(r.covariance_m2)
+    assert radius < 0.5 * math.sqrt(window_db.grid.dx_m * window_db.grid.dy_m)  # well within a cell
+    # the altitude: the map's surface under the answer plus the camera's height
+    ground = float(dem.sample_lonlat(lon, lat))
+    assert altitude_m(window_db, pos) == pytest.approx(ground + 1.5, abs=3.0)
+    # a calibrated sensor's sigma is the floor of what is learned, and widens the covariance
+    floored = locate(window_db, _read(truth, np.random.default_rng(3), 0.1, 1.7), (0.3, 0.8), 4.0,
+                     sigma_floor_deg=0.3).result
+    assert floored.sigma_deg[0] == pytest.approx(0.3)
+    assert confidence.radius_m(floored.covariance_m2) > 1.5 * radius
+
+
+def test_a_skyline_from_no_place_on_the_map_never_says_ok(window_db):
+    rng = np.random.default_rng(4)
+    az = np.arange(360.0)
+    foreign = Skyline(az, 4.0 + 3.0 * np.sin(np.radians(2 * az)) + rng.normal(0.0, 0.1, 360))
+    pos = locate(window_db, foreign, (0.3, 0.8), 4.0)
+    assert pos.result.ambiguous and fix_status(pos) == "ambiguous"
+    assert any("poor match" in n or "other places" in n for n in pos.result.notes)
+
+
+def test_the_fix_carries_the_covariance_and_the_altitude(dem, window_db):
+    from appliance.estimate_outputs import estimate_fix
+
+    lat, lon = 36.5851, -84.2613
+    pos = locate(window_db, render_skyline(dem, lat, lon, 1.5), (0.3, 0.8), 4.0)
+    fix = estimate_fix(window_db, pos, 123, "estimate")
+    assert fix.position_covariance_type == LocationFix.KNOWN
+    cov = np.array(fix.position_covariance).reshape(3, 3)
+    assert cov[:2, :2] == pytest.approx(pos.result.covariance_m2)
+    assert cov[2, 2] > 0 and fix.altitude == pytest.approx(altitude_m(window_db, pos))
+    rec = pos.to_json(window_db, truth=(lat, lon))
+    assert np.array(rec["covariance_m2"]) == pytest.approx(pos.result.covariance_m2, abs=1e-3)
+    assert rec["status"] == "ok" and rec["truth"]["error_m"] < rec["radius95_m"] + 5.0
