@@ -104,7 +104,7 @@ class EstimatorConfig:
     # sensor noise plus the skyline's change between grid nodes (0.5-1 deg on a 90 m map, camera 1.5 m)
     sigma_deg: tuple[float, float] = (0.3, 0.8)  # the search's interval; the estimate's is learned from the skyline
     heading_tolerance_deg: float = 4.0
-    min_valid_fraction: float = 0.2
+    min_valid_fraction: float = 20.0 / 360.0  # the estimator's least field of view: 20 deg of the circle
     # prior share of azimuths hidden by what the map lacks (trees, buildings): one-sided likelihood
     occlusion_weight: float = 0.05
     map_vertical_sigma_m: float = 0.0  # the map's own height error (1 sigma)

@@ -25,6 +25,7 @@ from appliance.estimator import (
     transport_fix,
     transport_prior,
 )
+from appliance.estimator.estimate import OCCLUSION_WEIGHT
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -224,7 +225,7 @@ def locate(
     source: str = "",
     grid: SkylineGrid | None = None,
     height_m: float | None = None,
-    occlusion_weight: float = 0.0,
+    occlusion_weight: float = OCCLUSION_WEIGHT,
     map_sigma_m: float = 0.0,
     position_prior: PositionPrior | None = None,
     refine: bool = True,
@@ -282,7 +283,7 @@ def locate_sequence(
     sigma_deg: tuple[float, float],
     heading_tolerance_deg: float | None,
     height_m: float | None = None,
-    occlusion_weight: float = 0.0,
+    occlusion_weight: float = OCCLUSION_WEIGHT,
     map_sigma_m: float = 0.0,
 ) -> list[Position]:
     """Fuse a sequence: each skyline's prior is the previous posterior moved by ``moves[i-1]``.

@@ -43,7 +43,14 @@ import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.errors import DatabaseError, EstimationError, InputError
-from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS, FirstPass, SkylineGrid, first_pass
+from appliance.estimator.estimate import (
+    AMBIGUOUS_CELLS,
+    OCCLUSION_WEIGHT,
+    SAME_ANSWER_CELLS,
+    FirstPass,
+    SkylineGrid,
+    first_pass,
+)
 from appliance.position import MAX_REGION_CELLS_IN_JSON, crs_name, locate, skyline_grid
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
@@ -209,7 +216,7 @@ class SearchParams:
     sigma_deg: tuple[float, float]
     heading_tolerance_deg: float | None
     height_m: float | None = None
-    occlusion_weight: float = 0.0
+    occlusion_weight: float = OCCLUSION_WEIGHT
     map_sigma_m: float = 0.0
 
 

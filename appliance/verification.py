@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from pyproj import Transformer
 
-from appliance.estimator.estimate import measured_on_grid
+from appliance.estimator.estimate import OCCLUSION_WEIGHT, measured_on_grid
 from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Model, Terrain, refine, render, screen
 from appliance.estimator.likelihood import occlusion_cap_deg2
 from appliance.skyline import Skyline
@@ -111,7 +111,7 @@ class FitSettings:
     node_spacing_m: float
     sigma_deg: tuple[float, float]
     heading_tolerance_deg: float | None
-    occlusion_weight: float = 0.0
+    occlusion_weight: float = OCCLUSION_WEIGHT
     map_sigma_m: float = 0.0
 
 

@@ -209,3 +209,21 @@ def test_the_estimators_default_sigma_is_the_configurations():
     from appliance.estimator import estimate
 
     assert inspect.signature(estimate).parameters["sigma_deg"].default == EstimatorConfig().sigma_deg
+
+
+def test_the_estimator_and_the_configuration_share_one_set_of_defaults():
+    import inspect
+
+    from appliance.config import EstimatorConfig
+    from appliance.estimator import estimate
+    from appliance.position import locate
+    from appliance.tiled_search import SearchParams
+
+    cfg = EstimatorConfig()
+    given = inspect.signature(estimate).parameters
+    assert given["sigma_deg"].default == cfg.sigma_deg
+    assert given["heading_tolerance_deg"].default == cfg.heading_tolerance_deg
+    assert given["occlusion_weight"].default == cfg.occlusion_weight
+    assert given["map_sigma_m"].default == cfg.map_vertical_sigma_m
+    assert inspect.signature(locate).parameters["occlusion_weight"].default == cfg.occlusion_weight
+    assert SearchParams((0.3, 0.8), 4.0).occlusion_weight == cfg.occlusion_weight

@@ -54,6 +54,13 @@ from appliance.estimator.search import (
 
 _T = TypeVar("_T")
 
+#: The defaults, the same as the configuration's ([estimator] in appliance/config.py, a test keeps
+#: them equal): the interval the search starts from (the estimate's is learned from the skyline), the
+#: compass's tolerance, and the prior share of azimuths hidden by what the map lacks.
+SIGMA_DEG = (0.3, 0.8)
+HEADING_TOLERANCE_DEG = 4.0
+OCCLUSION_WEIGHT = 0.05
+
 COARSE_STRIDE = 4
 #: Nodes whose first-pass upper log-likelihood lies within this many nats of the best first-pass
 #: lower log-likelihood are rescored on every azimuth.
@@ -530,13 +537,13 @@ def estimate(
     grid: SkylineGrid,
     azimuth_deg: np.ndarray,
     elevation_deg: np.ndarray,
-    sigma_deg: tuple[float, float] = (0.3, 0.8),
-    heading_tolerance_deg: float | None = 4.0,
+    sigma_deg: tuple[float, float] = SIGMA_DEG,
+    heading_tolerance_deg: float | None = HEADING_TOLERANCE_DEG,
     log_prior: np.ndarray | None = None,
     min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
     refine: bool = True,
     height_m: float | None = None,
-    occlusion_weight: float = 0.0,
+    occlusion_weight: float = OCCLUSION_WEIGHT,
     weights: np.ndarray | None = None,
     map_sigma_m: float = 0.0,
     position_prior: PositionPrior | None = None,
@@ -857,10 +864,10 @@ def first_pass(
     grid: SkylineGrid,
     azimuth_deg: np.ndarray,
     elevation_deg: np.ndarray,
-    sigma_deg: tuple[float, float] = (0.3, 0.8),
-    heading_tolerance_deg: float | None = 4.0,
+    sigma_deg: tuple[float, float] = SIGMA_DEG,
+    heading_tolerance_deg: float | None = HEADING_TOLERANCE_DEG,
     weights: np.ndarray | None = None,
-    occlusion_weight: float = 0.0,
+    occlusion_weight: float = OCCLUSION_WEIGHT,
     map_sigma_m: float = 0.0,
     min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
 ) -> FirstPass:
