@@ -168,6 +168,9 @@ def position(
             "error_m": err,
             "area_m2": est["region"]["area_m2"],
             "ambiguous": est.get("ambiguous"),
+            "status": est.get("status"),  # with --truth: ambiguous also when the truth is outside the region
+            "radius95_m": est.get("radius95_m"),
+            "sigma_deg": est.get("sigma_deg"),
             "heading_correction_deg": est.get("heading_correction_deg"),
         }
     )

@@ -339,7 +339,9 @@ def run(world: World, sites: list[Site], sigma_deg: tuple[float, float], heading
               f"region {res.region_nodes.size:6d} heading {res.heading_correction_deg:+6.2f} "
               f"(true {compass_deg:+6.2f}) "
               f"world-map gap median {row['gap_median_deg']:+5.2f} max {row['gap_max_deg']:+5.2f} deg "
-              f"rms {res.rms_residual_deg:.2f} {1e3 * res.elapsed_s:6.0f} ms", flush=True)
+              f"rms {res.rms_residual_deg:.2f} sigma {res.sigma_deg[0]:.2f}-{res.sigma_deg[1]:.2f} "
+              f"n_ind {res.independent_azimuths:.0f} main {res.main_mass:.2f} {1e3 * res.elapsed_s:6.0f} ms",
+              flush=True)
     return rows
 
 

@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TypeVar
 
@@ -70,9 +70,16 @@ MIN_RESCORE = 64
 #: how many of those the refinement fits in full.
 SCREEN_NODES = 40
 REFINE_NODES = 3
-#: A fit down to this many times sigma's low end has found the place; RIVAL_LOOKS more modes are
-#: then looked at, and fitted only if their look comes within LOOK_MARGIN times its residual sum.
+#: A search is made again with the sigma learned when its upper end lies below this share of the
+#: search's lower end.
+SEARCH_AGAIN_RATIO = 0.5
+#: A fit down to CONVERGED_RMS times CONVERGED_SIGMA_DEG (what a skyline read to the map's own
+#: precision leaves) has found the place; RIVAL_LOOKS more modes are then looked at, and fitted only
+#: if their look comes within LOOK_MARGIN times its residual sum.  A fit above it may stand at the
+#: wrong place however well it does against the search's sigma (the sigma learned from it would
+#: then vouch for it), so every mode is looked at.
 CONVERGED_RMS = 1.5
+CONVERGED_SIGMA_DEG = 0.05
 RIVAL_LOOKS = 4
 LOOK_MARGIN = 2.0
 #: Modes whose upper log-posterior lies further than this below the best's get no look.
@@ -257,6 +264,8 @@ class EstimateResult:
     rival_mass: float = 0.0
     #: the eye's height found by the exact fit above the map's surface under it (m), NaN without one
     eye_offset_m: float = math.nan
+    #: whether sigma_deg was learned from the skyline (else it is the interval the search was given)
+    sigma_learned: bool = False
 
 
 class _RefineContext:
@@ -574,7 +583,51 @@ def estimate(
     only steers the search.  A search over several grids keeps one sigma for all (False).
     ``sigma_floor_deg`` is the least sigma learned (the calibrated sensor's; None: the database's
     quantisation, ``confidence.SIGMA_FLOOR_DEG``).
+
+    When the sigma learned lies far below the search's (a skyline far cleaner than the search assumed)
+    but its best fit is not down to the floor (where nothing finer could be told apart), the search is
+    made once more with the learned interval: a search that weighs every azimuth as loosely as the wide
+    interval does can settle on a place that only the clean skyline tells apart.  The answer whose best
+    fit leaves the smaller residual is kept.
     """
+    t0 = time.perf_counter()
+    again = learn_noise and first is None and rescore_floor is None
+    kwargs = dict(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
+                  min_field_of_view_deg=min_field_of_view_deg, refine=refine, height_m=height_m,
+                  occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
+                  position_prior=position_prior, rescore_floor=rescore_floor, first=first,
+                  learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg)
+    res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, **kwargs)  # type: ignore[arg-type]
+    lo, hi = res.sigma_deg
+    floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg, confidence.SIGMA_FLOOR_DEG)
+    at_floor = res.rms_residual_deg <= CONVERGED_RMS * floor
+    if again and res.sigma_learned and not at_floor and hi < SEARCH_AGAIN_RATIO * float(sigma_deg[0]):
+        second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), **kwargs)  # type: ignore[arg-type]
+        if second.rms_residual_deg <= res.rms_residual_deg:
+            res = second
+    return replace(res, elapsed_s=time.perf_counter() - t0)
+
+
+def _estimate_once(
+    grid: SkylineGrid,
+    azimuth_deg: np.ndarray,
+    elevation_deg: np.ndarray,
+    sigma_deg: tuple[float, float] = SIGMA_DEG,
+    heading_tolerance_deg: float | None = HEADING_TOLERANCE_DEG,
+    log_prior: np.ndarray | None = None,
+    min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
+    refine: bool = True,
+    height_m: float | None = None,
+    occlusion_weight: float = OCCLUSION_WEIGHT,
+    weights: np.ndarray | None = None,
+    map_sigma_m: float = 0.0,
+    position_prior: PositionPrior | None = None,
+    rescore_floor: float | None = None,
+    first: FirstPass | None = None,
+    learn_noise: bool = True,
+    sigma_floor_deg: float | None = None,
+) -> EstimateResult:
+    """One search and its confidence (:func:`estimate`'s arguments)."""
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
                     min_field_of_view_deg)
@@ -608,6 +661,11 @@ def estimate(
         floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg,
                                                                                  confidence.SIGMA_FLOOR_DEG)
         meas, _ = _learned(meas, best_fit, floor)
+        # the fits ranked again at the noise the skyline has: under the search's wide interval a
+        # place that fits to the noise and one that fits ten times worse can look alike
+        best_fit, _ = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
+                                meas.occlusion_weight, position_prior)
+        meas, _ = _learned(searched, best_fit, floor)
         polished = _polished(grid, meas, best_fit, heading_tolerance_deg, height_m, position_prior)
         if polished is not None:
             best_fit = polished
@@ -661,7 +719,7 @@ def estimate(
         log_upper_unnormalised_map=post.node_upper_unnormalised, rescored=int(plausible.nodes.size),
         covariance_m2=cov_m2, independent_azimuths=meas.n_eff * temper, rival_nodes=rival_cells,
         main_mass=conf.main_mass, rival_mass=conf.rival_mass,
-        eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m,
+        eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m, sigma_learned=learned,
     )
 
 
@@ -1141,7 +1199,7 @@ def _exact_fits(grid: SkylineGrid, meas: _Measurement, rescored: _Rescored, post
     # (the looks at those few are made on the look threads while the best mode is fitted)
     rival_looks = ctx.looks(modes[1 : 1 + RIVAL_LOOKS])
     first = ctx.fit_from_linear(modes[0])
-    if first is not None and first.rms_deg <= CONVERGED_RMS * sig_lo:
+    if first is not None and first.rms_deg <= CONVERGED_RMS * CONVERGED_SIGMA_DEG:
         return [first] + ctx.fit_looked(rival_looks(), ctx.look_at(first))
     head, tail = ctx.looks(modes[:1]), ctx.looks(modes[1 + RIVAL_LOOKS :])
     return ([] if first is None else [first]) + ctx.fit_looked(head() + rival_looks() + tail())
