@@ -112,7 +112,7 @@ def test_several_skylines_share_one_load_and_fuse(db_path, tmp_path, capsys):
     ("azimuth_deg,elevation_deg\n0,abc\n", "not a number"),
     ("azimuth_deg,elevation_deg\n0,95\n", "outside [-90, 90]"),
     ("azimuth_deg,elevation_deg\n" + "".join(f"{a},{'1' if a < 15 else ''}\n" for a in range(360)),
-     "below [estimator] min_valid_fraction 20%"),
+     "below [estimator] min_valid_fraction 6%"),
 ])
 def test_bad_skylines_are_one_line_errors(db_path, tmp_path, content, message):
     bad = tmp_path / "bad.csv"

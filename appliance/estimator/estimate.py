@@ -73,6 +73,9 @@ REFINE_NODES = 3
 #: A search is made again with the sigma learned when its upper end lies below this share of the
 #: search's lower end.
 SEARCH_AGAIN_RATIO = 0.5
+#: ... and with the occluders' share learned when the best fit leaves more than this many times the
+#: prior share to them.
+OCCLUSION_AGAIN_RATIO = 2.0
 #: A fit down to CONVERGED_RMS times CONVERGED_SIGMA_DEG (what a skyline read to the map's own
 #: precision leaves) has found the place; RIVAL_LOOKS more modes are then looked at, and fitted only
 #: if their look comes within LOOK_MARGIN times its residual sum.  A fit above it may stand at the
@@ -88,6 +91,8 @@ SCREEN_MARGIN_NATS = 30.0
 SCREEN_SPREAD_CELLS = 0.3
 #: A region (sigma as given, not learned) wider than this many map cells is reported as ambiguous.
 AMBIGUOUS_CELLS = 25
+#: A heading correction within this much (deg) of the compass's tolerance is at its limit.
+HEADING_LIMIT_MARGIN_DEG = 0.5
 #: A best fit that leaves more than this share of the azimuths to occluders has not explained the skyline.
 MAX_OCCLUDED_SHARE = 0.5
 #: The prior on a levelled head's residual tilt (deg, 1 sigma per axis), fitted with the learned sigma.
@@ -266,6 +271,8 @@ class EstimateResult:
     eye_offset_m: float = math.nan
     #: whether sigma_deg was learned from the skyline (else it is the interval the search was given)
     sigma_learned: bool = False
+    #: the share of the measured azimuths the best fit leaves to occluders (what the map lacks)
+    occluded_share: float = 0.0
 
 
 class _RefineContext:
@@ -584,7 +591,9 @@ def estimate(
     ``sigma_floor_deg`` is the least sigma learned (the calibrated sensor's; None: the database's
     quantisation, ``confidence.SIGMA_FLOOR_DEG``).
 
-    When the sigma learned lies far below the search's (a skyline far cleaner than the search assumed)
+    When the best fit leaves far more of the skyline to occluders than ``occlusion_weight`` says (a
+    forest's edge, buildings), the search is made once more with the share it found.  When the sigma
+    learned lies far below the search's (a skyline far cleaner than the search assumed)
     but its best fit is not down to the floor (where nothing finer could be told apart), the search is
     made once more with the learned interval: a search that weighs every azimuth as loosely as the wide
     interval does can settle on a place that only the clean skyline tells apart.  The answer whose best
@@ -605,6 +614,10 @@ def estimate(
         second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), **kwargs)  # type: ignore[arg-type]
         if second.rms_residual_deg <= res.rms_residual_deg:
             res = second
+    elif again and res.sigma_learned and res.occluded_share > OCCLUSION_AGAIN_RATIO * occlusion_weight:
+        # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
+        kwargs["occlusion_weight"] = min(res.occluded_share, MAX_OCCLUDED_SHARE)
+        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, **kwargs)  # type: ignore[arg-type]
     return replace(res, elapsed_s=time.perf_counter() - t0)
 
 
@@ -692,11 +705,17 @@ def _estimate_once(
         rival_cells = np.union1d(conf.rivals, fit_cells).astype(np.int64)
         region = np.union1d(np.union1d(conf.region, rival_cells), [answer_node]).astype(np.int64)
         area = confidence.ellipse_area_m2(cov_m2) + rival_cells.size * cell_area
-        ambiguous = bool(rival_cells.size) or poor
+        # a heading correction at the compass's limit: the best place may lie with a heading beyond it
+        pinned = (heading_tolerance_deg is not None
+                  and abs(answer.heading_deg) > heading_tolerance_deg - HEADING_LIMIT_MARGIN_DEG)
+        ambiguous = bool(rival_cells.size) or poor or pinned
         notes += _quality_notes(conf, rival_cells.size * cell_area, bool(rivals), answer.rms_deg, searched.sigma_hi_deg)
         if hidden > MAX_OCCLUDED_SHARE:
             notes.append(f"ambiguous: poor match: {hidden:.0%} of the skyline stands above the map's terrain at the "
                          "best place; the skyline may not come from this map")
+        if pinned:
+            notes.append(f"ambiguous: the heading correction {answer.heading_deg:+.1f} deg reaches the compass's "
+                         f"tolerance of {heading_tolerance_deg:g} deg; the best place may need a larger one")
     else:
         # sigma as given: the nodes whose upper posterior reaches the best's lower one
         rival_cells = np.zeros(0, dtype=np.int64)
@@ -720,6 +739,7 @@ def _estimate_once(
         covariance_m2=cov_m2, independent_azimuths=meas.n_eff * temper, rival_nodes=rival_cells,
         main_mass=conf.main_mass, rival_mass=conf.rival_mass,
         eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m, sigma_learned=learned,
+        occluded_share=hidden,
     )
 
 
