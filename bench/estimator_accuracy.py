@@ -57,6 +57,17 @@ def measured_skyline(truth: np.ndarray, rng: np.random.Generator, noise_deg: flo
     return az, el, err
 
 
+def between_nodes(db, grid, rng: np.random.Generator) -> tuple[float, float, float, float]:
+    """A random point between the nodes of ``grid`` (three nodes from its edges, at a node with a
+    skyline): fractional (row, col) and (lat, lon)."""
+    while True:
+        r = rng.uniform(3, grid.n_rows - 4)
+        c = rng.uniform(3, grid.n_cols - 4)
+        if np.isfinite(db.offset_deg[int(round(r)) * grid.n_cols + int(round(c))]):
+            lon, lat = db.grid.xy_to_lonlat(*db.grid.rc_to_xy(r, c))
+            return r, c, float(lat), float(lon)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--map", default="jacksboro", choices=sorted(MAPS))
@@ -83,12 +94,7 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
     errors, inside, region_cells, times = [], [], [], []
     for trial in range(args.trials):
-        while True:
-            r = rng.uniform(3, grid.n_rows - 4)
-            c = rng.uniform(3, grid.n_cols - 4)
-            lon, lat = db.grid.xy_to_lonlat(*db.grid.rc_to_xy(r, c))
-            if np.isfinite(db.offset_deg[int(round(r)) * grid.n_cols + int(round(c))]):
-                break
+        r, c, lat, lon = between_nodes(db, grid, rng)
         truth = reference_skyline(dem, float(lat), float(lon), 1.5)
         az, el, err = measured_skyline(truth, rng, noise, missing, compass)
         res = estimate(grid, az, el, sigma, None if args.unknown_heading else compass)

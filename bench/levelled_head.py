@@ -57,7 +57,7 @@ from appliance.position import Position, locate, skyline_grid, truth_in_region  
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402
 from appliance.terrain.dem import Dem, load_dem  # noqa: E402
-from bench.estimator_accuracy import MAPS  # noqa: E402
+from bench.estimator_accuracy import MAPS, between_nodes  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
@@ -107,16 +107,6 @@ def map_database(name: str) -> tuple[Dem, SkylineDatabase]:
     return dem, load_database(db_path, dem)
 
 
-def truth_position(db: SkylineDatabase, grid: SkylineGrid, rng: np.random.Generator) -> tuple[float, float]:
-    """(lat, lon) of a random point between nodes, as estimator_accuracy draws it."""
-    while True:
-        r = rng.uniform(3, grid.n_rows - 4)
-        c = rng.uniform(3, grid.n_cols - 4)
-        if np.isfinite(db.offset_deg[int(round(r)) * grid.n_cols + int(round(c))]):
-            lon, lat = db.grid.xy_to_lonlat(*db.grid.rc_to_xy(r, c))
-            return float(lat), float(lon)
-
-
 def levelled_head_skyline(truth: np.ndarray, rng: np.random.Generator) -> Skyline:
     """The skyline a levelled head measures of ``truth`` (1-degree true azimuths): the module's model."""
     n = truth.size
@@ -144,7 +134,7 @@ def levelled_head_skyline(truth: np.ndarray, rng: np.random.Generator) -> Skylin
 def one_trial(seed: int, dem: Dem, db: SkylineDatabase, grid: SkylineGrid, cell_m: float,
               est: EstimatorConfig) -> Trial:
     rng = np.random.default_rng(seed)
-    lat, lon = truth_position(db, grid, rng)
+    lat, lon = between_nodes(db, grid, rng)[2:]
     truth = reference_skyline(dem, lat, lon, CAMERA_HEIGHT_M)
     sky = levelled_head_skyline(truth, rng)
     pos = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, grid=grid, occlusion_weight=est.occlusion_weight,

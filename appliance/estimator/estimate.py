@@ -600,50 +600,54 @@ def estimate(
     fit leaves the smaller residual is kept.
     """
     t0 = time.perf_counter()
+    search = _Search(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
+                     min_field_of_view_deg=min_field_of_view_deg, refine=refine, height_m=height_m,
+                     occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
+                     position_prior=position_prior, rescore_floor=rescore_floor, first=first,
+                     learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg)
     again = learn_noise and first is None and rescore_floor is None
-    kwargs = dict(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
-                  min_field_of_view_deg=min_field_of_view_deg, refine=refine, height_m=height_m,
-                  occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
-                  position_prior=position_prior, rescore_floor=rescore_floor, first=first,
-                  learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg)
-    res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, **kwargs)  # type: ignore[arg-type]
+    res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     lo, hi = res.sigma_deg
     floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg, confidence.SIGMA_FLOOR_DEG)
     at_floor = res.rms_residual_deg <= CONVERGED_RMS * floor
     if again and res.sigma_learned and not at_floor and hi < SEARCH_AGAIN_RATIO * float(sigma_deg[0]):
-        second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), **kwargs)  # type: ignore[arg-type]
+        second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), search)
         if second.rms_residual_deg <= res.rms_residual_deg:
             res = second
     elif again and res.sigma_learned and res.occluded_share > OCCLUSION_AGAIN_RATIO * occlusion_weight:
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
-        kwargs["occlusion_weight"] = min(res.occluded_share, MAX_OCCLUDED_SHARE)
-        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, **kwargs)  # type: ignore[arg-type]
+        learned = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
+        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, learned)
     return replace(res, elapsed_s=time.perf_counter() - t0)
 
 
-def _estimate_once(
-    grid: SkylineGrid,
-    azimuth_deg: np.ndarray,
-    elevation_deg: np.ndarray,
-    sigma_deg: tuple[float, float] = SIGMA_DEG,
-    heading_tolerance_deg: float | None = HEADING_TOLERANCE_DEG,
-    log_prior: np.ndarray | None = None,
-    min_field_of_view_deg: float = MIN_FIELD_OF_VIEW_DEG,
-    refine: bool = True,
-    height_m: float | None = None,
-    occlusion_weight: float = OCCLUSION_WEIGHT,
-    weights: np.ndarray | None = None,
-    map_sigma_m: float = 0.0,
-    position_prior: PositionPrior | None = None,
-    rescore_floor: float | None = None,
-    first: FirstPass | None = None,
-    learn_noise: bool = True,
-    sigma_floor_deg: float | None = None,
-) -> EstimateResult:
+@dataclass(frozen=True)
+class _Search:
+    """:func:`estimate`'s arguments beyond the skyline and sigma, for each of its searches."""
+
+    heading_tolerance_deg: float | None
+    log_prior: np.ndarray | None
+    min_field_of_view_deg: float
+    refine: bool
+    height_m: float | None
+    occlusion_weight: float
+    weights: np.ndarray | None
+    map_sigma_m: float
+    position_prior: PositionPrior | None
+    rescore_floor: float | None
+    first: FirstPass | None
+    learn_noise: bool
+    sigma_floor_deg: float | None
+
+
+def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
+                   sigma_deg: tuple[float, float], search: _Search) -> EstimateResult:
     """One search and its confidence (:func:`estimate`'s arguments)."""
+    heading_tolerance_deg, log_prior, height_m = search.heading_tolerance_deg, search.log_prior, search.height_m
+    position_prior, first, sigma_floor_deg = search.position_prior, search.first, search.sigma_floor_deg
     t0 = time.perf_counter()
-    meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, weights, occlusion_weight, map_sigma_m,
-                    min_field_of_view_deg)
+    meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, search.weights, search.occlusion_weight,
+                    search.map_sigma_m, search.min_field_of_view_deg)
     given = first is not None
     if first is None:
         first = _scored_first_pass(grid, meas, heading_tolerance_deg)
@@ -659,18 +663,18 @@ def _estimate_once(
         bounds = (lo.copy(), up.copy(), scored)
     else:
         bounds = _first_pass_bounds(first.scores, meas, lp)
-    plausible = _plausible_nodes(bounds, rescore_floor)
+    plausible = _plausible_nodes(bounds, search.rescore_floor)
     rescored = _rescore(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
     post = _posteriors(meas, lp, plausible, rescored)
     answer = _grid_answer(grid, meas, rescored, post)
     fits: list[Fit] = []
     best_fit: Fit | None = None
     notes: list[str] = []
-    if refine:
+    if search.refine:
         answer, fits, best_fit, notes = _refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
                                                  height_m, position_prior)
     searched, temper, learned = meas, 1.0, False
-    if learn_noise and best_fit is not None and best_fit.residual_deg is not None:
+    if search.learn_noise and best_fit is not None and best_fit.residual_deg is not None:
         floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg,
                                                                                  confidence.SIGMA_FLOOR_DEG)
         meas, _ = _learned(meas, best_fit, floor)

@@ -257,8 +257,9 @@ GEOJSON_FEATURE_PROPERTIES: dict[str, dict[str, Any]] = {
         ("name", "kind", "area_m2", "n_cells", "lower", "upper"),
     ),
     "estimate": _nested(
-        {"name": _STR, "kind": {"const": "estimate"}, "lower": _NUM, "upper": _NUM, "heading_correction_deg": _NUM},
-        ("name", "kind", "lower", "upper", "heading_correction_deg"),
+        {"name": _STR, "kind": {"const": "estimate"}, "lower": _NUM, "upper": _NUM, "heading_correction_deg": _NUM,
+         "status": _STR, "covariance_m2": {"type": ["array", "null"], "items": _NUMBERS}, "radius95_m": _NUM},
+        ("name", "kind", "lower", "upper", "heading_correction_deg", "status"),
     ),
     "truth": _nested({"name": _STR, "kind": {"const": "truth"}}, ("name", "kind")),
     # ``/traverse/track``: one line through the stops' estimates, one through their GPS truths
