@@ -180,7 +180,7 @@ def estimate_status(db: SkylineDatabase, pos: Position, truth: tuple[float, floa
 def fix_status(pos: Position) -> str:
     """"ok +- R m" (R: the 95 % ellipse's semi-major axis) or "ambiguous": what a person reads."""
     r = pos.result
-    if r.ambiguous or r.covariance_m2 is None:
+    if r.ambiguous or r.covariance_m2 is None or not np.all(np.isfinite(r.covariance_m2)):
         return "ambiguous"
     return f"ok ± {confidence.radius_m(r.covariance_m2):.1f} m"
 

@@ -124,5 +124,6 @@ def test_an_odometry_prior_lowers_the_errors_of_fits_between_nodes(valley):
             res = estimate(g, az, el, (0.3, 0.8), 4.0, position_prior=prior)
             out.append(math.hypot((res.row - r0) * g.dy_m, (res.col - c0) * g.dx_m))
     assert np.mean(fused_m) < np.mean(alone_m)
-    # at the learned sigma both are within a few metres; the tail must not grow by more than noise
-    assert np.percentile(fused_m, 90) < 1.15 * np.percentile(alone_m, 90)
+    # the likelihood tempered by the skyline's independent azimuths gives the prior (15 m) a larger
+    # say than before: the tail may grow a little (3.0 to 3.5 m here), never by a prior's worth
+    assert np.percentile(fused_m, 90) < 1.25 * np.percentile(alone_m, 90)

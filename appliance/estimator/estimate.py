@@ -720,6 +720,9 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
         if pinned:
             notes.append(f"ambiguous: the heading correction {answer.heading_deg:+.1f} deg reaches the compass's "
                          f"tolerance of {heading_tolerance_deg:g} deg; the best place may need a larger one")
+        if not np.all(np.isfinite(cov_m2)):
+            ambiguous = True
+            notes.append("ambiguous: the answer's covariance cannot be formed (the fit's curvature is singular)")
     else:
         # sigma as given: the nodes whose upper posterior reaches the best's lower one
         rival_cells = np.zeros(0, dtype=np.int64)
