@@ -97,6 +97,12 @@ class Compression(str, enum.Enum):
     NONE = "none"
 
 
+#: The physical range of a skyline's sigma (deg): a thousandth of a degree (far below any sensor's
+#: arc-second survey) to 30 degrees (a skyline that says nothing).
+SIGMA_MIN_DEG = 1e-3
+SIGMA_MAX_DEG = 30.0
+
+
 @dataclass(frozen=True)
 class EstimatorConfig:
     """The position estimator (paper section 4)."""
@@ -118,12 +124,14 @@ class EstimatorConfig:
 
     def __post_init__(self) -> None:
         lo, hi = self.sigma_deg
-        _require(math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi, "estimator.sigma_deg",
-                 "[lo, hi] with 0 < lo <= hi", [lo, hi])
+        _require(math.isfinite(lo) and math.isfinite(hi) and SIGMA_MIN_DEG <= lo <= hi <= SIGMA_MAX_DEG,
+                 "estimator.sigma_deg", f"[lo, hi] in degrees with {SIGMA_MIN_DEG:g} <= lo <= hi <= {SIGMA_MAX_DEG:g}",
+                 [lo, hi])
         if self.sensor_sigma_deg is not None:
             a, b = self.sensor_sigma_deg
-            _require(math.isfinite(a) and math.isfinite(b) and 0.0 < a <= b, "estimator.sensor_sigma_deg",
-                     "[lo, hi] with 0 < lo <= hi", [a, b])
+            _require(math.isfinite(a) and math.isfinite(b) and SIGMA_MIN_DEG <= a <= b <= SIGMA_MAX_DEG,
+                     "estimator.sensor_sigma_deg",
+                     f"[lo, hi] in degrees with {SIGMA_MIN_DEG:g} <= lo <= hi <= {SIGMA_MAX_DEG:g}", [a, b])
         _within("estimator.heading_tolerance_deg", self.heading_tolerance_deg, 0.0, 180.0)
         _within("estimator.min_valid_fraction", self.min_valid_fraction, 0.0, 1.0)
         _require(math.isfinite(self.occlusion_weight) and 0.0 <= self.occlusion_weight < 1.0,

@@ -192,3 +192,20 @@ def test_a_large_region_is_written_truncated_with_its_full_count(db_path, tmp_pa
     monkeypatch.setattr(position, "MAX_REGION_CELLS_IN_JSON", 12)
     region = big.to_json(db)["region"]
     assert region["cells_truncated"] is False and np.allclose(region["cells"], np.column_stack([lat, lon]), atol=1e-7)
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--truth", "nan,nan"], "--truth 'nan,nan': expected 2 comma-separated finite numbers"),
+    (["--truth", "95,10"], "--truth '95,10': expected LAT,LON in degrees"),
+    (["--sigma", "1e-300,1e-299"], "estimator.sigma_deg"),
+    (["--sigma", "0.3,inf"], "--sigma '0.3,inf': expected 2 comma-separated finite numbers"),
+    (["--fuse", "--move", "nan,0,1"], "--move 'nan,0,1': expected 3 comma-separated finite numbers"),
+    (["--fuse", "--move", "10,0,-1"], "--move '10,0,-1': its sigma must be >= 0 m"),
+])
+def test_unphysical_options_are_one_line_errors(db_path, tmp_path, extra, message):
+    sky = _skyline_at(tmp_path, "a.csv", 36.5731, -84.2687)
+    skylines = [str(sky), str(sky)] if "--fuse" in extra else [str(sky)]
+    out = subprocess.run([sys.executable, "-m", "appliance.cli.main", "estimate", str(db_path), *skylines, *extra],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0 and out.stdout == ""
+    assert out.stderr.count("\n") == 1 and message in out.stderr and "Traceback" not in out.stderr

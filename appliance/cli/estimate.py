@@ -30,14 +30,28 @@ def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
         vals = tuple(float(v) for v in text.split(","))
     except ValueError:
         raise InputError(f"{what} {text!r}: expected {n} comma-separated numbers") from None
-    if len(vals) != n:
-        raise InputError(f"{what} {text!r}: expected {n} comma-separated numbers")
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise InputError(f"{what} {text!r}: expected {n} comma-separated finite numbers")
     return vals
 
 
 def _pair(text: str, what: str) -> tuple[float, float]:
     a, b = _numbers(text, what, 2)
     return a, b
+
+
+def _lat_lon(text: str, what: str) -> tuple[float, float]:
+    lat, lon = _numbers(text, what, 2)
+    if not (-90.0 <= lat <= 90.0 and -360.0 <= lon <= 360.0):
+        raise InputError(f"{what} {text!r}: expected LAT,LON in degrees (-90..90, -360..360)")
+    return lat, lon
+
+
+def _move(text: str) -> Move:
+    east, north, sigma = _numbers(text, "--move", 3)
+    if not sigma >= 0.0:
+        raise InputError(f"--move {text!r}: its sigma must be >= 0 m")
+    return Move(east, north, sigma)
 
 
 def _checked_height(height: float | None) -> float | None:
@@ -100,10 +114,10 @@ def run(args: argparse.Namespace) -> int:
         cfg = override(cfg, "--map-sigma", map_vertical_sigma_m=args.map_sigma)
     sigma = cfg.sigma_deg
     tolerance = None if args.unknown_heading else cfg.heading_tolerance_deg
-    truths = [_pair(t, "--truth") for t in args.truth]
+    truths = [_lat_lon(t, "--truth") for t in args.truth]
     if truths and len(truths) != len(args.skylines):
         raise InputError(f"{len(args.skylines)} skylines but {len(truths)} --truth values")
-    moves = [Move(*_numbers(m, "--move", 3)) for m in args.move]
+    moves = [_move(m) for m in args.move]
     if args.fuse and len(moves) != len(args.skylines) - 1:
         raise InputError(f"--fuse with {len(args.skylines)} skylines needs {len(args.skylines) - 1} --move values")
     if moves and not args.fuse:
