@@ -91,8 +91,10 @@ SCREEN_MARGIN_NATS = 30.0
 SCREEN_SPREAD_CELLS = 0.3
 #: A region (sigma as given, not learned) wider than this many map cells is reported as ambiguous.
 AMBIGUOUS_CELLS = 25
-#: A heading correction within this much (deg) of the compass's tolerance is at its limit.
+#: A heading correction within this much (deg) of the compass's tolerance is at its limit; the search
+#: is then made again with a tolerance this much (deg) wider.
 HEADING_LIMIT_MARGIN_DEG = 0.5
+HEADING_WIDEN_DEG = 3.0
 #: A best fit that leaves more than this share of the azimuths to occluders has not explained the skyline.
 MAX_OCCLUDED_SHARE = 0.5
 #: The prior on a levelled head's residual tilt (deg, 1 sigma per axis), fitted with the learned sigma.
@@ -273,6 +275,10 @@ class EstimateResult:
     sigma_learned: bool = False
     #: the share of the measured azimuths the best fit leaves to occluders (what the map lacks)
     occluded_share: float = 0.0
+    #: whether the heading correction reached the compass's tolerance (then the answer is ambiguous)
+    heading_at_limit: bool = False
+    #: the sigma interval the search was made with (deg)
+    sigma_deg_searched: tuple[float, float] = (math.nan, math.nan)
 
 
 class _RefineContext:
@@ -616,9 +622,27 @@ def estimate(
             res = second
     elif again and res.sigma_learned and res.occluded_share > OCCLUSION_AGAIN_RATIO * occlusion_weight:
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
-        learned = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
-        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, learned)
+        search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
+        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
+    if again and res.heading_at_limit and heading_tolerance_deg is not None:
+        res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
+            heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
     return replace(res, elapsed_s=time.perf_counter() - t0)
+
+
+def _widened(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
+             search: _Search) -> EstimateResult:
+    """``res``, whose heading correction reached the compass's tolerance, searched again with the wider
+    tolerance of ``search``: the same place (SAME_ANSWER_CELLS) with a heading inside the wider band is
+    the answer; another place means the compass's tolerance decides where the skyline was seen, and the
+    better fit of the two is given, ambiguous."""
+    wide = _estimate_once(grid, azimuth_deg, elevation_deg, res.sigma_deg_searched, search)
+    if math.hypot(wide.row - res.row, wide.col - res.col) <= SAME_ANSWER_CELLS:
+        return wide
+    best = wide if wide.rms_residual_deg < res.rms_residual_deg else res
+    note = ("ambiguous: with a wider compass tolerance the best place moves "
+            f"{math.hypot(wide.row - res.row, wide.col - res.col):.0f} cells; the compass decides where it is")
+    return replace(best, ambiguous=True, notes=[*best.notes, note])
 
 
 @dataclass(frozen=True)
@@ -701,6 +725,7 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
     cov_m2 = confidence.grid_to_east_north(cov_cells, grid.dx_m, grid.dy_m,
                                            float(grid.convergence_deg[answer_node]))
     fit_cells = [_nearest_node(grid, f.row, f.col) for f in rivals]
+    pinned = False
     cell_area = grid.dx_m * grid.dy_m
     hidden = 0.0 if best_fit is None else best_fit.occluded / max(best_fit.n, 1)
     poor = answer.rms_deg > searched.sigma_hi_deg or hidden > MAX_OCCLUDED_SHARE
@@ -746,7 +771,8 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
         covariance_m2=cov_m2, independent_azimuths=meas.n_eff * temper, rival_nodes=rival_cells,
         main_mass=conf.main_mass, rival_mass=conf.rival_mass,
         eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m, sigma_learned=learned,
-        occluded_share=hidden,
+        occluded_share=hidden, heading_at_limit=pinned,
+        sigma_deg_searched=(searched.sigma_lo_deg, searched.sigma_hi_deg),
     )
 
 
