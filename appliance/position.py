@@ -177,6 +177,11 @@ def estimate_status(db: SkylineDatabase, pos: Position, truth: tuple[float, floa
     return "ok"
 
 
+def area_text(area_m2: float) -> str:
+    """An area as a person reads it: m^2 below a hectare, else km^2."""
+    return f"{area_m2:.0f} m^2" if area_m2 < 1e4 else f"{area_m2 / 1e6:.3f} km^2"
+
+
 def fix_status(pos: Position) -> str:
     """"ok +- R m" (R: the 95 % ellipse's semi-major axis) or "ambiguous": what a person reads."""
     r = pos.result

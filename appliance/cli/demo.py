@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if args.skyline_only:
         return run_skyline_only(args)
     from appliance.acquisition.replay import session_report
-    from appliance.position import fix_status, truth_error_m
+    from appliance.position import area_text, fix_status, truth_error_m
     from appliance.sim.field_session import run_field_session
 
     out = check_output_folder(args.out)
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
               f"from the true position; database nodes {cell:.0f} m apart)")
         for note in p.result.notes:
             print(f"  note       {note}")
-        print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells), "
+        print(f"  region     {area_text(p.result.region_area_m2)} (95 %; {p.result.region_nodes.size} cells), "
               f"heading correction {p.result.heading_correction_deg:+.1f} deg, "
               f"{360 - p.result.n_valid} of 360 azimuths missing")
         page = session_report(r, db, out, "Viper demo: a simulated field session on the jacksboro map")
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
-    from appliance.position import fix_status
+    from appliance.position import area_text, fix_status
     from appliance.sim.demo import run_demo
 
     check_output_folder(args.out)
@@ -126,7 +126,7 @@ def run_skyline_only(args: argparse.Namespace) -> int:
           f"  heading correction {p.result.heading_correction_deg:+.1f} deg"
           f"  in {p.result.elapsed_s * 1e3:.0f} ms over {p.result.candidates} candidates")
     print(f"  error      {r.error_m:.0f} m ({r.error_m / cell:.2f} cells of {cell:.0f} m)")
-    print(f"  region     {p.result.region_area_m2 / 1e6:.3f} km^2 ({p.result.region_nodes.size} cells)"
+    print(f"  region     {area_text(p.result.region_area_m2)} (95 %; {p.result.region_nodes.size} cells)"
           f"  lower {p.result.lower:.3g} upper {p.result.upper:.3g}")
     for note in p.result.notes:
         print(f"  note       {note}")

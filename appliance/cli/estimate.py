@@ -15,7 +15,7 @@ from typing import Any
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
-from appliance.position import Move, fix_status, locate, locate_sequence
+from appliance.position import Move, area_text, fix_status, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
             status = fix_status(pos) if record["status"] == "ok" else record["status"]
             print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  {status}"
                   f"  heading correction {pos.result.heading_correction_deg:+.1f} deg"
-                  f"  region {pos.result.region_area_m2 / 1e6:.3f} km^2 ({pos.result.region_nodes.size} cells)"
+                  f"  region {area_text(pos.result.region_area_m2)} ({pos.result.region_nodes.size} cells)"
                   f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
             for note in pos.result.notes:
                 LOG.info("  %s", note)
