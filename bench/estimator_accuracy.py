@@ -57,6 +57,20 @@ def measured_skyline(truth: np.ndarray, rng: np.random.Generator, noise_deg: flo
     return az, el, err
 
 
+def map_database(name: str, spacing_m: float | None = None):
+    """The map's DEM and its database (at ``spacing_m``, else the map's own), built once into bench/cache."""
+    dem_path, bounds = MAPS[name]
+    dem = load_dem(dem_path)
+    cache = HERE / "cache"
+    cache.mkdir(exist_ok=True)
+    db_path = cache / f"{name}-{spacing_m or 'native'}.viperdb"
+    if not db_path.exists():
+        t = time.perf_counter()
+        build_database(dem, db_path, search_bounds=bounds, spacing_m=spacing_m, progress=None)
+        print(f"database built in {time.perf_counter() - t:.1f} s", file=sys.stderr)
+    return dem, load_database(db_path, dem)
+
+
 def between_nodes(db, grid, rng: np.random.Generator) -> tuple[float, float, float, float]:
     """A random point between the nodes of ``grid`` (three nodes from its edges, at a node with a
     skyline): fractional (row, col) and (lat, lon)."""
@@ -79,16 +93,7 @@ def main() -> int:
     args = ap.parse_args()
     sigma = tuple(float(v) for v in args.sigma.split(","))
     noise, missing, compass = (0.5, 0.25, 180.0) if args.unknown_heading else (0.2, 0.10, 4.0)
-    dem_path, bounds = MAPS[args.map]
-    dem = load_dem(dem_path)
-    cache = HERE / "cache"
-    cache.mkdir(exist_ok=True)
-    db_path = cache / f"{args.map}-{args.spacing or 'native'}.viperdb"
-    if not db_path.exists():
-        t = time.perf_counter()
-        build_database(dem, db_path, search_bounds=bounds, spacing_m=args.spacing, progress=None)
-        print(f"database built in {time.perf_counter() - t:.1f} s", file=sys.stderr)
-    db = load_database(db_path, dem)
+    dem, db = map_database(args.map, args.spacing)
     grid = skyline_grid(db)
     cell = float(np.sqrt(grid.dx_m * grid.dy_m))
     rng = np.random.default_rng(args.seed)

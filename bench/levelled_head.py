@@ -55,9 +55,9 @@ from appliance.config import EstimatorConfig  # noqa: E402
 from appliance.estimator import SkylineGrid  # noqa: E402
 from appliance.position import Position, locate, skyline_grid, truth_in_region  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
-from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402
-from appliance.terrain.dem import Dem, load_dem  # noqa: E402
-from bench.estimator_accuracy import MAPS, between_nodes  # noqa: E402
+from appliance.terrain.database import SkylineDatabase  # noqa: E402
+from appliance.terrain.dem import Dem  # noqa: E402
+from bench.estimator_accuracy import MAPS, between_nodes, map_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402
 
@@ -91,20 +91,6 @@ class Trial:
     r95_m: float | None  # None: no covariance stated
     region_cells: int
     estimate_s: float
-
-
-def map_database(name: str) -> tuple[Dem, SkylineDatabase]:
-    """The map's DEM and its database at native spacing, from estimator_accuracy's cache in bench/cache."""
-    dem_path, bounds = MAPS[name]
-    dem = load_dem(dem_path)
-    cache = HERE / "cache"
-    cache.mkdir(exist_ok=True)
-    db_path = cache / f"{name}-native.viperdb"
-    if not db_path.exists():
-        t = time.perf_counter()
-        build_database(dem, db_path, search_bounds=bounds, progress=None)
-        print(f"database built in {time.perf_counter() - t:.1f} s", file=sys.stderr)
-    return dem, load_database(db_path, dem)
 
 
 def levelled_head_skyline(truth: np.ndarray, rng: np.random.Generator) -> Skyline:
