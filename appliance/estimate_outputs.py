@@ -22,12 +22,19 @@ from typing import Any
 import numpy as np
 
 from appliance.atomic import atomic_output, write_text_atomic
-from appliance.estimator.confidence import radius_m
 from appliance.estimator.exact import EYE_SIGMA_M
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
-from appliance.position import Position, altitude_m, covariance_json, estimate_status, fix_status, truth_error_m
+from appliance.position import (
+    Position,
+    altitude_m,
+    covariance_json,
+    fix_status,
+    radius_json,
+    status_text,
+    truth_error_m,
+)
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -74,7 +81,7 @@ def estimate_feature(pos: Position) -> dict[str, Any]:
         "properties": {"name": "estimate", "kind": "estimate", "lower": r.lower, "upper": r.upper,
                        "heading_correction_deg": r.heading_correction_deg, "status": fix_status(pos),
                        "covariance_m2": covariance_json(r.covariance_m2),
-                       "radius95_m": None if r.covariance_m2 is None else round(radius_m(r.covariance_m2), 2)},
+                       "radius95_m": radius_json(r.covariance_m2)},
         "geometry": {"type": "Point", "coordinates": [float(pos.lon), float(pos.lat)]},
     }
 
@@ -234,11 +241,6 @@ class ReportEntry:
     files: tuple[Path, ...]
 
 
-def _report_status(db: SkylineDatabase, e: ReportEntry) -> str:
-    """"ok ± R m" (:func:`appliance.position.fix_status`) unless ambiguous, or the truth given lies outside."""
-    return fix_status(e.pos) if estimate_status(db, e.pos, e.truth) == "ok" else "ambiguous"
-
-
 def write_report_page(db: SkylineDatabase, entries: list[ReportEntry], folder: str | Path,
                       title: str = "Viper estimate") -> Path:
     """``report.html`` in ``folder``: a table of the estimates, then per skyline its facts, picture and
@@ -253,7 +255,7 @@ def write_report_page(db: SkylineDatabase, entries: list[ReportEntry], folder: s
         valid = f"{int(e.skyline.valid.sum())} of {e.skyline.elevation_deg.size}"
         rows.append({
             "skyline": e.name,
-            "status": _report_status(db, e),
+            "status": status_text(db, e.pos, e.truth),
             "lat": f"{e.pos.lat:.6f}",
             "lon": f"{e.pos.lon:.6f}",
             "truth_lat": "" if e.truth is None else f"{e.truth[0]:.6f}",

@@ -29,6 +29,7 @@ from appliance.estimator.estimate import OCCLUSION_WEIGHT
 from appliance.estimator.exact import Terrain
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
+from appliance.terrain.raycast import bilinear
 
 MAX_REGION_CELLS_IN_JSON = 20_000
 
@@ -90,7 +91,7 @@ class Position:
                 "cells_truncated": int(r.region_nodes.size) > len(cells),
             },
             "covariance_m2": covariance_json(r.covariance_m2),
-            "radius95_m": None if r.covariance_m2 is None else round(confidence.radius_m(r.covariance_m2), 2),
+            "radius95_m": radius_json(r.covariance_m2),
             "altitude_m": _round_or_none(altitude_m(db, self), 2),
             "independent_azimuths": _round_or_none(r.independent_azimuths, 1),
             "ambiguous": r.ambiguous,
@@ -115,6 +116,11 @@ def covariance_json(cov: np.ndarray | None) -> list[list[float]] | None:
             [round(float(cov[1, 0]), 4), round(float(cov[1, 1]), 4)]]
 
 
+def radius_json(cov: np.ndarray | None) -> float | None:
+    """The 95 % ellipse's semi-major axis (m) as the JSON record carries it; None without one."""
+    return None if cov is None else round(confidence.radius_m(cov), 2)
+
+
 def _round_or_none(v: float, digits: int) -> float | None:
     return round(v, digits) if math.isfinite(v) else None
 
@@ -123,15 +129,7 @@ def altitude_m(db: SkylineDatabase, pos: Position) -> float:
     """The camera's altitude (m, the map's vertical datum): the map's surface under the answer plus
     the camera's height and the eye's offset the exact fit found; NaN off the map."""
     r = pos.result
-    rows, cols = db.terrain_m.shape
-    tr = r.row + db.terrain_origin[0]
-    tc = r.col + db.terrain_origin[1]
-    if not (0.0 <= tr <= rows - 1 and 0.0 <= tc <= cols - 1):
-        return math.nan
-    r0, c0 = min(int(tr), rows - 2), min(int(tc), cols - 2)
-    fr, fc = tr - r0, tc - c0
-    h = db.terrain_m[r0:r0 + 2, c0:c0 + 2].astype(np.float64)
-    ground = float((h[0, 0] * (1 - fc) + h[0, 1] * fc) * (1 - fr) + (h[1, 0] * (1 - fc) + h[1, 1] * fc) * fr)
+    ground = bilinear(db.terrain_m, r.row + db.terrain_origin[0], r.col + db.terrain_origin[1])
     eye = r.eye_offset_m if math.isfinite(r.eye_offset_m) else 0.0
     return ground + float(db.height_m) + eye
 
@@ -188,6 +186,12 @@ def fix_status(pos: Position) -> str:
     if r.ambiguous or r.covariance_m2 is None or not np.all(np.isfinite(r.covariance_m2)):
         return "ambiguous"
     return f"ok ± {confidence.radius_m(r.covariance_m2):.1f} m"
+
+
+def status_text(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None = None) -> str:
+    """:func:`fix_status` ("ok +- R m"), or "ambiguous" where :func:`estimate_status` says so (the truth,
+    where known, outside the region)."""
+    return fix_status(pos) if estimate_status(db, pos, truth) == "ok" else "ambiguous"
 
 
 def skyline_grid(db: SkylineDatabase) -> SkylineGrid:

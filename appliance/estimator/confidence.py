@@ -28,8 +28,12 @@ import numpy as np
 
 #: The credible level of the region and of the ellipse.
 LEVEL = 0.95
-#: chi-square quantile with 2 degrees of freedom at LEVEL: the ellipse's squared Mahalanobis radius.
-CHI2_2DOF = -2.0 * math.log(1.0 - LEVEL)
+
+
+def chi2_2dof(level: float = LEVEL) -> float:
+    """The chi-square quantile with 2 degrees of freedom at ``level``: an ellipse's squared
+    Mahalanobis radius."""
+    return -2.0 * math.log(1.0 - level)
 #: Cells of the region at most this many cells apart (along each axis) belong to one mode.
 MODE_GAP_CELLS = 2
 #: The exact fit's curvature at the learned sigma, tempered, understates the scatter of its answers
@@ -199,22 +203,19 @@ def grid_to_east_north(covariance_cells: np.ndarray, dx_m: float, dy_m: float, c
 
 def radius_m(covariance_m2: np.ndarray, level: float = LEVEL) -> float:
     """The ellipse's semi-major axis (m) at ``level``: what "± R m" reports."""
-    k2 = -2.0 * math.log(1.0 - level)
-    return math.sqrt(k2 * max(float(np.linalg.eigvalsh(np.asarray(covariance_m2))[-1]), 0.0))
+    return math.sqrt(chi2_2dof(level) * max(float(np.linalg.eigvalsh(np.asarray(covariance_m2))[-1]), 0.0))
 
 
 def ellipse_area_m2(covariance_m2: np.ndarray, level: float = LEVEL) -> float:
     """The area (m^2) of the ellipse at ``level``."""
-    k2 = -2.0 * math.log(1.0 - level)
-    return math.pi * k2 * math.sqrt(max(float(np.linalg.det(np.asarray(covariance_m2))), 0.0))
+    return math.pi * chi2_2dof(level) * math.sqrt(max(float(np.linalg.det(np.asarray(covariance_m2))), 0.0))
 
 
 def inside_ellipse(offset: np.ndarray, covariance: np.ndarray, level: float = LEVEL) -> bool:
     """Whether ``offset`` from the centre lies inside the ellipse of ``covariance`` at ``level``
     (same units for both)."""
-    k2 = -2.0 * math.log(1.0 - level)
     try:
         d2 = float(offset @ np.linalg.solve(covariance, offset))
     except np.linalg.LinAlgError:
         return False
-    return d2 <= k2
+    return d2 <= chi2_2dof(level)

@@ -498,25 +498,27 @@ def _capped(ssd: np.ndarray, occluded: np.ndarray, cap: float) -> np.ndarray:
     return ssd if not math.isfinite(cap) else ssd + occluded * cap
 
 
-def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, n: float, sig_lo: float,
-              sig_hi: float, occlusion_weight: float,
-              position_prior: PositionPrior | None = None) -> tuple[Fit, list[Fit]]:
-    """The fit of highest lower log-posterior (exact likelihood over sigma, prior of its nearest
-    node, or the ``position_prior`` where there is one: the same belief, held between nodes), and
-    the fits at other places whose upper bound reaches it (rivals)."""
+def _fit_bounds(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, meas: _Measurement,
+                position_prior: PositionPrior | None = None, temper: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Each fit's lower and upper log-posterior (nats): the exact likelihood over the measurement's
+    sigma interval, counting ``temper`` of itself, plus the prior of its nearest node, or the
+    ``position_prior`` where there is one (the same belief, held between nodes)."""
+    n = meas.n_eff
     ssd = np.array([f.ssd * n / max(f.n, 1) for f in fits])
     occ = np.array([f.occluded * n / max(f.n, 1) for f in fits])
-    lo, up = mixture_log_likelihood_bounds(ssd, n, occ, sig_lo, sig_hi, occlusion_weight)
+    lo, up = mixture_log_likelihood_bounds(ssd, n, occ, meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
     if position_prior is not None:
         lp = np.array([-0.5 * position_prior.cost(np.array([f.row, f.col])) for f in fits])
     else:
         lp = np.array([log_prior[_nearest_node(grid, f.row, f.col)] for f in fits])
-    lo, up = lo + lp, up + lp
-    k = int(np.argmax(lo))
-    best = fits[k]
-    rivals = [f for i, f in enumerate(fits)
-              if i != k and up[i] >= lo[k] and math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
-    return best, rivals
+    return temper * lo + lp, temper * up + lp
+
+
+def _best_fit(fits: list[Fit], grid: SkylineGrid, log_prior: np.ndarray, meas: _Measurement,
+              position_prior: PositionPrior | None = None) -> Fit:
+    """The fit of highest lower log-posterior (:func:`_fit_bounds`)."""
+    lo, _ = _fit_bounds(fits, grid, log_prior, meas, position_prior)
+    return fits[int(np.argmax(lo))]
 
 
 def resample_to_grid(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, n_az: int) -> np.ndarray:
@@ -614,8 +616,7 @@ def estimate(
     again = learn_noise and first is None and rescore_floor is None
     res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     lo, hi = res.sigma_deg
-    floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg, confidence.SIGMA_FLOOR_DEG)
-    at_floor = res.rms_residual_deg <= CONVERGED_RMS * floor
+    at_floor = res.rms_residual_deg <= CONVERGED_RMS * search.floor_deg
     if again and res.sigma_learned and not at_floor and hi < SEARCH_AGAIN_RATIO * float(sigma_deg[0]):
         second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), search)
         if second.rms_residual_deg <= res.rms_residual_deg:
@@ -663,12 +664,17 @@ class _Search:
     learn_noise: bool
     sigma_floor_deg: float | None
 
+    @property
+    def floor_deg(self) -> float:
+        """The least sigma learned: the calibrated sensor's, at least the database's quantisation."""
+        return max(self.sigma_floor_deg or 0.0, confidence.SIGMA_FLOOR_DEG)
+
 
 def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
                    sigma_deg: tuple[float, float], search: _Search) -> EstimateResult:
     """One search and its confidence (:func:`estimate`'s arguments)."""
     heading_tolerance_deg, log_prior, height_m = search.heading_tolerance_deg, search.log_prior, search.height_m
-    position_prior, first, sigma_floor_deg = search.position_prior, search.first, search.sigma_floor_deg
+    position_prior, first = search.position_prior, search.first
     t0 = time.perf_counter()
     meas = _measure(grid, azimuth_deg, elevation_deg, sigma_deg, search.weights, search.occlusion_weight,
                     search.map_sigma_m, search.min_field_of_view_deg)
@@ -699,13 +705,11 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
                                                  height_m, position_prior)
     searched, temper, learned = meas, 1.0, False
     if search.learn_noise and best_fit is not None and best_fit.residual_deg is not None:
-        floor = confidence.SIGMA_FLOOR_DEG if sigma_floor_deg is None else max(sigma_floor_deg,
-                                                                                 confidence.SIGMA_FLOOR_DEG)
+        floor = search.floor_deg
         meas, _ = _learned(meas, best_fit, floor)
         # the fits ranked again at the noise the skyline has: under the search's wide interval a
         # place that fits to the noise and one that fits ten times worse can look alike
-        best_fit, _ = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                                meas.occlusion_weight, position_prior)
+        best_fit = _best_fit(fits, grid, lp, meas, position_prior)
         meas, _ = _learned(searched, best_fit, floor)
         polished = _polished(grid, meas, best_fit, heading_tolerance_deg, height_m, position_prior)
         if polished is not None:
@@ -815,15 +819,7 @@ def _rival_fits(fits: list[Fit], best: Fit, grid: SkylineGrid, lp: np.ndarray, m
     others = [f for f in fits if math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
     if not others:
         return []
-    n = meas.n_eff
-    ssd = np.array([f.ssd * n / max(f.n, 1) for f in [best] + others])
-    occ = np.array([f.occluded * n / max(f.n, 1) for f in [best] + others])
-    lo, up = mixture_log_likelihood_bounds(ssd, n, occ, meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
-    if position_prior is not None:
-        prior = np.array([-0.5 * position_prior.cost(np.array([f.row, f.col])) for f in [best] + others])
-    else:
-        prior = np.array([lp[_nearest_node(grid, f.row, f.col)] for f in [best] + others])
-    lo, up = temper * lo + prior, temper * up + prior
+    lo, up = _fit_bounds([best] + others, grid, lp, meas, position_prior, temper)
     return [f for i, f in enumerate(others, start=1) if up[i] >= lo[0]]
 
 
@@ -1220,8 +1216,7 @@ def _refined(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, rescored: _R
     fits = _exact_fits(grid, meas, rescored, post, scored, heading_tolerance_deg, height_m, position_prior)
     if not fits:
         return answer, [], None, []
-    best_fit, _ = _best_fit(fits, grid, lp, meas.n_eff, meas.sigma_lo_deg, meas.sigma_hi_deg,
-                            meas.occlusion_weight, position_prior)
+    best_fit = _best_fit(fits, grid, lp, meas, position_prior)
     notes: list[str] = []
     if best_fit.occluded > 0.05 * best_fit.n:
         notes.append(f"occluded: {best_fit.occluded:.0f} of {best_fit.n} azimuths stand above the map's "
