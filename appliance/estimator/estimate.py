@@ -759,7 +759,7 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
         area = region.size * cell_area
         ambiguous = region.size > AMBIGUOUS_CELLS or bool(rivals) or poor
         notes += _region_notes(region.size, area)
-        notes += _quality_notes(conf, 0.0, bool(rivals), answer.rms_deg, searched.sigma_hi_deg)
+        notes += _quality_notes(None, 0.0, bool(rivals), answer.rms_deg, searched.sigma_hi_deg)
     return EstimateResult(
         row=answer.row, col=answer.col, node=post.best_node, heading_correction_deg=answer.heading_deg,
         lower=float(np.exp(post.best_log_lower)), upper=float(np.exp(post.best_log_upper)),
@@ -1281,11 +1281,12 @@ def _subcell_answer(grid: SkylineGrid, meas: _Measurement, lp: np.ndarray, resco
     return _Answer(frow, fcol, heading, rms)
 
 
-def _quality_notes(conf: confidence.Modes, rival_area_m2: float, rival_fit: bool, rms_deg: float,
+def _quality_notes(conf: confidence.Modes | None, rival_area_m2: float, rival_fit: bool, rms_deg: float,
                    sigma_hi_deg: float) -> list[str]:
-    """Notes on an answer the skyline does not single out (rival places) or fits poorly."""
+    """Notes on an answer the skyline does not single out (rival places of ``conf``, the modes of a
+    learned posterior; rival fits) or fits poorly."""
     notes: list[str] = []
-    if conf.rivals.size:
+    if conf is not None and conf.rivals.size:
         notes.append(
             f"ambiguous: {conf.rival_mass:.0%} of the posterior lies at other places "
             f"({conf.rivals.size} cells, {rival_area_m2 / 1e6:.2f} km^2) inside the {confidence.LEVEL:.0%} region; "
