@@ -39,11 +39,7 @@ sys.path.insert(0, str(HERE.parent))
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import body_named, geodesic_distance_m  # noqa: E402
 from appliance.config import EstimatorConfig  # noqa: E402
-from appliance.skyline import Skyline  # noqa: E402
-from appliance.terrain.dem import Dem  # noqa: E402
-from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline  # noqa: E402
-from appliance.terrain.mosaic import open_map  # noqa: E402
-from appliance.tiled_search import (  # noqa: E402
+from appliance.locate.tiled_search import (  # noqa: E402
     SearchParams,
     TiledEstimate,
     TiledIndex,
@@ -54,6 +50,10 @@ from appliance.tiled_search import (  # noqa: E402
     search_tile,
     tile_floor,
 )
+from appliance.skyline import Skyline  # noqa: E402
+from appliance.terrain.dem import Dem  # noqa: E402
+from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline  # noqa: E402
+from appliance.terrain.mosaic import open_map  # noqa: E402
 from bench.tiled_build import TILES  # noqa: E402
 
 SEAM_LON = 7.0

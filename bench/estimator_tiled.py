@@ -24,10 +24,10 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
+from appliance.locate.tiled_search import SearchParams, locate_tiled, open_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
-from appliance.tiled_search import SearchParams, locate_tiled, open_tiled  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 from tests.tiled_build import build_tiled  # noqa: E402
 

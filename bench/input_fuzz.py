@@ -63,11 +63,11 @@ import numpy as np
 
 from appliance.config import load_config
 from appliance.errors import ViperError
+from appliance.locate.tiled_search import SearchParams, locate_tiled, open_surface, open_tiled
 from appliance.native import native_messages
 from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
-from appliance.tiled_search import SearchParams, locate_tiled, open_surface, open_tiled
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

@@ -31,12 +31,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import geodesic_distance_m  # noqa: E402
-from appliance.skyline import Skyline  # noqa: E402
-from appliance.terrain.database import load_database  # noqa: E402
-from appliance.terrain.horizon import render_skyline  # noqa: E402
-from appliance.terrain.mosaic import open_map  # noqa: E402
-from appliance.terrain.whole_body import build_whole_body, default_spacing_m  # noqa: E402
-from appliance.tiled_search import (  # noqa: E402
+from appliance.locate.tiled_search import (  # noqa: E402
     SCREEN_PLACES,
     SURFACE_PLACES,
     SearchParams,
@@ -45,6 +40,11 @@ from appliance.tiled_search import (  # noqa: E402
     open_surface,
     open_tiled,
 )
+from appliance.skyline import Skyline  # noqa: E402
+from appliance.terrain.database import load_database  # noqa: E402
+from appliance.terrain.horizon import render_skyline  # noqa: E402
+from appliance.terrain.mosaic import open_map  # noqa: E402
+from appliance.terrain.whole_body import build_whole_body, default_spacing_m  # noqa: E402
 
 LOLA = HERE.parent.parent / "shared" / "data" / "dem_planetary" / "LDEM_4.LBL"
 PARAMS = SearchParams((0.3, 1.2), 4.0)
@@ -175,7 +175,7 @@ def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spaci
         "",
         ("Answers fitted on the map's own surface (up to "
          f"{SCREEN_PLACES} contending places of the facets' region screened on the map, the grid's best and the "
-         f"{SURFACE_PLACES - 1} that screen best fitted, appliance/verification.py)." if fitted else
+         f"{SURFACE_PLACES - 1} that screen best fitted, appliance/locate/verification.py)." if fitted else
          "Answers on the facets' grid alone (refined on the facets' resampled surface), not fitted on the map."),
         "",
         f"Load before the estimates (uptime): {load_before}",

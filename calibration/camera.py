@@ -16,10 +16,10 @@ from typing import Any
 
 import cv2
 import numpy as np
+from viper_calibration.config_edit import update_toml_table
 
 from appliance.errors import CalibrationError, ConfigError, InputError
 from appliance.vision.intrinsics import CameraIntrinsics
-from calibration.config_edit import update_toml_table
 
 MIN_BOARDS_FLOOR = 3  # calibrateCamera's own minimum for a 9-parameter fit from planar views
 FIND_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from viper_calibration.config_edit import significant, update_toml_table
 
 from appliance.drivers.magnetometer import (
     CALIBRATION_TABLE,
@@ -43,7 +44,6 @@ from appliance.drivers.magnetometer import (
     HardSoftIron,
 )
 from appliance.errors import CalibrationError, InputError
-from calibration.config_edit import significant, update_toml_table
 
 MAG_COLUMNS = ("mag_x_gauss", "mag_y_gauss", "mag_z_gauss")
 ACC_COLUMNS = ("acc_x_g", "acc_y_g", "acc_z_g")

@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from viper_calibration.config_edit import significant, update_toml_table
+from viper_calibration.csvtable import read_input, read_rows
 
 from appliance.drivers.accelerometer import CALIBRATION_TABLE, TiltOffset
 from appliance.errors import CalibrationError, InputError
-from calibration.config_edit import significant, update_toml_table
-from calibration.csvtable import read_input, read_rows
 
 HEADER = ("stage_deg", "tilt_x_deg", "tilt_y_deg")
 AXES = ("x", "y")

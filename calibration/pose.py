@@ -27,11 +27,11 @@ from typing import Any
 import cv2
 import numpy as np
 from pyproj import CRS, Transformer
+from viper_calibration.csvtable import read_input
 
 from appliance.errors import CalibrationError, InputError
 from appliance.vision.camera import CameraPose, pose_from_world_from_camera
 from appliance.vision.intrinsics import CameraIntrinsics
-from calibration.csvtable import read_input
 
 REFINABLE = ("f", "k1", "k2")
 MIN_POINTS = 6  # 6 pose parameters; each point gives two equations, but fewer than 6 are fragile

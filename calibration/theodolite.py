@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 from scipy.stats import chi2
+from viper_calibration.csvtable import read_input, read_rows
 
 from appliance.errors import CalibrationError, InputError
-from calibration.csvtable import read_input, read_rows
 
 HEADER = ("point", "camera_elevation_deg", "theodolite_elevation_deg")
 MIN_POINTS = 3

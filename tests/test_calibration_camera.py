@@ -13,11 +13,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from viper_calibration.camera import calibrate_camera
 
 from appliance.cli.main import main
 from appliance.errors import CalibrationError, InputError
 from appliance.vision.intrinsics import load_intrinsics
-from calibration.camera import calibrate_camera
 
 WIDTH, HEIGHT = 640, 480
 K_TRUE = np.array([[520.0, 0.0, 322.5], [0.0, 515.0, 236.0], [0.0, 0.0, 1.0]])

@@ -15,11 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomlkit
-
-from appliance.cli.main import main
-from appliance.drivers.magnetometer import HardSoftIron
-from appliance.errors import CalibrationError
-from calibration.compass import (
+from viper_calibration.compass import (
     ACC_COLUMNS,
     MagnetometerLog,
     _column,
@@ -35,6 +31,10 @@ from calibration.compass import (
     read_magnetometer_csv,
     wrap_deg,
 )
+
+from appliance.cli.main import main
+from appliance.drivers.magnetometer import HardSoftIron
+from appliance.errors import CalibrationError
 from tests.conftest import data_file
 
 SET2 = "imu_magnetometer/sunsided_mpu6050_hmc5883l"

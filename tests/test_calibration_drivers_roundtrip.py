@@ -15,14 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from viper_calibration.compass import calibrate_compass_file, magnitude_spread, write_compass_calibration
+from viper_calibration.device_file import calibration_of, tilt_offset_of
 
 from appliance.cli.main import main
 from appliance.config import load_config
-from appliance.device_calibration import calibration_of, tilt_offset_of
 from appliance.drivers.accelerometer import TiltOffset, average_tilt
 from appliance.drivers.magnetometer import GAUSS_TO_TESLA, HMC5883L_LSB_PER_GAUSS, HardSoftIron, decode_hmc5883l_data
 from appliance.errors import CalibrationError, ConfigError
-from calibration.compass import calibrate_compass_file, magnitude_spread, write_compass_calibration
 from tests.conftest import data_file
 
 MAG_LOG = "imu_magnetometer/sunsided_mpu6050_hmc5883l/full-sphere/hmc5883l_compass.csv"

@@ -10,10 +10,10 @@ import pytest
 import tomlkit
 from hypothesis import given
 from hypothesis import strategies as st
+from viper_calibration.inclinometer import ReversalReadings, calibrate_reversal, parse_reversal_csv
 
 from appliance.cli.main import main
 from appliance.errors import CalibrationError, InputError
-from calibration.inclinometer import ReversalReadings, calibrate_reversal, parse_reversal_csv
 
 finite = st.floats(-5.0, 5.0, allow_nan=False)
 

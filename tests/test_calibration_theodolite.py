@@ -8,16 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from appliance.cli.main import main
-from appliance.config import load_config
-from appliance.errors import CalibrationError, InputError
-from calibration.theodolite import (
+from viper_calibration.theodolite import (
     ElevationPoint,
     calibrate_sigma,
     parse_points_csv,
     sigma_interval,
 )
+
+from appliance.cli.main import main
+from appliance.config import load_config
+from appliance.errors import CalibrationError, InputError
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "calibration" / "examples" / "theodolite_points.csv"
 
@@ -182,7 +182,7 @@ def test_cli_refuses_an_invalid_config_and_leaves_it(tmp_path: Path, capsys) -> 
 
 
 def test_estimator_sigma_is_sensor_and_map_in_quadrature() -> None:
-    from calibration.theodolite import MAP_SIGMA_DEG, combine_sigma
+    from viper_calibration.theodolite import MAP_SIGMA_DEG, combine_sigma
 
     result = calibrate_sigma(_points([0.3, -0.2, 0.1, -0.4, 0.25]), map_sigma_deg=(0.4, 0.5))
     lo, hi = result.sigma_deg

@@ -11,8 +11,8 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.stats import chi2
 
 from appliance.estimator import confidence
+from appliance.locate.position import altitude_m, fix_status, locate, truth_in_ellipse, truth_in_region
 from appliance.logbook.messages import LocationFix
-from appliance.position import altitude_m, fix_status, locate, truth_in_ellipse, truth_in_region
 from appliance.skyline import Skyline
 from appliance.terrain.horizon import render_skyline
 
@@ -123,7 +123,7 @@ def test_a_skyline_from_no_place_on_the_map_never_says_ok(window_db):
 
 
 def test_the_fix_carries_the_covariance_and_the_altitude(dem, window_db):
-    from appliance.estimate_outputs import estimate_fix
+    from appliance.outputs.records import estimate_fix
 
     lat, lon = 36.5851, -84.2613
     pos = locate(window_db, render_skyline(dem, lat, lon, 1.5), (0.3, 0.8), 4.0)

@@ -12,18 +12,18 @@ import numba
 import numpy as np
 import pytest
 
-from appliance import tiled_search
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
 from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
-from appliance.position import locate, skyline_grid
+from appliance.locate import tiled_search
+from appliance.locate.position import locate, skyline_grid
+from appliance.locate.tiled_search import SearchParams, global_log_upper_bound, locate_tiled, open_tiled
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline
-from appliance.tiled_search import SearchParams, global_log_upper_bound, locate_tiled, open_tiled
 from tests.tiled_build import build_tiled
 
 AREA = (-84.30, 36.55, -84.26, 36.58)

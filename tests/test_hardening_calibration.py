@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from viper_calibration.camera import write_camera_calibration
 
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
-from calibration.camera import write_camera_calibration
 
 BEFORE = """# field kit 3, calibrated in the lab
 [devices]

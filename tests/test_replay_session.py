@@ -182,7 +182,7 @@ def _degrees(label: str) -> float:
 def test_the_picture_is_in_degrees_with_a_scale_and_a_zoom_on_the_estimate_and_truth(session_log, window_db):
     from matplotlib.offsetbox import AnchoredOffsetbox
 
-    from appliance.estimate_picture import estimate_figure, map_scale
+    from appliance.outputs.picture import estimate_figure, map_scale
 
     pos, g = session_log.estimate, window_db.grid
     # a truth 6 m north-east of the estimate: the zoom must show it apart
@@ -230,7 +230,7 @@ def test_the_picture_is_in_degrees_with_a_scale_and_a_zoom_on_the_estimate_and_t
 @pytest.mark.parametrize(("span_m", "bar_m"), [(400.0, 100.0), (5_000.0, 1_000.0), (9_000.0, 2_000.0),
                                                  (45_000.0, 10_000.0), (30.0, 5.0)])
 def test_the_scale_bar_is_a_round_length_near_a_quarter_of_the_span(span_m, bar_m):
-    from appliance.estimate_picture import length_label, nice_length_m
+    from appliance.outputs.picture import length_label, nice_length_m
 
     assert nice_length_m(span_m) == pytest.approx(bar_m)
     assert length_label(2_000.0) == "2 km" and length_label(500.0) == "500 m"

@@ -16,6 +16,8 @@ import pytest
 from appliance.bodies import MOON, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, InputError
+from appliance.locate.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
+from appliance.locate.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
@@ -29,8 +31,6 @@ from appliance.terrain.whole_body import (
     facets_meeting,
     plan_facets,
 )
-from appliance.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
-from appliance.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
 from tests.conftest import data_file
 
 distributed = pytest.importorskip("distributed")

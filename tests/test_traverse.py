@@ -24,9 +24,9 @@ from appliance.config import Config, TraverseConfig
 from appliance.drivers.odometry import OdometryReport, format_line
 from appliance.drivers.odometry_reader import open_odometry
 from appliance.estimator import transport_prior
+from appliance.locate.position import truth_error_m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
-from appliance.position import truth_error_m
 from appliance.sim.field_session import run_field_traverse
 from appliance.sim.pty_port import PtyPort
 from appliance.sim.world import SimClock
@@ -145,7 +145,7 @@ def test_every_json_message_of_the_traverse_log_matches_its_channel_schema(trave
 
 
 def test_the_report_shows_the_track_and_every_stop(traverse):
-    from appliance.acquisition.traverse_report import write_traverse_report
+    from appliance.outputs.traverse_report import write_traverse_report
 
     r, _, db, out = traverse
     page = write_traverse_report(r, db, out / "report", "traverse")
@@ -157,7 +157,7 @@ def test_the_report_shows_the_track_and_every_stop(traverse):
 
 
 def test_the_report_gives_each_stop_its_own_session_facts(traverse):
-    from appliance.acquisition.traverse_report import stop_rows
+    from appliance.outputs.traverse_report import stop_rows
 
     r, _, db, _ = traverse
     # each stop's truth procedure, as the log records it, in stop order
@@ -186,7 +186,7 @@ def _bare_traverse(tmp_path, clock, reader, timeout_s=600.0):
 
 
 def test_a_lost_odometry_line_breaks_the_fusion_chain(tmp_path):
-    from appliance.position import Move
+    from appliance.locate.position import Move
 
     port = PtyPort(tmp_path / "odometry")
     reader = open_odometry(str(port.path), read_timeout_s=0.05)

@@ -6,7 +6,7 @@ angle, true heading of the optical axis, roll and pitch; same log time as the fr
 calibration and the GPS ground truth.  :func:`read_session` gathers them (a truncated log gives
 what it holds up to its last readable record, and says so); :func:`replay_session` reruns the
 onboard chain on them and writes a results log (MCAP, the same estimate topics as a session);
-:func:`write_report` draws the pictures and one HTML page (:mod:`appliance.report_page`), with a
+:func:`write_report` draws the pictures and one HTML page (:mod:`appliance.outputs.html`), with a
 table of errors when several logs are replayed and the session's facts of each log
 (:mod:`appliance.acquisition.session_facts`).
 """
@@ -41,7 +41,7 @@ from appliance.vision.panorama import Panorama
 
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
-    from appliance.position import Position
+    from appliance.locate.position import Position
     from appliance.terrain.database import SkylineDatabase
 
 
@@ -146,7 +146,7 @@ def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path, t
 
 def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
     """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap``."""
-    from appliance.estimate_outputs import skyline_payload, write_estimate_records
+    from appliance.outputs.records import skyline_payload, write_estimate_records
     from appliance.vision.skyline_detect import detect_skyline
 
     name = data.path.stem
@@ -196,7 +196,7 @@ def panorama_picture(res: ReplayResult, db: SkylineDatabase, path: Path) -> None
     import matplotlib.pyplot as plt
 
     assert res.panorama is not None and res.skyline is not None and res.position is not None
-    from appliance.estimate_outputs import rendered_skyline
+    from appliance.outputs.records import rendered_skyline
 
     pano, sky, pos = res.panorama, res.skyline, res.position
     rendered = rendered_skyline(db, pos)
@@ -230,7 +230,7 @@ def _fmt(v: float | None, spec: str = ".1f") -> str:
 
 def summary_rows(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> list[dict[str, str]]:
     """One row per log; logs are named relative to ``out_dir``, where the table is written."""
-    from appliance.position import estimate_status
+    from appliance.locate.position import estimate_status
 
     rows = []
     for r in results:
@@ -257,9 +257,9 @@ def summary_rows(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path
 def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path, title: str | None = None) -> Path:
     """PNG pictures per log, ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay
     of N logs"); returns the HTML page's path."""
-    from appliance import report_page as rp
-    from appliance.estimate_outputs import write_png
-    from appliance.position import estimate_status
+    from appliance.locate.position import estimate_status
+    from appliance.outputs import html as rp
+    from appliance.outputs.records import write_png
 
     check_output_folder(out_dir)
     for r in results:

@@ -31,8 +31,8 @@ from appliance.skyline import Skyline
 
 if TYPE_CHECKING:
     from appliance.estimator.exact import PositionPrior
+    from appliance.locate.position import Position
     from appliance.logbook.live import Publisher
-    from appliance.position import Position
     from appliance.terrain.database import SkylineDatabase
 
 
@@ -320,8 +320,8 @@ class Session:
         if self.db is None:
             self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
-        from appliance.estimate_outputs import estimate_fix, skyline_payload, write_estimate_records
-        from appliance.position import fix_status
+        from appliance.locate.position import fix_status
+        from appliance.outputs.records import estimate_fix, skyline_payload, write_estimate_records
         from appliance.vision.skyline_detect import detect_skyline
 
         pano = onboard.stitch_frames(frames, self.p.camera.intrinsics)
@@ -347,7 +347,7 @@ class Session:
             where = (truth.lat_deg, truth.lon_deg)
         pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
         if self.log_prior is not None:
-            from appliance.position import truth_error_m
+            from appliance.locate.position import truth_error_m
 
             self.result.estimate_alone = pos
             self.result.error_alone_m = None if where is None else truth_error_m(self.db, pos, where)

@@ -4,7 +4,7 @@ At each stop the usual session runs (:class:`appliance.acquisition.session.Sessi
 GPS truth, capture, estimate).  Before every stop after the first, the traverse waits for the rover's
 odometry line (:mod:`appliance.drivers.odometry`: the displacement from the previous stop and its
 sigma), and the stop's estimate takes as its prior the last estimate's posterior moved by that
-displacement and blurred by its sigma (:func:`appliance.position.transported_prior`).  The stop
+displacement and blurred by its sigma (:func:`appliance.locate.position.transported_prior`).  The stop
 reports both: its estimate from its own skyline alone (``/estimate/alone/fix``) and the fused one,
 which is the stop's position (``/estimate/fix`` and the other estimate topics).
 
@@ -43,8 +43,8 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 if TYPE_CHECKING:
     from appliance.estimator import SkylineGrid
     from appliance.estimator.exact import PositionPrior
+    from appliance.locate.position import Move, Position
     from appliance.logbook.live import Publisher
-    from appliance.position import Move, Position
     from appliance.terrain.database import SkylineDatabase
 
 
@@ -99,7 +99,7 @@ class TraverseResult(SessionResult):
 
 def estimate_flag(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None) -> str:
     """'ambiguous' when the region is too large (or the GPS truth lies outside it), else 'ok'."""
-    from appliance.position import estimate_status
+    from appliance.locate.position import estimate_status
 
     return estimate_status(db, pos, truth)
 
@@ -242,7 +242,7 @@ class Traverse:
 
     def take_move(self, head: Session, rep: OdometryReport) -> None:
         """Add ``rep`` to the displacement since the last estimate, or break the chain on a lost line."""
-        from appliance.position import Move
+        from appliance.locate.position import Move
 
         expected = self.last_stop_id + 1
         self.last_stop_id = rep.stop_id
@@ -261,7 +261,7 @@ class Traverse:
         if i == 0:
             note = "first stop"
         elif self.db is not None and self.belief is not None and self.moved is not None:
-            from appliance.position import skyline_grid, transported_fix, transported_prior
+            from appliance.locate.position import skyline_grid, transported_fix, transported_prior
 
             if self.grid is None:
                 self.grid = skyline_grid(self.db)
@@ -277,7 +277,7 @@ class Traverse:
 
     def finish_stop(self, head: Session, stop: StopResult) -> None:
         """The stop's records; its position becomes the belief the next stop's prior moves."""
-        from appliance.position import Move
+        from appliance.locate.position import Move
 
         if stop.position is not None:
             self.belief, self.moved = stop.position, Move(0.0, 0.0, 0.0)

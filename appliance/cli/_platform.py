@@ -78,7 +78,7 @@ def live_server(address: str | None) -> Iterator[LiveServer | None]:
 
 def open_devices(config: Config) -> Devices:
     """The devices of ``[platform] kind``, with the calibrations of ``[devices]`` (file or inline)."""
-    from appliance.device_calibration import load_device_calibration
+    from viper_calibration.device_file import load_device_calibration
 
     calibration = load_device_calibration(config.devices)
     if config.platform.kind is PlatformKind.HARDWARE:

@@ -32,8 +32,8 @@ def _validate_config_text(path: Path) -> Any:
 
 
 def _theodolite(args: argparse.Namespace) -> int:
-    from calibration.config_edit import significant, update_toml_table
-    from calibration.theodolite import calibrate_sigma, format_report, read_points_csv
+    from viper_calibration.config_edit import significant, update_toml_table
+    from viper_calibration.theodolite import calibrate_sigma, format_report, read_points_csv
 
     result = calibrate_sigma(read_points_csv(args.points), confidence=args.confidence, map_sigma_deg=args.map_share)
     sensor = [significant(v) for v in result.sigma_deg]
@@ -98,13 +98,13 @@ def _pattern(text: str) -> tuple[int, int]:
 
 
 def _camera(args: argparse.Namespace) -> int:
-    from calibration.camera import calibrate_camera, format_report
+    from viper_calibration.camera import calibrate_camera, format_report
 
     result = calibrate_camera(
         args.images, pattern_size=args.pattern, square_size_m=args.square_m, min_boards=args.min_boards
     )
     if args.output is not None:
-        from calibration.camera import write_camera_calibration
+        from viper_calibration.camera import write_camera_calibration
 
         write_camera_calibration(args.output, result.intrinsics)
     if args.json:
@@ -117,7 +117,7 @@ def _camera(args: argparse.Namespace) -> int:
 
 
 def _compass(args: argparse.Namespace) -> int:
-    from calibration.compass import calibrate_compass_file, format_report, write_compass_calibration
+    from viper_calibration.compass import calibrate_compass_file, format_report, write_compass_calibration
 
     result = calibrate_compass_file(
         args.log,
@@ -140,7 +140,7 @@ def _compass(args: argparse.Namespace) -> int:
 
 
 def _inclinometer(args: argparse.Namespace) -> int:
-    from calibration.inclinometer import (
+    from viper_calibration.inclinometer import (
         calibrate_reversal,
         format_report,
         read_reversal_csv,
@@ -162,11 +162,12 @@ def _inclinometer(args: argparse.Namespace) -> int:
 
 
 def _pose(args: argparse.Namespace) -> int:
+    from viper_calibration.camera import write_camera_calibration
+    from viper_calibration.pose import fit_pose, format_report, read_control_points
+
     from appliance.atomic import check_output_path, write_text_atomic
     from appliance.vision.intrinsics import load_intrinsics
     from appliance.vision.panorama import read_image
-    from calibration.camera import write_camera_calibration
-    from calibration.pose import fit_pose, format_report, read_control_points
 
     for out in filter(None, [args.out, args.camera_out]):
         check_output_path(out, [args.photo, args.points], force=args.force or out == args.camera_out)
@@ -197,7 +198,7 @@ def _pose(args: argparse.Namespace) -> int:
 
 
 def _refine(text: str) -> tuple[str, ...]:
-    from calibration.pose import REFINABLE
+    from viper_calibration.pose import REFINABLE
 
     names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
     bad = [n for n in names if n not in REFINABLE]

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     if args.skyline_only:
         return run_skyline_only(args)
     from appliance.acquisition.replay import session_report
-    from appliance.position import area_text, fix_status, truth_error_m
+    from appliance.locate.position import area_text, fix_status, truth_error_m
     from appliance.sim.field_session import run_field_session
 
     out = check_output_folder(args.out)
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
-    from appliance.position import area_text, fix_status
+    from appliance.locate.position import area_text, fix_status
     from appliance.sim.demo import run_demo
 
     check_output_folder(args.out)
@@ -135,8 +135,8 @@ def run_skyline_only(args: argparse.Namespace) -> int:
 
 
 def run_traverse(args: argparse.Namespace) -> int:
-    from appliance.acquisition.traverse_report import write_traverse_report
-    from appliance.position import truth_error_m
+    from appliance.locate.position import truth_error_m
+    from appliance.outputs.traverse_report import write_traverse_report
     from appliance.sim.field_session import run_field_traverse
 
     out = check_output_folder(args.out)

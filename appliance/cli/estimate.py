@@ -15,7 +15,7 @@ from typing import Any
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
-from appliance.position import Move, area_text, fix_status, locate, locate_sequence
+from appliance.locate.position import Move, area_text, fix_status, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.estimate_outputs import (
+            from appliance.outputs.records import (
                 ReportEntry,
                 write_geotiff,
                 write_png,
@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
             for note in pos.result.notes:
                 LOG.info("  %s", note)
     if report is not None:
-        from appliance.estimate_outputs import write_report_page
+        from appliance.outputs.records import write_report_page
 
         write_report_page(db, entries, report)
     return 0
@@ -187,7 +187,7 @@ def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[
                tolerance: float | None) -> int:
     """``viper estimate`` on a tiled database: every skyline searched over the tiles its search area
     meets (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
-    from appliance.tiled_search import SearchParams, box_around, locate_tiled, open_surface, open_tiled
+    from appliance.locate.tiled_search import SearchParams, box_around, locate_tiled, open_surface, open_tiled
 
     if args.fuse or args.report:
         raise InputError(f"{'--fuse' if args.fuse else '--report'} is not available with a tiled database; "

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         status = estimate_status(db, p, r.data.truth)
         print(f"{r.data.path}: {p.lat:.6f}, {p.lon:.6f}  {status}  {err}{was}  [{len(r.data.frames)} frames]")
 
-    from appliance.position import estimate_status
+    from appliance.locate.position import estimate_status
 
     results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
     print(f"report: {page}  table: {out / 'summary.csv'}")

@@ -9,7 +9,7 @@ The chip's axes are taken as the body FLU axes (x forward, y left, z up); at res
 
 Pitch is the inclination of the x axis (nose up positive), roll that of the y axis (left side up,
 i.e. right side down, positive), both in degrees.  ``viper calibrate inclinometer``
-(:mod:`calibration.inclinometer`, reversal method) writes the offsets as the ``[inclinometer]``
+(:mod:`viper_calibration.inclinometer`, reversal method) writes the offsets as the ``[inclinometer]``
 table of a calibration TOML, with the keys of the ``[devices.inclinometer]`` configuration section::
 
     [inclinometer]

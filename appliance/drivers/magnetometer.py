@@ -10,7 +10,7 @@ mount it so, or fold the rotation into the calibration matrix.
 Calibration: a measurement ``raw = S @ true + b`` (soft iron ``S``, hard iron ``b``) is corrected by
 :class:`HardSoftIron` as ``matrix @ (raw - offset)`` (ideally ``offset = b``, ``matrix = S^-1``).
 ``offset`` is in the units of the readings it corrects (this driver reads tesla); ``matrix`` is
-dimensionless.  ``viper calibrate compass`` (:mod:`calibration.compass`) fits it and stores it, in
+dimensionless.  ``viper calibrate compass`` (:mod:`viper_calibration.compass`) fits it and stores it, in
 SI units, as the ``[compass]`` table of a calibration TOML, with the same keys as the
 ``[devices.compass]`` section of the configuration::
 

@@ -2,7 +2,7 @@
 
 The grid search ranks nodes; near terrain moves by parallax between them, so a blend of the nodes'
 skylines cannot say what is seen in between.  Here the skyline at a continuous position is
-rendered from the terrain itself (``terrain/raycast.py``: the heights the database was built on,
+rendered from the terrain itself (``estimator/raycast.py``: the heights the database was built on,
 sampled finely near the eye), at the true azimuths the measured skyline maps to under the trial
 heading, and position and heading are fitted by Levenberg-Marquardt on those renders.
 
@@ -21,7 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
-from appliance.terrain.raycast import BLOCK_CELLS, bilinear, block_maxima, march, ray_distances
+from appliance.estimator.raycast import BLOCK_CELLS, bilinear, block_maxima, march, ray_distances
 
 DEG = 180.0 / math.pi
 MAX_ITERATIONS = 10

@@ -3,7 +3,7 @@
 Rays leave the viewpoint as straight lines of an azimuthal equidistant projection centred on it,
 which are geodesics with exact distances, so azimuths are true-north azimuths whatever the DEM's
 CRS (grid convergence and metres-per-degree are handled by the projection).  Terrain is sampled
-bilinearly on the schedule of :func:`appliance.terrain.raycast.ray_distances`: a fiftieth of a cell
+bilinearly on the schedule of :func:`appliance.estimator.raycast.ray_distances`: a fiftieth of a cell
 near the eye, growing with distance to a quarter cell.  The apparent drop of a target at distance d
 is d^2 / (2 R_eff), with R_eff = R / (1 - k) folding the body's curvature and atmospheric
 refraction k into one radius.
@@ -17,9 +17,9 @@ import numpy as np
 from pyproj import CRS, Transformer
 
 from appliance.errors import DemError
+from appliance.estimator.raycast import ray_distances
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
-from appliance.terrain.raycast import ray_distances
 
 DEFAULT_HEIGHT_M = 1.5
 DEFAULT_MAX_RANGE_M = 60_000.0

@@ -2,7 +2,7 @@
 truth, and the skylines.
 
 :func:`estimate_figure` builds the matplotlib figure (its axes labelled ``map``, ``zoom`` and
-``skyline``, so a test can read limits and tick labels); :func:`appliance.estimate_outputs.write_png`
+``skyline``, so a test can read limits and tick labels); :func:`appliance.outputs.records.write_png`
 saves it.  Every grid node is drawn at its own longitude and latitude (``pcolormesh``), so the axes
 are exact for a geographic grid and for a projected one alike; the aspect ratio makes a metre east as
 long as a metre north at the map's centre, and the scale bars are measured on the database's body.
@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from appliance.position import Position
+    from appliance.locate.position import Position
     from appliance.skyline import Skyline
     from appliance.terrain.database import SkylineDatabase
 
@@ -165,9 +165,9 @@ def estimate_figure(db: SkylineDatabase, pos: Position, skyline: Skyline,
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch, Rectangle
 
-    from appliance.estimate_outputs import region_mask
     from appliance.estimator import resample_to_grid
-    from appliance.position import truth_error_m
+    from appliance.locate.position import truth_error_m
+    from appliance.outputs.records import region_mask
 
     g = db.grid
     r = pos.result

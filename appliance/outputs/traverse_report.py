@@ -1,6 +1,6 @@
 """The report of a traverse: the track on the map, a table of the stops (odometry, the estimate alone
 and fused, their errors against the GPS truth and their statuses) and each stop's picture, in the
-look of the other reports (:mod:`appliance.report_page`), with the session facts of the log."""
+look of the other reports (:mod:`appliance.outputs.html`), with the session facts of the log."""
 
 from __future__ import annotations
 
@@ -61,10 +61,10 @@ def _stop_facts(s: StopResult) -> dict[str, str]:
 
 def write_traverse_report(result: TraverseResult, db: SkylineDatabase, out_dir: Path, title: str) -> Path:
     """``report.html`` in ``out_dir`` with ``track.png`` and a picture per stop; returns the page's path."""
-    from appliance import report_page as rp
     from appliance.acquisition.session_facts import read_session_facts
-    from appliance.estimate_outputs import write_png
-    from appliance.estimate_picture import TrackStop, track_figure
+    from appliance.outputs import html as rp
+    from appliance.outputs.picture import TrackStop, track_figure
+    from appliance.outputs.records import write_png
 
     check_output_folder(out_dir)
     track = [TrackStop(str(s.stop), _latlon(s.position), _latlon(s.alone), s.truth) for s in result.stops]

@@ -51,13 +51,13 @@ from appliance.estimator.estimate import (
     SkylineGrid,
     first_pass,
 )
-from appliance.position import MAX_REGION_CELLS_IN_JSON, crs_name, locate, skyline_grid
+from appliance.locate.position import MAX_REGION_CELLS_IN_JSON, crs_name, locate, skyline_grid
+from appliance.locate.verification import FitSettings, Place, distinct_places, fit_places, screen_places
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import lon_overlap
 from appliance.terrain.mosaic import open_map
-from appliance.verification import FitSettings, Place, distinct_places, fit_places, screen_places
 
 INDEX_NAME = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
@@ -211,7 +211,7 @@ def select_tiles(index: TiledIndex, box: Box | None = None) -> list[TileEntry]:
 
 @dataclass(frozen=True)
 class SearchParams:
-    """What every tile's search shares (the arguments of :func:`appliance.position.locate`)."""
+    """What every tile's search shares (the arguments of :func:`appliance.locate.position.locate`)."""
 
     sigma_deg: tuple[float, float]
     heading_tolerance_deg: float | None
@@ -227,7 +227,7 @@ class TileOutcome:
 
     file: str
     error: str | None
-    record: dict = field(default_factory=dict)  # the tile's own JSON record (appliance.position), no region cells
+    record: dict = field(default_factory=dict)  # the tile's own JSON record (locate.position), no region cells
     node: int = -1
     lat: float = math.nan
     lon: float = math.nan
@@ -438,7 +438,7 @@ class RegionCell:
 
 @dataclass(frozen=True)
 class SurfaceFit:
-    """The answer fitted on the map's own surface (:mod:`appliance.verification`): where, in which
+    """The answer fitted on the map's own surface (:mod:`appliance.locate.verification`): where, in which
     tile's grid coordinates, the compass's error, the fit's RMS residual and how many contending
     places were looked at."""
 
@@ -527,7 +527,7 @@ class TiledEstimate:
         return False
 
     def to_json(self, index: TiledIndex | None = None, truth: tuple[float, float] | None = None) -> dict:
-        """The single-file record (:meth:`appliance.position.Position.to_json`) of the best tile, its
+        """The single-file record (:meth:`appliance.locate.position.Position.to_json`) of the best tile, its
         bounds, region and status replaced by the combined ones, and which tiles were searched."""
         out = dict(self.best.record)
         cells = [[round(c.lat, 7), round(c.lon, 7)] for c in self.region]
@@ -673,7 +673,7 @@ def combine(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float = 0.0) 
 
 #: Contending places of a whole-body search looked at on the map's own surface
 #: (:func:`fit_on_surface`): the region's SCREEN_PLACES most likely distinct places (by upper
-#: posterior on the facets' grid) are screened on the map (:func:`appliance.verification.screen_places`),
+#: posterior on the facets' grid) are screened on the map (:func:`appliance.locate.verification.screen_places`),
 #: and the grid's best place and the SURFACE_PLACES - 1 that screen best are fitted.  On the facets'
 #: grid alone the place a skyline was seen from ranked 112th-364th among the region's distinct
 #: places at four of twenty positions of bench/moon_whole_body.py; screened on the map,
@@ -710,7 +710,7 @@ def fit_on_surface(index: TiledIndex, est: TiledEstimate, surface: Dem, skyline:
     contending places (the best, then the region's distinct places by upper posterior, at most
     SCREEN_PLACES) screened on renders of the map, the grid's best and the SURFACE_PLACES - 1 that
     screen best each fitted between nodes on renders of the map, the best fit kept
-    (:mod:`appliance.verification`).  The posterior bounds and the region stay the grid's; a fit
+    (:mod:`appliance.locate.verification`).  The posterior bounds and the region stay the grid's; a fit
     farther than SAME_ANSWER_CELLS from the grid's best makes the answer ambiguous.  None where no
     place can be fitted."""
     spacing = max(est.best.cell_size_m)

@@ -27,9 +27,9 @@ from appliance.estimator import (
 )
 from appliance.estimator.estimate import OCCLUSION_WEIGHT
 from appliance.estimator.exact import Terrain
+from appliance.estimator.raycast import bilinear
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
-from appliance.terrain.raycast import bilinear
 
 MAX_REGION_CELLS_IN_JSON = 20_000
 

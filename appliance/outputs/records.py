@@ -6,7 +6,7 @@ world -> skyline-grid transform, the lower posterior as a Foxglove Grid, the sky
 estimate); ``viper estimate --report`` and the replay report write its files (:func:`write_png`,
 :func:`write_geotiff`: float32, NaN nodata; :func:`write_region_geojson`: the region's polygons only;
 :func:`write_points_geojson`: the estimate and the truth); :func:`write_png` draws the picture of
-:mod:`appliance.estimate_picture`.  The region becomes GeoJSON in one place,
+:mod:`appliance.outputs.picture`.  The region becomes GeoJSON in one place,
 :func:`region_polygons`; its features and their properties (:func:`region_feature`,
 :func:`estimate_feature`) are the same in the log's ``/region`` and in the files.
 """
@@ -23,10 +23,7 @@ import numpy as np
 
 from appliance.atomic import atomic_output, write_text_atomic
 from appliance.estimator.exact import EYE_SIGMA_M
-from appliance.logbook import messages as m
-from appliance.logbook import topics as t
-from appliance.logbook.writer import Logbook
-from appliance.position import (
+from appliance.locate.position import (
     Position,
     altitude_m,
     covariance_json,
@@ -35,6 +32,9 @@ from appliance.position import (
     status_text,
     truth_error_m,
 )
+from appliance.logbook import messages as m
+from appliance.logbook import topics as t
+from appliance.logbook.writer import Logbook
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -221,8 +221,8 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
 
 def write_png(db: SkylineDatabase, pos: Position, skyline: Skyline, path: str | Path,
               truth: tuple[float, float] | None = None) -> None:
-    """The picture of :func:`appliance.estimate_picture.estimate_figure` as a PNG; ``truth`` is (lat, lon)."""
-    from appliance.estimate_picture import estimate_figure
+    """The picture of :func:`appliance.outputs.picture.estimate_figure` as a PNG; ``truth`` is (lat, lon)."""
+    from appliance.outputs.picture import estimate_figure
 
     fig = estimate_figure(db, pos, skyline, truth)
     with atomic_output(path) as tmp:
@@ -245,7 +245,7 @@ def write_report_page(db: SkylineDatabase, entries: list[ReportEntry], folder: s
                       title: str = "Viper estimate") -> Path:
     """``report.html`` in ``folder``: a table of the estimates, then per skyline its facts, picture and
     files; returns the page's path."""
-    from appliance import report_page as rp
+    from appliance.outputs import html as rp
 
     out = Path(folder)
     rows, sections = [], []

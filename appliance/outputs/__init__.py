@@ -1,0 +1,1 @@
+"""What an estimate becomes: log records, files (GeoTIFF, GeoJSON, PNG), pictures and the HTML report."""
