@@ -8,6 +8,8 @@ from functools import cached_property
 
 from pyproj import Geod
 
+from appliance.errors import ConfigError
+
 
 class BodyName(str, enum.Enum):
     EARTH = "earth"
@@ -56,8 +58,6 @@ def geodesic_distance_m(lat1_deg: float, lon1_deg: float, lat2_deg: float, lon2_
 
 
 def body_named(name: str) -> Body:
-    from appliance.errors import ConfigError
-
     try:
         return BODIES[name.lower()]
     except KeyError:

@@ -45,6 +45,7 @@ def stitch_frames(
 def load_session_database(cfg: SessionConfig, dem: Dem | None = None) -> SkylineDatabase | None:
     """The skyline database of ``[session] database`` (checked against ``dem`` when given), or None
     when none is configured (the estimate is then skipped)."""
+    # the database and the estimator (compiled kernels) load only when a session has a database
     from appliance.terrain.database import load_database
 
     if cfg.database is None:
@@ -57,7 +58,7 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
     """The position of ``skyline`` in ``db`` (under ``log_prior``, per node, and ``position_prior``,
     its continuous form, when given: a traverse's transported posterior); refuses a skyline with too
     few valid azimuths."""
-    from appliance.locate.position import locate
+    from appliance.locate.position import locate  # as above: only when a session estimates
 
     if skyline.valid_fraction < cfg.min_valid_fraction:
         raise EstimationError(

@@ -320,7 +320,8 @@ class Session:
         if self.db is None:
             self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
-        from appliance.locate.position import fix_status
+        # the estimator's compiled kernels load only when a session estimates
+        from appliance.locate.position import fix_status, truth_error_m
         from appliance.outputs.records import estimate_fix, skyline_payload, write_estimate_records
         from appliance.vision.skyline_detect import detect_skyline
 
@@ -347,8 +348,6 @@ class Session:
             where = (truth.lat_deg, truth.lon_deg)
         pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id)
         if self.log_prior is not None:
-            from appliance.locate.position import truth_error_m
-
             self.result.estimate_alone = pos
             self.result.error_alone_m = None if where is None else truth_error_m(self.db, pos, where)
             self.log.write_proto(t.ESTIMATE_ALONE_FIX, estimate_fix(self.db, pos, self.now(), "estimate_alone"),

@@ -36,6 +36,7 @@ from appliance.acquisition.session import (
 from appliance.config import Config
 from appliance.drivers.factory import Devices
 from appliance.drivers.odometry import OdometryReport
+from appliance.locate.position import Move, Position, estimate_status, skyline_grid, transported_fix, transported_prior
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook, LogbookFullError
@@ -43,7 +44,6 @@ from appliance.logbook.writer import Logbook, LogbookFullError
 if TYPE_CHECKING:
     from appliance.estimator import SkylineGrid
     from appliance.estimator.exact import PositionPrior
-    from appliance.locate.position import Move, Position
     from appliance.logbook.live import Publisher
     from appliance.terrain.database import SkylineDatabase
 
@@ -99,8 +99,6 @@ class TraverseResult(SessionResult):
 
 def estimate_flag(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None) -> str:
     """'ambiguous' when the region is too large (or the GPS truth lies outside it), else 'ok'."""
-    from appliance.locate.position import estimate_status
-
     return estimate_status(db, pos, truth)
 
 
@@ -242,8 +240,6 @@ class Traverse:
 
     def take_move(self, head: Session, rep: OdometryReport) -> None:
         """Add ``rep`` to the displacement since the last estimate, or break the chain on a lost line."""
-        from appliance.locate.position import Move
-
         expected = self.last_stop_id + 1
         self.last_stop_id = rep.stop_id
         move = Move(rep.east_m, rep.north_m, rep.sigma_m)
@@ -261,8 +257,6 @@ class Traverse:
         if i == 0:
             note = "first stop"
         elif self.db is not None and self.belief is not None and self.moved is not None:
-            from appliance.locate.position import skyline_grid, transported_fix, transported_prior
-
             if self.grid is None:
                 self.grid = skyline_grid(self.db)
             prior = transported_prior(self.db, self.grid, self.belief, self.moved)
@@ -277,8 +271,6 @@ class Traverse:
 
     def finish_stop(self, head: Session, stop: StopResult) -> None:
         """The stop's records; its position becomes the belief the next stop's prior moves."""
-        from appliance.locate.position import Move
-
         if stop.position is not None:
             self.belief, self.moved = stop.position, Move(0.0, 0.0, 0.0)
         if self.db is None:

@@ -13,6 +13,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from viper_calibration.device_file import load_device_calibration
+
 from appliance.config import Config, PlatformKind
 
 if TYPE_CHECKING:
@@ -66,6 +68,7 @@ def live_server(address: str | None) -> Iterator[LiveServer | None]:
     if address is None:
         yield None
         return
+    # the live view's SDK loads only when --live is given
     from appliance.logbook.live import LiveServer, parse_address
 
     host, port = parse_address(address)
@@ -78,14 +81,13 @@ def live_server(address: str | None) -> Iterator[LiveServer | None]:
 
 def open_devices(config: Config) -> Devices:
     """The devices of ``[platform] kind``, with the calibrations of ``[devices]`` (file or inline)."""
-    from viper_calibration.device_file import load_device_calibration
-
     calibration = load_device_calibration(config.devices)
     if config.platform.kind is PlatformKind.HARDWARE:
+        # a command imports only the platform it drives: the hardware's drivers or the twins
         from appliance.drivers.factory import open_hardware_platform
 
         return open_hardware_platform(config, calibration)
-    from appliance.sim.platform import open_sim_platform
+    from appliance.sim.platform import open_sim_platform  # the twins, only when simulating
 
     return open_sim_platform(config, calibration=calibration)
 
@@ -101,6 +103,7 @@ def session_runner(config: Config, seed: int | None = None, publisher: Publisher
     def run(log_dir: Path, should_stop: Callable[[], bool], on_status: Callable[[str], None]) -> SessionResult:
         stops = config.traverse.stops
         if config.platform.kind is PlatformKind.SIM:
+            # the session's modules (the estimator's compiled kernels, OpenCV) load when a session runs
             from appliance.sim.field_session import run_field_session, run_field_traverse
 
             if stops:
@@ -110,15 +113,15 @@ def session_runner(config: Config, seed: int | None = None, publisher: Publisher
             result, _ = run_field_session(config, log_dir, seed=seed, should_stop=should_stop, on_status=on_status,
                                          publisher=publisher)
             return result
-        from appliance.acquisition.onboard import load_session_database
+        from appliance.acquisition.onboard import load_session_database  # as above: when a session runs
 
         on_status("loading the skyline database")
         db = load_session_database(config.session)
         if stops:
-            from appliance.acquisition.traverse import run_platform_traverse
+            from appliance.acquisition.traverse import run_platform_traverse  # when a traverse runs
 
             return run_platform_traverse(open_devices, config, log_dir, db, should_stop, on_status, publisher)
-        from appliance.acquisition.session import run_platform_session
+        from appliance.acquisition.session import run_platform_session  # when a session runs
 
         return run_platform_session(open_devices, config, log_dir, db, should_stop, on_status, publisher)
 

@@ -8,10 +8,12 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from appliance.acquisition.onboard import load_session_database
 from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
+from appliance.locate.position import estimate_status
 from appliance.logsetup import ProgressCallback
 
 if TYPE_CHECKING:
@@ -54,8 +56,6 @@ def parse_sigma(text: str) -> tuple[float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from appliance.acquisition.onboard import load_session_database
-
     stems = [Path(p).stem for p in args.logs]
     files = ["report.html", "summary.csv", *(f"{s}{e}" for s in stems for e in REPLAY_FILES)]
     check_output_folder(args.out, args.logs, files, args.force)
@@ -70,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         session = dataclasses.replace(session, database=Path(args.db))
     db = load_session_database(session)
     if db is None:
+        # the demo map, only when no database is given
         from appliance.sim.demo import DEMO_DEM, demo_database
         from appliance.terrain.dem import load_dem
 
@@ -101,8 +102,6 @@ def run(args: argparse.Namespace) -> int:
         was = "" if r.data.onboard_error_m is None else f" (onboard {r.data.onboard_error_m:.1f} m)"
         status = estimate_status(db, p, r.data.truth)
         print(f"{r.data.path}: {p.lat:.6f}, {p.lon:.6f}  {status}  {err}{was}  [{len(r.data.frames)} frames]")
-
-    from appliance.locate.position import estimate_status
 
     results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
     print(f"report: {page}  table: {out / 'summary.csv'}")

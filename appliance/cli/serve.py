@@ -20,6 +20,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from appliance.acquisition.notify import Notifier
 from appliance.cli._forward import (
     FORWARDED,
     MAX_REQUEST_BYTES,
@@ -30,6 +31,7 @@ from appliance.cli._forward import (
     send_message,
     socket_path,
 )
+from appliance.cli.main import build_parser, main
 from appliance.errors import InputError
 from appliance.numerics import load_cached_kernels
 
@@ -60,13 +62,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         for name in WARM_MODULES:
             importlib.import_module(name)
-        from appliance.cli.main import build_parser
-
         for command in sorted(FORWARDED):
             build_parser(command)
         kernels = load_cached_kernels()
-        from appliance.acquisition.notify import Notifier
-
         notifier = Notifier.from_environment()
         identity = code_identity()
         fixed = fixed_environment(dict(os.environ))
@@ -303,8 +301,6 @@ def _worker(conn: socket.socket, fds: list[int], request: dict[str, Any]) -> Non
         os.environ.clear()
         os.environ.update(request["env"])
         sys.argv = [sys.argv[0], *request["argv"]]
-        from appliance.cli.main import main
-
         try:
             code = main(request["argv"])
         except SystemExit as exc:

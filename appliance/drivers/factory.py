@@ -184,6 +184,7 @@ def open_hardware_platform(config: Config, calibration: DeviceCalibration) -> De
             log.warning("no I2C devices: %s", exc)
     camera = None
     if d.camera.intrinsics_file is not None:
+        # the camera's driver and OpenCV load only when a camera is configured
         from appliance.drivers.camera import V4l2Camera
         from appliance.vision.intrinsics import load_intrinsics
 

@@ -19,11 +19,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from appliance.acquisition.onboard import load_session_database
+from appliance.acquisition.platform import platform_of
 from appliance.acquisition.session import SessionResult, run_platform_session
+from appliance.acquisition.traverse import run_traverse
 from appliance.config import Config, PlatformConfig, PlatformKind, SimFaultsConfig
 from appliance.errors import InputError
-from appliance.sim.demo import DEMO_DEM
+from appliance.sim.demo import DEMO_DEM, demo_database
 from appliance.sim.platform import open_sim_platform
+from appliance.terrain.dem import load_dem
 
 if TYPE_CHECKING:
     from appliance.acquisition.traverse import TraverseResult
@@ -92,8 +95,6 @@ def sim_database(config: Config, dem: Dem, cache_dir: Path) -> SkylineDatabase |
     database built once in ``cache_dir``; otherwise None (the estimate is then skipped)."""
     db = load_session_database(config.session, dem)
     if db is None and config.sim.dem == DEMO_DEM:
-        from appliance.sim.demo import demo_database
-
         cache_dir.mkdir(parents=True, exist_ok=True)
         db = demo_database(dem, cache_dir)
     return db
@@ -102,8 +103,6 @@ def sim_database(config: Config, dem: Dem, cache_dir: Path) -> SkylineDatabase |
 def _sim_map(config: Config, out: Path, dem: Dem | None, db: SkylineDatabase | None,
              on_status: Callable[[str], None]) -> tuple[Dem, SkylineDatabase | None]:
     """The ``[sim] dem`` map and its database, unless the caller gave them."""
-    from appliance.terrain.dem import load_dem
-
     dem = dem if dem is not None else load_dem(config.sim.dem)
     if db is None:
         on_status("loading the skyline database")
@@ -170,9 +169,6 @@ def run_field_traverse(
     """A simulated traverse of ``n_stops`` stops from a random start on the ``[sim] dem`` map: the rover
     twin drives legs of ``[sim] leg_length_m`` in random directions between stops and reports them with
     ``[sim] odometry_sigma_m`` of noise.  Returns the traverse and the true place of every stop."""
-    from appliance.acquisition.platform import platform_of
-    from appliance.acquisition.traverse import run_traverse
-    from appliance.sim.platform import open_sim_platform
     if n_stops < 1:
         raise InputError(f"a traverse needs at least one stop, got {n_stops}")
     rng = np.random.default_rng(seed)

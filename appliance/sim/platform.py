@@ -30,6 +30,8 @@ from appliance.sim.pty_port import PtyPort
 from appliance.sim.rover_twin import RoverTwin
 from appliance.sim.scratch import SimFolder
 from appliance.sim.world import SimClock, SimWorld
+from appliance.terrain.dem import load_dem
+from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +67,6 @@ def open_sim_platform(config: Config, with_camera: bool = True,
                                         TiltOffset(i.pitch_offset_deg, i.roll_offset_deg))
     dem = None
     if with_camera or sim.ground_elevation_m is None:
-        from appliance.terrain.dem import load_dem
-
         dem = load_dem(sim.dem)
     world = make_world(sim, dem)
     scratch = SimFolder()
@@ -110,8 +110,6 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
                    SimAdxl345(world, seed=sim.seed, stuck=faults.inclinometer_stuck))
     camera = None
     if with_camera:
-        from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
-
         cam_cfg = config.devices.camera
         intr = (load_intrinsics(cam_cfg.intrinsics_file) if cam_cfg.intrinsics_file is not None
                 else CameraIntrinsics.from_fov(cam_cfg.width, cam_cfg.height, 60.0))
@@ -125,8 +123,6 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
     rover, odometry_src = None, ""
     if config.traverse.stops:
         if dem is None:
-            from appliance.terrain.dem import load_dem
-
             dem = load_dem(sim.dem)
         odo_port = PtyPort(folder / "odometry")
         stops.append(odo_port.close)
