@@ -3,14 +3,15 @@
 The base install (``pip install viper-appliance``) runs the map side and the estimator: ``viper dem``,
 ``render``, ``precompute``, ``estimate``, ``log``, ``gps``.  The rest needs an extra:
 
-=========  ======================  ================================================================
-extra      brings                  for
-=========  ======================  ================================================================
-vision     OpenCV                  stitch, skyline, capture, daemon, replay, demo, camera calibration
-live       foxglove-sdk            ``capture --live``, ``daemon session --live``
-cluster    dask.distributed        ``precompute --tiles``, ``estimate --workers/--scheduler``
+=========  ================  ======================================================================
+extra      brings            for
+=========  ================  ======================================================================
+vision     OpenCV            stitch, skyline, capture, daemon, devices, replay, demo (not
+                             ``--skyline-only``), ``calibrate camera``, serve
+live       foxglove-sdk      ``capture --live``, ``daemon session --live``
+cluster    dask.distributed  ``precompute --tiles``, ``estimate --workers/--scheduler``
 all        all three
-=========  ======================  ================================================================
+=========  ================  ======================================================================
 
 :func:`require` imports an optional module where it is used, or raises :class:`MissingExtraError`;
 :func:`missing_extra` gives the same error for the ``ModuleNotFoundError`` of a module imported at the
