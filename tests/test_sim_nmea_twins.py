@@ -7,6 +7,7 @@ import datetime as dt
 import logging
 import math
 import time
+from fractions import Fraction
 from pathlib import Path
 
 import pytest
@@ -117,18 +118,63 @@ def test_gps_stuck_and_drift(tmp_path: Path) -> None:
         assert n == pytest.approx(5.0 * e, abs=5.0 * 1.0 + 0.1)  # within one epoch of the drift
 
 
+def uart_received(data: bytes, tx_baud: int, rx_baud: int) -> tuple[bytes, int]:
+    """What a UART at ``rx_baud`` delivers when ``data`` is sent at ``tx_baud``, 8N1, frames back to back.
+
+    The receiver waits, idle, for a falling edge (a start bit), checks the line is still low half a
+    bit later, samples each of the 8 data bits and the stop bit at its middle (by its own clock), and
+    is ready again at the middle of the stop bit.  A stop bit read as 0 is a framing error: the byte
+    is delivered as NUL, as Linux delivers it on a port without IGNPAR or PARMRK.  Returns the bytes
+    delivered and the number of framing errors.
+    """
+    bits = [1]  # the idle line before the first frame
+    for byte in data:
+        bits += [0, *((byte >> i) & 1 for i in range(8)), 1]
+
+    def level(t: Fraction) -> int:
+        k = int(t * tx_baud)
+        return bits[k] if k < len(bits) else 1
+
+    out, framing_errors, ready = bytearray(), 0, Fraction(0)
+    for k in range(1, len(bits)):
+        t0 = Fraction(k, tx_baud)
+        if not (bits[k - 1] == 1 and bits[k] == 0 and t0 >= ready):
+            continue
+        samples = [level(t0 + Fraction(2 * j + 1, 2 * rx_baud)) for j in range(10)]
+        ready = t0 + Fraction(19, 2 * rx_baud)
+        if samples[0] != 0:
+            continue  # a glitch, not a start bit
+        if samples[9] == 1:
+            out.append(sum(bit << i for i, bit in enumerate(samples[1:9])))
+        else:
+            out.append(0)
+            framing_errors += 1
+    return bytes(out), framing_errors
+
+
 def test_wrong_baud_gives_no_fix_and_counts(tmp_path: Path) -> None:
-    """Bytes at the wrong rate arrive as noise: they are counted, nothing is invented."""
+    """A receiver sending NMEA 0183's 4800 baud to a port opened at 9600: every byte that arrives is
+    counted as garbage, nothing is invented."""
     world = make_world()
+    sent = b"".join(b"".join(gps_epoch_sentences(START + dt.timedelta(seconds=i), world.lat_deg, world.lon_deg,
+                                                 world.alt_msl_m, world.geoid_separation_m, 9, 0.9, 2.0))
+                    for i in range(5))
+    assert uart_received(sent, 4800, 4800) == (sent, 0)  # the line model itself: same rates, same bytes
+    received, framing_errors = uart_received(sent, 4800, 9600)
+    # each bit read twice: every byte starts with a 0 bit and repeats bits in pairs, so no '$', no '!',
+    # no line end, and a stop bit that lands on a 0 data bit (a framing error, delivered as NUL)
+    assert not {ord("$"), ord("!"), ord("\r"), ord("\n")} & set(received)
+    assert len(sent) < len(received) < 2 * len(sent)
+    assert framing_errors == received.count(0) and framing_errors > len(sent) // 2
+
     port = PtyPort(tmp_path / "gps")
-    noise = bytes(((b * 37) ^ 0x5A) & 0xFF for b in b"".join(
-        gps_epoch_sentences(START, 36.6, -84.25, 500.0, -30.0, 9, 0.9, 2.0)) * 5).replace(b"$", b"\x01")
     reader = GpsReader(open_serial(str(port.path), 9600, 0.05), ErrorPolicy.LOG)
-    port.write(noise + b"\r\n")
+    port.write(received)
     fixes = collect(reader, 0.3)
+    assert fixes == [] and reader.framer.flush(0) == []  # and what the framer still holds is no sentence
     port.close()
-    assert fixes == [] and reader.counts()["garbage bytes"] > 0
-    assert world.lat_deg == 36.6
+    assert reader.framer.stats.candidates == 0
+    assert reader.counts() == {"garbage bytes": len(received), "binary segments": 0}
 
 
 def test_nmea_compass_twin(tmp_path: Path) -> None:

@@ -51,15 +51,40 @@ def test_abstract_socket_address():
         sock.close()
 
 
-def test_without_systemd_everything_is_a_no_op_and_foreign_watchdog_is_ignored():
+def _nothing_arrived(sock: socket.socket) -> bool:
+    sock.setblocking(False)
+    try:
+        sock.recv(4096)
+    except BlockingIOError:
+        return True
+    finally:
+        sock.settimeout(2.0)
+    return False
+
+
+def test_without_systemd_everything_is_a_no_op_and_foreign_watchdog_is_ignored(listener, monkeypatch):
+    path, sock = listener
+    # the process's own environment names a listening socket: an explicit empty one must not fall back to it
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    monkeypatch.setenv("WATCHDOG_USEC", "30000000")
     n = Notifier.from_environment({})
     assert not n.enabled and n.watchdog_s is None
-    n.ready()
+    n.ready(status="idle")
     n.watchdog()
-    other = Notifier.from_environment(
-        {"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}, pid=2
-    )
-    assert other.watchdog_s is None
+    n.status("capture 1/2")
+    n.stopping()
+    assert n._sock is None  # no socket was even opened
+    assert _nothing_arrived(sock)
+
+    # a watchdog meant for another process (WATCHDOG_PID) is ignored; the notifications still go out
+    foreign = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}
+    other = Notifier.from_environment(foreign, pid=2)
+    assert other.enabled and other.watchdog_usec is None and other.watchdog_s is None
+    other.ready()
+    assert sock.recv(4096) == b"READY=1"
+    other.close()
+    assert _nothing_arrived(sock)
+    assert Notifier.from_environment(foreign, pid=1).watchdog_s == pytest.approx(0.001)  # ours: kept
 
 
 def test_errors_are_device_errors(tmp_path):

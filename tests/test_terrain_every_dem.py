@@ -1,4 +1,5 @@
-"""viper dem info, render and precompute on every DEM in ../shared/data."""
+"""viper dem info, render and precompute on every DEM in ../shared/data; the rendered skyline against
+the dense, exact reference ray march (tests/reference_render.py)."""
 
 from __future__ import annotations
 
@@ -12,12 +13,16 @@ from appliance.cli.main import main
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
 from appliance.terrain.dem import load_dem
+from appliance.terrain.horizon import DEFAULT_HEIGHT_M
 from tests.conftest import SHARED_DATA
+from tests.reference_render import reference_skyline
 
 SUFFIXES = {".dem", ".hgt", ".tif", ".tiff", ".lbl", ".img", ".npz", ".e00"}
 EVERY = sorted(p for p in SHARED_DATA.rglob("*") if p.suffix.lower() in SUFFIXES) if SHARED_DATA.is_dir() else []
 # the Finse DSM carries no CRS tag; its MANIFEST entry gives EPSG:32632
 CRS_OF = {"time_lapse_finse_DSM_midfilled.tif": "EPSG:32632", "viewshed.tif": "EPSG:32632"}
+#: RMS bound (deg) of the rendered skyline against the reference, as in tests/test_terrain_render.py
+RENDER_RMS_DEG = 0.05
 
 
 def _ids(paths: list[Path]) -> list[str]:
@@ -44,10 +49,17 @@ def test_info_render_precompute(path, tmp_path, capsys):
     if not np.isfinite(dem.sample_lonlat(np.atleast_1d(lon), np.atleast_1d(lat))[0]):
         lon, lat = dem.xy_to_lonlat(*dem.pixel_to_xy(float(c), float(r)))
     out = tmp_path / "sky.csv"
-    assert main(["render", str(path), "--lat", f"{float(lat):.7f}", "--lon", f"{float(lon):.7f}",
+    lat_text, lon_text = f"{float(lat):.7f}", f"{float(lon):.7f}"
+    assert main(["render", str(path), "--lat", lat_text, "--lon", lon_text,
                  "--max-range", "10000", "--out", str(out), *extra]) == 0
     sky = read_skyline_csv(out)
     assert sky.azimuth_deg.size == 360 and np.isfinite(sky.elevation_deg).mean() > 0.2
+    # every tenth azimuth against the reference (its dense march costs seconds an azimuth on metre grids)
+    az, ours = sky.azimuth_deg[::10], sky.elevation_deg[::10]
+    ref = reference_skyline(dem, float(lat_text), float(lon_text), DEFAULT_HEIGHT_M, az, max_range_m=10_000.0)
+    assert np.array_equal(np.isfinite(ours), np.isfinite(ref))
+    diff = (ours - ref)[np.isfinite(ref)]
+    assert np.sqrt(np.mean(diff**2)) <= RENDER_RMS_DEG
 
     res = dem.resolution_m()
     half_deg = 3 * max(res) / 111_000.0 / max(np.cos(np.radians(float(lat))), 0.1)

@@ -15,6 +15,7 @@ from typing import Any
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
+from appliance.extras import require
 from appliance.locate.position import Move, area_text, fix_status, locate, locate_sequence
 from appliance.skyline import read_skyline_csv
 from appliance.terrain.database import load_database
@@ -233,10 +234,9 @@ def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
         return
     if workers is not None and not 1 <= workers <= 256:
         raise InputError(f"--workers {workers}: expected 1..256")
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise InputError("--scheduler and --workers need dask.distributed, which is not installed") from None
+    # deferred: dask.distributed is the [cluster] extra, needed only with --scheduler or --workers
+    distributed = require("distributed", "--scheduler and --workers")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="20s")

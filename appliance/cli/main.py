@@ -13,6 +13,7 @@ from appliance import __version__
 from appliance.atomic import describe_os_error, forget_created_folders, remove_created_folders
 from appliance.cli._forward import forward
 from appliance.errors import ViperError
+from appliance.extras import missing_extra
 from appliance.logsetup import LEVELS, configure_logging
 
 #: Options whose value is a comma-separated list of numbers that may start with a minus sign.
@@ -115,7 +116,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         status = forward(argv, command)
         if status is not None:
             return status
-    parser = build_parser(command)
+    try:
+        parser = build_parser(command)
+    except ModuleNotFoundError as exc:  # an optional library the command's module imports at its top
+        error = missing_extra(exc)
+        if error is None:
+            raise
+        print(f"viper {command}: error: {error}", file=sys.stderr)
+        return error.exit_code
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)
     if func is None:
@@ -130,6 +138,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ViperError as exc:
         message = str(exc)
         code = exc.exit_code
+    except ModuleNotFoundError as exc:
+        error = missing_extra(exc)
+        if error is None:
+            raise
+        message, code = str(error), error.exit_code
     except OSError as exc:
         where = f"{exc.filename}: " if exc.filename else ""
         message, code = f"{where}{describe_os_error(exc)}", 1

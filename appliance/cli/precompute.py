@@ -20,6 +20,7 @@ from typing import Any
 from appliance.atomic import check_output_folder, check_output_path
 from appliance.errors import InputError
 from appliance.estimator.estimate import COARSE_STRIDE
+from appliance.extras import require
 from appliance.logsetup import ProgressCallback
 from appliance.terrain.database import build_database
 from appliance.terrain.dem import load_dem
@@ -155,7 +156,9 @@ def run_tiled(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     terminal = sys.stderr.isatty()
     cluster: Any = None
-    from distributed import Client, LocalCluster
+    # deferred: dask.distributed is the [cluster] extra, needed only by a tiled build
+    distributed = require("distributed", "a tiled build (--tiles)")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
 
     if args.scheduler:
         try:

@@ -16,6 +16,7 @@ import threading
 from typing import Any, Protocol
 
 from appliance.errors import InputError, LogError
+from appliance.extras import require
 
 LOG = logging.getLogger(__name__)
 DEFAULT_HOST = "127.0.0.1"
@@ -51,8 +52,8 @@ class LiveServer:
     """
 
     def __init__(self, host: str = DEFAULT_HOST, port: int = 8765, name: str = "viper") -> None:
-        import foxglove
-
+        # deferred: foxglove-sdk is the [live] extra, needed only when --live is given
+        foxglove = require("foxglove", "the live view (--live)")
         self._foxglove = foxglove
         self._context = foxglove.Context()
         self._lock = threading.Lock()
