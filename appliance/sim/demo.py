@@ -81,7 +81,7 @@ def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
     res = estimate(skyline_grid(db), sky.azimuth_deg, sky.elevation_deg, cfg.sigma_deg, cfg.heading_tolerance_deg)
     res_pos = place(db, res, str(sky_path))
     err = geodesic_distance_m(res_pos.lat, res_pos.lon, float(lat), float(lon), dem.body)
-    from appliance.outputs.records import write_png
+    from appliance.outputs.files import write_png
 
     pic = out / "estimate.png"
     write_png(db, res_pos, sky, pic, truth=(float(lat), float(lon)))
