@@ -198,7 +198,7 @@ def _check_feature(feature):
 def test_the_region_topic_has_strict_properties_and_matches_the_report_layers(live_session, tmp_path):
     from foxglove_schemas_protobuf.GeoJSON_pb2 import GeoJSON
 
-    from appliance.outputs.records import write_points_geojson, write_region_geojson
+    from appliance.outputs.files import write_points_geojson, write_region_geojson
 
     result, client, db = live_session
     logged = [json.loads(GeoJSON.FromString(message.data).geojson)

@@ -145,10 +145,10 @@ def test_every_json_message_of_the_traverse_log_matches_its_channel_schema(trave
 
 
 def test_the_report_shows_the_track_and_every_stop(traverse):
-    from appliance.outputs.traverse_report import write_traverse_report
+    from appliance.outputs.report import write_traverse_report
 
     r, _, db, out = traverse
-    page = write_traverse_report(r, db, out / "report", "traverse")
+    page = write_traverse_report(r, db, out / "report", "traverse", read_session_facts(r.log_path))
     html = page.read_text()
     assert 'src="track.png"' in html and (out / "report" / "track.png").stat().st_size > 10_000
     for s in r.stops:
@@ -157,7 +157,7 @@ def test_the_report_shows_the_track_and_every_stop(traverse):
 
 
 def test_the_report_gives_each_stop_its_own_session_facts(traverse):
-    from appliance.outputs.traverse_report import stop_rows
+    from appliance.outputs.report import stop_rows
 
     r, _, db, _ = traverse
     # each stop's truth procedure, as the log records it, in stop order

@@ -6,17 +6,13 @@ angle, true heading of the optical axis, roll and pitch; same log time as the fr
 calibration and the GPS ground truth.  :func:`read_session` gathers them (a truncated log gives
 what it holds up to its last readable record, and says so); :func:`replay_session` reruns the
 onboard chain on them and writes a results log (MCAP, the same estimate topics as a session);
-:func:`write_report` draws the pictures and one HTML page (:mod:`appliance.outputs.html`), with a
-table of errors when several logs are replayed and the session's facts of each log
-(:mod:`appliance.acquisition.session_facts`).
+:func:`replay_logs` replays several and reports them (:func:`appliance.outputs.report.write_replay_report`:
+the pictures, a table of errors and the session's facts of each log, from
+:mod:`appliance.acquisition.session_facts`); :func:`session_report` reports a session that has just run.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,16 +24,19 @@ from appliance.acquisition import onboard
 from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
 from appliance.acquisition.session_facts import FactsCollector, SessionFacts, read_session_facts
-from appliance.atomic import atomic_output, check_output_folder, write_text_atomic
+from appliance.atomic import atomic_output, check_output_folder
 from appliance.config import EstimatorConfig
 from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.reader import LogReader
 from appliance.logbook.writer import Logbook
+from appliance.outputs.records import skyline_payload, write_estimate_records
+from appliance.outputs.report import write_replay_report
 from appliance.skyline import Skyline
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama
+from appliance.vision.skyline_detect import detect_skyline
 
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
@@ -141,14 +140,11 @@ def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path, t
                        facts=read_session_facts(session.log_path))
     res = ReplayResult(session.log_path.stem, data, panorama=session.panorama, skyline=session.skyline,
                        position=session.estimate, error_m=session.error_m, results_log=session.log_path)
-    return write_report([res], db, out_dir, title)
+    return write_replay_report([res], db, out_dir, title)
 
 
 def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
     """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap``."""
-    from appliance.outputs.records import skyline_payload, write_estimate_records
-    from appliance.vision.skyline_detect import detect_skyline
-
     name = data.path.stem
     res = ReplayResult(name, data)
     if not data.complete:
@@ -187,130 +183,6 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
     return res
 
 
-# ------------------------------------------------------------------------------------------- report
-def panorama_picture(res: ReplayResult, db: SkylineDatabase, path: Path) -> None:
-    """The panorama with the detected skyline and the one rendered at the estimate (heading corrected)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    assert res.panorama is not None and res.skyline is not None and res.position is not None
-    from appliance.outputs.records import rendered_skyline
-
-    pano, sky, pos = res.panorama, res.skyline, res.position
-    rendered = rendered_skyline(db, pos)
-    h, w = pano.image.shape[:2]
-    fig, ax = plt.subplots(figsize=(16, 16 * h / w + 1.0))
-    ax.imshow(cv2.cvtColor(pano.image, cv2.COLOR_BGR2RGB), aspect="auto")
-    ok = np.isfinite(sky.elevation_deg)
-    ax.plot(pano.azimuth_to_column(sky.azimuth_deg[ok]), pano.elevation_to_row(sky.elevation_deg[ok]), ".",
-            color="cyan", ms=2, label="detected skyline")
-    # the measured azimuth a sees the map's a + correction
-    az = (rendered.azimuth_deg - pos.result.heading_correction_deg) % 360.0
-    order = np.argsort(az)
-    ax.plot(pano.azimuth_to_column(az[order]), pano.elevation_to_row(rendered.elevation_deg[order]), "-",
-            color="orange", lw=1.0, label="rendered at the estimate")
-    ax.set_xlim(0, w)
-    ax.set_ylim(h, 0)
-    ax.set_xlabel("column (azimuth clockwise from true north)")
-    ax.set_title(f"{res.name}: heading correction {pos.result.heading_correction_deg:+.1f} deg")
-    ax.legend(loc="lower right")
-    fig.tight_layout()
-    try:
-        with atomic_output(path) as tmp:
-            fig.savefig(tmp, dpi=80, format="png")
-    finally:
-        plt.close(fig)
-
-
-def _fmt(v: float | None, spec: str = ".1f") -> str:
-    return "" if v is None or not math.isfinite(v) else format(v, spec)
-
-
-def summary_rows(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path) -> list[dict[str, str]]:
-    """One row per log; logs are named relative to ``out_dir``, where the table is written."""
-    from appliance.locate.position import estimate_status
-
-    rows = []
-    for r in results:
-        p = r.position
-        rows.append({
-            "log": Path(os.path.relpath(os.path.abspath(r.data.path), os.path.abspath(out_dir))).as_posix(),
-            "status": "" if p is None else estimate_status(db, p, r.data.truth),
-            "frames": str(r.data.frame_count),
-            "complete": "yes" if r.data.complete else "no",
-            "lat": "" if p is None else f"{p.lat:.6f}",
-            "lon": "" if p is None else f"{p.lon:.6f}",
-            "truth_lat": "" if r.data.truth is None else f"{r.data.truth[0]:.6f}",
-            "truth_lon": "" if r.data.truth is None else f"{r.data.truth[1]:.6f}",
-            "error_m": _fmt(r.error_m),
-            "onboard_error_m": _fmt(r.data.onboard_error_m),
-            "region_km2": "" if p is None else f"{p.result.region_area_m2 / 1e6:.4f}",
-            "valid_azimuths": "" if r.skyline is None else str(int(r.skyline.valid.sum())),
-            "heading_correction_deg": "" if p is None else f"{p.result.heading_correction_deg:+.2f}",
-            "failure": r.failure or "",
-        })
-    return rows
-
-
-def write_report(results: list[ReplayResult], db: SkylineDatabase, out_dir: Path, title: str | None = None) -> Path:
-    """PNG pictures per log, ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay
-    of N logs"); returns the HTML page's path."""
-    from appliance.locate.position import estimate_status
-    from appliance.outputs import html as rp
-    from appliance.outputs.records import write_png
-
-    check_output_folder(out_dir)
-    for r in results:
-        if r.position is None or r.skyline is None:
-            continue
-        map_png = out_dir / f"{r.name}.map.png"
-        write_png(db, r.position, r.skyline, map_png, truth=r.data.truth)
-        pano_png = out_dir / f"{r.name}.panorama.png"
-        panorama_picture(r, db, pano_png)
-        r.pictures = [map_png, pano_png]
-    rows = summary_rows(results, db, out_dir)
-    csv_path = out_dir / "summary.csv"
-    table = io.StringIO(newline="")
-    writer = csv.DictWriter(table, fieldnames=list(rows[0]) if rows else ["log"])
-    writer.writeheader()
-    writer.writerows(rows)
-    write_text_atomic(csv_path, table.getvalue())
-    if title is None:
-        title = f"Viper replay of {len(results)} log{'s' if len(results) != 1 else ''}"
-    parts = [rp.paragraph(rp.shown_path(db.path, out_dir), "Skyline database:")]
-    errors = [r.error_m for r in results if r.error_m is not None]
-    if errors:
-        parts.append(f"<p>Error against the GPS truth: median {np.median(errors):.1f} m, max {max(errors):.1f} m "
-                     f"over {len(errors)} estimate{'s' if len(errors) != 1 else ''} "
-                     f"({rp.link(csv_path, out_dir, 'CSV')})</p>")
-    def shown(r: ReplayResult, text: str) -> str:
-        return rp.without_folders(text, [r.data.path, db.path, *([r.results_log] if r.results_log else [])], out_dir)
-
-    shown_rows = [{k: rp.shown_path(r.data.path, out_dir) if k == "log" else shown(r, v) for k, v in row.items()}
-                  for row, r in zip(rows, results, strict=True)]
-    parts.append(rp.table(shown_rows, {i: f"#log-{i + 1}" for i in range(len(results))}))
-    for i, r in enumerate(results):
-        parts.append(rp.heading(r.name, anchor=f"log-{i + 1}"))
-        for note in r.notes:
-            parts.append(rp.paragraph(shown(r, note), "note:"))
-        if r.failure:
-            parts.append(rp.paragraph(shown(r, r.failure), "no estimate:"))
-        if r.position is not None:
-            err = "no GPS truth" if r.error_m is None else f"{r.error_m:.1f} m from the GPS truth"
-            status = estimate_status(db, r.position, r.data.truth)
-            parts.append(rp.paragraph(f"{r.position.lat:.6f}, {r.position.lon:.6f} {status}: {err}", "estimate"))
-        if r.results_log is not None:
-            parts.append(f"<p><b>results log</b> {rp.link(r.results_log, out_dir)}</p>")
-        parts.append(rp.facts_table(r.data.facts.rows()))
-        for pic in r.pictures:
-            parts.append(rp.image(pic, out_dir, pic.stem))
-    page = out_dir / "report.html"
-    write_text_atomic(page, rp.page(title, parts))
-    return page
-
-
 def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path,
                 on_result: Any = None) -> tuple[list[ReplayResult], Path]:
     """Replay every log (an unreadable one is a row with its reason) and write the report."""
@@ -327,4 +199,4 @@ def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, ou
         results.append(r)
         if on_result is not None:
             on_result(r)
-    return results, write_report(results, db, out_dir)
+    return results, write_replay_report(results, db, out_dir)

@@ -48,6 +48,7 @@ def demo_config(out: Path, time_rate: float) -> Config:
 
 def demo_map(out: Path) -> tuple[Dem, SkylineDatabase]:
     """The embedded jacksboro map and its skyline database in ``out`` (built there the first time)."""
+    # the library (seconds of imports) loads only when a demo runs, not for `viper demo --help`
     from appliance.sim.demo import DEMO_DEM, demo_database
     from appliance.terrain.dem import load_dem
 
@@ -69,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         return run_traverse(args)
     if args.skyline_only:
         return run_skyline_only(args)
+    # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.acquisition.replay import session_report
     from appliance.locate.position import area_text, fix_status, truth_error_m
     from appliance.sim.field_session import run_field_session
@@ -111,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_skyline_only(args: argparse.Namespace) -> int:
+    # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.locate.position import area_text, fix_status
     from appliance.sim.demo import run_demo
 
@@ -135,8 +138,10 @@ def run_skyline_only(args: argparse.Namespace) -> int:
 
 
 def run_traverse(args: argparse.Namespace) -> int:
+    # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
+    from appliance.acquisition.session_facts import read_session_facts
     from appliance.locate.position import truth_error_m
-    from appliance.outputs.traverse_report import write_traverse_report
+    from appliance.outputs.report import write_traverse_report
     from appliance.sim.field_session import run_field_traverse
 
     out = check_output_folder(args.out)
@@ -170,7 +175,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         true_err = "-" if s.position is None else f"{truth_error_m(db, s.position, (tr.lat_deg, tr.lon_deg)):.1f}"
         print(f"  {s.stop:4d}  {odo:>28}   {a_err:>16}  {a_flag:<9}  {f_err:>16}  {f_flag:<9}  {true_err:>10}")
     page = write_traverse_report(r, db, out, f"Viper demo: a rover's traverse of {len(r.stops)} stops on the "
-                                             "jacksboro map")
+                                             "jacksboro map", read_session_facts(r.log_path))
     print(f"  report     {page}")
     print(f"  log        {r.log_path}  (open in Foxglove: /traverse/track, /estimate/fix, /gps/truth)")
     print(f"  time       {time.monotonic() - t1:.0f} s for the traverse after setup")
@@ -179,6 +184,6 @@ def run_traverse(args: argparse.Namespace) -> int:
 
 def _flag(db: object, pos: object, truth: tuple[float, float] | None) -> str:
     """AMBIGUOUS (the region is large, or the GPS truth lies outside it) or ok, as every output says."""
-    from appliance.acquisition.traverse import estimate_flag
+    from appliance.acquisition.traverse import estimate_flag  # the library loads only when a demo runs
 
     return "AMBIGUOUS" if estimate_flag(db, pos, truth) == "ambiguous" else "ok"  # type: ignore[arg-type]

@@ -22,9 +22,6 @@ from appliance.terrain.database import load_database
 
 LOG = logging.getLogger(__name__)
 
-REPORT_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
-REPORT_PAGE = "report.html"
-
 
 def _numbers(text: str, what: str, n: int) -> tuple[float, ...]:
     try:
@@ -144,28 +141,15 @@ def run(args: argparse.Namespace) -> int:
                             map_sigma_m=map_sigma, sigma_floor_deg=cfg.sigma_floor_deg) for name, sky in skylines]
     report = Path(args.report) if args.report else None
     if report is not None:
-        names = [f"{i + 1:02d}-{Path(s).stem}{e}" for i, s in enumerate(args.skylines) for e in REPORT_FILES]
-        check_output_folder(report, [args.db, *args.skylines], [*names, REPORT_PAGE], args.force)
+        from appliance.outputs import report as pages  # the report writers (rasterio, figures) load only for --report
+
+        check_output_folder(report, [args.db, *args.skylines], pages.estimate_report_names(args.skylines), args.force)
     entries = []
     for i, (pos, (name, sky)) in enumerate(zip(positions, skylines)):
         truth = truths[i] if truths else None
         record = pos.to_json(db, truth)
         if report is not None:
-            from appliance.outputs.records import (
-                ReportEntry,
-                write_geotiff,
-                write_png,
-                write_points_geojson,
-                write_region_geojson,
-            )
-
-            stem = f"{i + 1:02d}-{Path(name).stem}"
-            files = tuple(report / f"{stem}{e}" for e in REPORT_FILES)
-            write_png(db, pos, sky, files[0], truth)
-            write_geotiff(db, pos, files[1])
-            write_region_geojson(db, pos, files[2])
-            write_points_geojson(pos, files[3], truth)
-            entries.append(ReportEntry(Path(name).name, pos, sky, truth, files[0], files))
+            entries.append(pages.write_estimate_files(db, report, i, name, pos, sky, truth))
         if args.json:
             print(json.dumps(record), flush=True)
         else:
@@ -178,9 +162,7 @@ def run(args: argparse.Namespace) -> int:
             for note in pos.result.notes:
                 LOG.info("  %s", note)
     if report is not None:
-        from appliance.outputs.records import write_report_page
-
-        write_report_page(db, entries, report)
+        pages.write_estimate_report(db, entries, report)
     return 0
 
 

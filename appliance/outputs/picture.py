@@ -1,11 +1,13 @@
-"""The estimate's picture: the map in latitude and longitude, a zoom around the estimate and the
-truth, and the skylines.
+"""The pictures of the reports: an estimate's map in latitude and longitude with a zoom around the
+estimate and the truth and its skylines (:func:`estimate_figure`), a traverse's track
+(:func:`track_figure`) and a panorama with its skylines (:func:`panorama_figure`).
 
-:func:`estimate_figure` builds the matplotlib figure (its axes labelled ``map``, ``zoom`` and
-``skyline``, so a test can read limits and tick labels); :func:`appliance.outputs.records.write_png`
-saves it.  Every grid node is drawn at its own longitude and latitude (``pcolormesh``), so the axes
-are exact for a geographic grid and for a projected one alike; the aspect ratio makes a metre east as
-long as a metre north at the map's centre, and the scale bars are measured on the database's body.
+The figures are matplotlib figures with labelled axes (``map``, ``zoom``, ``skyline``, ``track``), so a
+test can read limits and tick labels; :mod:`appliance.outputs.files` saves them.  Every grid node is
+drawn at its own longitude and latitude (``pcolormesh``), so the axes are exact for a geographic grid
+and for a projected one alike; the aspect ratio makes a metre east as long as a metre north at the
+map's centre, and the scale bars are measured on the database's body.  matplotlib is imported by the
+functions that draw, so that the modules importing this one start without it.
 """
 
 from __future__ import annotations
@@ -17,14 +19,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
+from appliance.estimator import resample_to_grid
+from appliance.locate.position import Position, truth_error_m
+from appliance.outputs.features import region_mask, rendered_skyline
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from appliance.locate.position import Position
     from appliance.skyline import Skyline
     from appliance.terrain.database import SkylineDatabase
+    from appliance.vision.panorama import Panorama
 
 #: the zoom spans at least this much (m), so the cells around a small error show
 MIN_ZOOM_SPAN_M = 400.0
@@ -82,7 +87,7 @@ def tick_decimals(ticks: Any) -> int:
 
 def geographic_axes(ax: Axes, scale: MapScale) -> None:
     """Longitude and latitude tick labels (degrees with the hemisphere) and equal metres on both axes."""
-    from matplotlib.ticker import FuncFormatter, MaxNLocator
+    from matplotlib.ticker import FuncFormatter, MaxNLocator  # matplotlib loads only to draw (module docstring)
 
     x_ticks, y_ticks = MaxNLocator(5), MaxNLocator(6)
     dx = tick_decimals(x_ticks.tick_values(*ax.get_xlim()))
@@ -99,6 +104,7 @@ def geographic_axes(ax: Axes, scale: MapScale) -> None:
 
 def add_scale_bar(ax: Axes, scale: MapScale) -> float:
     """A bar of a round length in the lower left corner; returns its length (m)."""
+    # matplotlib loads only to draw (module docstring)
     from matplotlib.font_manager import FontProperties
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
@@ -145,6 +151,26 @@ def cell_polygons(db: SkylineDatabase, nodes: np.ndarray) -> np.ndarray:
     return np.stack([np.ravel(lon), np.ravel(lat)], axis=-1).reshape(-1, 4, 2)
 
 
+def _hillshade(db: SkylineDatabase) -> np.ndarray:
+    """The map's hillshade (light from the north-west, 45 degrees up), nodata filled with the lowest ground."""
+    from matplotlib.colors import LightSource  # matplotlib loads only to draw (module docstring)
+
+    g = db.grid
+    ground = np.asarray(db.ground_m, float).reshape(g.n_rows, g.n_cols)
+    filled = np.where(np.isfinite(ground), ground, np.nanmin(ground))
+    return LightSource(azdeg=315, altdeg=45).hillshade(filled, vert_exag=2.0, dx=g.dx_m, dy=g.dy_m)
+
+
+def _new_figure(figsize: tuple[float, float]) -> Figure:
+    """An empty figure drawn by the Agg backend (no display needed)."""
+    import matplotlib  # matplotlib loads only to draw (module docstring)
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure  # after the backend is chosen
+
+    return Figure(figsize=figsize)
+
+
 def _draw_map_layers(ax: Axes, lon: np.ndarray, lat: np.ndarray, shade: np.ndarray, posterior: Any,
                      top: float) -> Any:
     ax.pcolormesh(lon, lat, shade, cmap="gray", shading="nearest", rasterized=True)
@@ -152,92 +178,113 @@ def _draw_map_layers(ax: Axes, lon: np.ndarray, lat: np.ndarray, shade: np.ndarr
                          shading="nearest", rasterized=True)
 
 
+@dataclass(frozen=True)
+class _MapLayers:
+    """What the map and the zoom of :func:`estimate_figure` both draw: the nodes' longitudes and
+    latitudes, the hillshade and the lower posterior (log10, masked 20 decades below its peak ``top``)."""
+
+    lon: np.ndarray
+    lat: np.ndarray
+    shade: np.ndarray
+    posterior: Any
+    top: float
+    scale: MapScale
+
+
+def _draw_map(fig: Figure, ax: Axes, db: SkylineDatabase, pos: Position, layers: _MapLayers,
+              truth: tuple[float, float] | None) -> None:
+    """The whole map: layers, region outline, estimate and truth, a colour bar and a scale bar."""
+    r, lon, lat = pos.result, layers.lon, layers.lat
+    mesh = _draw_map_layers(ax, lon, lat, layers.shade, layers.posterior, layers.top)
+    ax.contour(lon, lat, region_mask(db, pos), levels=[0.5], colors="cyan", linewidths=1.0)
+    fig.colorbar(mesh, ax=ax, fraction=0.046, pad=0.02, label="log10 lower posterior")
+    ax.plot(pos.lon, pos.lat, "c+", ms=14, mew=2, label="estimate")
+    if truth is not None:
+        ax.plot(truth[1], truth[0], "x", color="lime", ms=12, mew=2, label="truth")
+    ax.set_xlim(float(lon.min()), float(lon.max()))
+    ax.set_ylim(float(lat.min()), float(lat.max()))
+    geographic_axes(ax, layers.scale)
+    add_scale_bar(ax, layers.scale)
+    ax.set_title(f"map: region {r.region_area_m2 / 1e6:.3f} km², {r.region_nodes.size} cells")
+    ax.legend(loc="upper right")
+
+
+def _draw_zoom(ax: Axes, db: SkylineDatabase, pos: Position, layers: _MapLayers,
+               truth: tuple[float, float] | None) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The zoom around the estimate and the truth, region cells marked; returns its (lon, lat) limits."""
+    # matplotlib loads only to draw (module docstring)
+    from matplotlib.collections import PolyCollection
+    from matplotlib.patches import Patch
+
+    g, r, scale = db.grid, pos.result, layers.scale
+    points = [(pos.lat, pos.lon)] + ([truth] if truth is not None else [])
+    map_span_m = (float(np.ptp(layers.lon)) * scale.m_per_deg_lon, float(np.ptp(layers.lat)) * scale.m_per_deg_lat)
+    cell_m = math.sqrt(g.dx_m * g.dy_m)
+    (zx0, zx1), (zy0, zy1) = zoom_window(scale, points, cell_m, map_span_m)
+    _draw_map_layers(ax, layers.lon, layers.lat, layers.shade, layers.posterior, layers.top)
+    fill = (0.0, 1.0, 1.0, 0.35)
+    ax.add_collection(PolyCollection(list(cell_polygons(db, r.region_nodes)), facecolors=fill,
+                                     edgecolors="cyan", linewidths=1.0))
+    handles: list[Any] = [Patch(facecolor=fill, edgecolor="cyan", label=f"region cells ({r.region_nodes.size})")]
+    handles += ax.plot(pos.lon, pos.lat, "+", color="blue", ms=18, mew=2.5, label="estimate")
+    title = "zoom"
+    if truth is not None:
+        err = truth_error_m(db, pos, truth)
+        ax.plot([pos.lon, truth[1]], [pos.lat, truth[0]], "-", color="yellow", lw=1.5)
+        handles += ax.plot(truth[1], truth[0], "x", color="lime", ms=14, mew=2.5, label="truth")
+        title = f"zoom: estimate {err:.1f} m from the truth" if err < 100 else \
+            f"zoom: estimate {err:.0f} m from the truth"
+    ax.set_xlim(zx0, zx1)
+    ax.set_ylim(zy0, zy1)
+    geographic_axes(ax, scale)
+    add_scale_bar(ax, scale)
+    ax.set_title(f"{title} (nodes {cell_m:.0f} m apart)")
+    ax.legend(handles=handles, loc="upper right")
+    return (zx0, zx1), (zy0, zy1)
+
+
+def _draw_skylines(ax: Axes, db: SkylineDatabase, pos: Position, skyline: Skyline) -> None:
+    """The measured skyline (heading corrected) over the one rendered at the estimate."""
+    r = pos.result
+    az = db.azimuths_deg
+    measured = resample_to_grid((skyline.azimuth_deg + r.heading_correction_deg) % 360.0,
+                                skyline.elevation_deg, db.n_azimuths)
+    ax.plot(az, db.skylines_deg(r.node), color="tab:orange", lw=1.5, label="rendered at the estimate")
+    ax.plot(az, measured, color="tab:blue", lw=1.0, label="measured (heading corrected)")
+    ax.set_xlim(0, 360)
+    ax.set_xticks(np.arange(0, 361, 45))
+    ax.set_xlabel("azimuth (deg, clockwise from true north)")
+    ax.set_ylabel("elevation (deg)")
+    ax.set_title(f"estimate {pos.lat:.6f}, {pos.lon:.6f}; heading correction "
+                 f"{r.heading_correction_deg:+.1f} deg; residual {r.rms_residual_deg:.2f} deg RMS")
+    ax.legend()
+    ax.grid(alpha=0.3)
+
+
 def estimate_figure(db: SkylineDatabase, pos: Position, skyline: Skyline,
                     truth: tuple[float, float] | None = None) -> Figure:
     """The map (hillshade, lower posterior, region outline, estimate, truth) in longitude and latitude
     with a scale bar, a zoom around the estimate and the truth (region cells marked), and the measured
     and rendered skylines.  ``truth`` is (lat, lon)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.collections import PolyCollection
-    from matplotlib.colors import LightSource
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Patch, Rectangle
-
-    from appliance.estimator import resample_to_grid
-    from appliance.locate.position import truth_error_m
-    from appliance.outputs.records import region_mask
+    from matplotlib.patches import Rectangle  # matplotlib loads only to draw (module docstring)
 
     g = db.grid
-    r = pos.result
     lon, lat = _node_lonlat(db)
-    ground = np.asarray(db.ground_m, float).reshape(g.n_rows, g.n_cols)
-    filled = np.where(np.isfinite(ground), ground, np.nanmin(ground))
-    shade = LightSource(azdeg=315, altdeg=45).hillshade(filled, vert_exag=2.0, dx=g.dx_m, dy=g.dy_m)
-    lower = np.asarray(r.log_lower_map, float).reshape(g.n_rows, g.n_cols) / np.log(10.0)
+    shade = _hillshade(db)
+    lower = np.asarray(pos.result.log_lower_map, float).reshape(g.n_rows, g.n_cols) / np.log(10.0)
     top = float(np.nanmax(lower))
     posterior = np.ma.masked_less(np.where(np.isfinite(lower), lower, -np.inf), top - 20.0)
-    region = region_mask(db, pos)
-    scale = map_scale(db, float(np.mean(lat)), float(np.mean(lon)))
+    layers = _MapLayers(lon, lat, shade, posterior, top, map_scale(db, float(np.mean(lat)), float(np.mean(lon))))
 
-    fig = Figure(figsize=(15, 12.5))
+    fig = _new_figure((15, 12.5))
     grid = fig.add_gridspec(2, 2, height_ratios=[1.55, 1], width_ratios=[1, 1])
     ax_map = fig.add_subplot(grid[0, 0], label="map")
     ax_zoom = fig.add_subplot(grid[0, 1], label="zoom")
     ax_sky = fig.add_subplot(grid[1, :], label="skyline")
-
-    mesh = _draw_map_layers(ax_map, lon, lat, shade, posterior, top)
-    ax_map.contour(lon, lat, region, levels=[0.5], colors="cyan", linewidths=1.0)
-    fig.colorbar(mesh, ax=ax_map, fraction=0.046, pad=0.02, label="log10 lower posterior")
-    ax_map.plot(pos.lon, pos.lat, "c+", ms=14, mew=2, label="estimate")
-    if truth is not None:
-        ax_map.plot(truth[1], truth[0], "x", color="lime", ms=12, mew=2, label="truth")
-    ax_map.set_xlim(float(lon.min()), float(lon.max()))
-    ax_map.set_ylim(float(lat.min()), float(lat.max()))
-    geographic_axes(ax_map, scale)
-    add_scale_bar(ax_map, scale)
-    ax_map.set_title(f"map: region {r.region_area_m2 / 1e6:.3f} km², {r.region_nodes.size} cells")
-    ax_map.legend(loc="upper right")
-
-    points = [(pos.lat, pos.lon)] + ([truth] if truth is not None else [])
-    map_span_m = (float(np.ptp(lon)) * scale.m_per_deg_lon, float(np.ptp(lat)) * scale.m_per_deg_lat)
-    cell_m = math.sqrt(g.dx_m * g.dy_m)
-    (zx0, zx1), (zy0, zy1) = zoom_window(scale, points, cell_m, map_span_m)
-    _draw_map_layers(ax_zoom, lon, lat, shade, posterior, top)
-    fill = (0.0, 1.0, 1.0, 0.35)
-    ax_zoom.add_collection(PolyCollection(list(cell_polygons(db, r.region_nodes)), facecolors=fill,
-                                          edgecolors="cyan", linewidths=1.0))
-    handles: list[Any] = [Patch(facecolor=fill, edgecolor="cyan", label=f"region cells ({r.region_nodes.size})")]
-    handles += ax_zoom.plot(pos.lon, pos.lat, "+", color="blue", ms=18, mew=2.5, label="estimate")
-    title = "zoom"
-    if truth is not None:
-        err = truth_error_m(db, pos, truth)
-        ax_zoom.plot([pos.lon, truth[1]], [pos.lat, truth[0]], "-", color="yellow", lw=1.5)
-        handles += ax_zoom.plot(truth[1], truth[0], "x", color="lime", ms=14, mew=2.5, label="truth")
-        title = f"zoom: estimate {err:.1f} m from the truth" if err < 100 else \
-            f"zoom: estimate {err:.0f} m from the truth"
-    ax_zoom.set_xlim(zx0, zx1)
-    ax_zoom.set_ylim(zy0, zy1)
-    geographic_axes(ax_zoom, scale)
-    add_scale_bar(ax_zoom, scale)
-    ax_zoom.set_title(f"{title} (nodes {cell_m:.0f} m apart)")
-    ax_zoom.legend(handles=handles, loc="upper right")
+    _draw_map(fig, ax_map, db, pos, layers, truth)
+    (zx0, zx1), (zy0, zy1) = _draw_zoom(ax_zoom, db, pos, layers, truth)
     ax_map.add_patch(Rectangle((zx0, zy0), zx1 - zx0, zy1 - zy0, fill=False, ec="yellow", lw=1.5))
-
-    az = db.azimuths_deg
-    measured = resample_to_grid((skyline.azimuth_deg + r.heading_correction_deg) % 360.0,
-                                skyline.elevation_deg, db.n_azimuths)
-    ax_sky.plot(az, db.skylines_deg(r.node), color="tab:orange", lw=1.5, label="rendered at the estimate")
-    ax_sky.plot(az, measured, color="tab:blue", lw=1.0, label="measured (heading corrected)")
-    ax_sky.set_xlim(0, 360)
-    ax_sky.set_xticks(np.arange(0, 361, 45))
-    ax_sky.set_xlabel("azimuth (deg, clockwise from true north)")
-    ax_sky.set_ylabel("elevation (deg)")
-    ax_sky.set_title(f"estimate {pos.lat:.6f}, {pos.lon:.6f}; heading correction "
-                     f"{r.heading_correction_deg:+.1f} deg; residual {r.rms_residual_deg:.2f} deg RMS")
-    ax_sky.legend()
-    ax_sky.grid(alpha=0.3)
+    _draw_skylines(ax_sky, db, pos, skyline)
     fig.tight_layout()
     return fig
 
@@ -256,17 +303,9 @@ def track_figure(db: SkylineDatabase, stops: list[TrackStop], title: str = "trav
     """The traverse on the map's hillshade in longitude and latitude with a scale bar: the line through
     the GPS truths, the line through the stops' estimates (fused), and each stop's estimate from its
     skyline alone; the view spans the track with a margin."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.colors import LightSource
-    from matplotlib.figure import Figure
-
     g = db.grid
     lon, lat = _node_lonlat(db)
-    ground = np.asarray(db.ground_m, float).reshape(g.n_rows, g.n_cols)
-    filled = np.where(np.isfinite(ground), ground, np.nanmin(ground))
-    shade = LightSource(azdeg=315, altdeg=45).hillshade(filled, vert_exag=2.0, dx=g.dx_m, dy=g.dy_m)
+    shade = _hillshade(db)
     points = [p for s in stops for p in (s.position, s.alone, s.truth) if p is not None]
     if not points:
         points = [(float(np.mean(lat)), float(np.mean(lon)))]
@@ -275,7 +314,7 @@ def track_figure(db: SkylineDatabase, stops: list[TrackStop], title: str = "trav
     cell_m = math.sqrt(g.dx_m * g.dy_m)
     (x0, x1), (y0, y1) = zoom_window(scale, points, cell_m, map_span_m)
 
-    fig = Figure(figsize=(10, 9))
+    fig = _new_figure((10, 9))
     ax = fig.add_subplot(1, 1, 1, label="track")
     ax.pcolormesh(lon, lat, shade, cmap="gray", shading="nearest", rasterized=True)
     truth = [s.truth for s in stops if s.truth is not None]
@@ -301,5 +340,32 @@ def track_figure(db: SkylineDatabase, stops: list[TrackStop], title: str = "trav
     add_scale_bar(ax, scale)
     ax.set_title(f"{title} (nodes {cell_m:.0f} m apart)")
     ax.legend(loc="upper right")
+    fig.tight_layout()
+    return fig
+
+
+def panorama_figure(db: SkylineDatabase, pos: Position, panorama: Panorama, skyline: Skyline, name: str) -> Figure:
+    """The panorama ``name`` with the skyline detected in it and the one rendered at the estimate (heading
+    corrected), in the panorama's columns and rows."""
+    import cv2  # OpenCV loads only to draw a panorama: `viper estimate --report` draws none
+
+    rendered = rendered_skyline(db, pos)
+    h, w = panorama.image.shape[:2]
+    fig = _new_figure((16, 16 * h / w + 1.0))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.imshow(cv2.cvtColor(panorama.image, cv2.COLOR_BGR2RGB), aspect="auto")
+    ok = np.isfinite(skyline.elevation_deg)
+    ax.plot(panorama.azimuth_to_column(skyline.azimuth_deg[ok]), panorama.elevation_to_row(skyline.elevation_deg[ok]),
+            ".", color="cyan", ms=2, label="detected skyline")
+    # the measured azimuth a sees the map's a + correction
+    az = (rendered.azimuth_deg - pos.result.heading_correction_deg) % 360.0
+    order = np.argsort(az)
+    ax.plot(panorama.azimuth_to_column(az[order]), panorama.elevation_to_row(rendered.elevation_deg[order]), "-",
+            color="orange", lw=1.0, label="rendered at the estimate")
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
+    ax.set_xlabel("column (azimuth clockwise from true north)")
+    ax.set_title(f"{name}: heading correction {pos.result.heading_correction_deg:+.1f} deg")
+    ax.legend(loc="lower right")
     fig.tight_layout()
     return fig

@@ -13,6 +13,7 @@ from appliance.bodies import geodesic_distance_m
 from appliance.config import EstimatorConfig
 from appliance.estimator import estimate
 from appliance.locate.position import Position, place, skyline_grid
+from appliance.outputs.files import write_png
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import SkylineDatabase, build_database, load_database
 from appliance.terrain.dem import Dem, load_dem
@@ -81,8 +82,6 @@ def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
     res = estimate(skyline_grid(db), sky.azimuth_deg, sky.elevation_deg, cfg.sigma_deg, cfg.heading_tolerance_deg)
     res_pos = place(db, res, str(sky_path))
     err = geodesic_distance_m(res_pos.lat, res_pos.lon, float(lat), float(lon), dem.body)
-    from appliance.outputs.records import write_png  # matplotlib, only when a picture is drawn
-
     pic = out / "estimate.png"
     write_png(db, res_pos, sky, pic, truth=(float(lat), float(lon)))
     return DemoResult(res_pos, float(lat), float(lon), float(err), compass, sky_path, pic, db)
