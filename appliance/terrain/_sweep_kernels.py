@@ -407,4 +407,3 @@ def _near_field(
                 if t > b or (b != b and t == t):
                     dest[u] = t
                     dest_far[u] = d
-

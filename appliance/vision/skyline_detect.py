@@ -341,7 +341,6 @@ def _learn_llr(
     return _gaussian_llr(feats, sky, gnd)
 
 
-
 def _confidence(
     drop: np.ndarray,
     llr: np.ndarray,
