@@ -64,7 +64,8 @@ from appliance.locate.position import place, skyline_grid, truth_in_region  # no
 from appliance.sim import terrain_world as tw  # noqa: E402
 from appliance.sim.demo import sensor_reading  # noqa: E402
 from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402
-from appliance.terrain.dem import Dem, bilinear, load_dem  # noqa: E402
+from appliance.terrain.dem import Dem, load_dem  # noqa: E402
+from appliance.terrain.elevation import bilinear  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 

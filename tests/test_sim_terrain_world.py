@@ -9,7 +9,7 @@ import pytest
 from affine import Affine
 
 from appliance.sim import terrain_world as tw
-from appliance.terrain.dem import affine_apply
+from appliance.terrain.elevation import affine_apply
 
 CELL_M = (30.0, 30.0)
 

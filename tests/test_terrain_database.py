@@ -419,12 +419,12 @@ def settled(monkeypatch, tmp_path):
 
 
 def _counted_load(monkeypatch, path, **kw):
-    from appliance.terrain import database
+    from appliance.terrain import storage
 
     counter = _CountingZlib()
-    monkeypatch.setattr(database, "zlib", counter)
+    monkeypatch.setattr(storage, "zlib", counter)
     db = load_database(path, **kw)
-    monkeypatch.setattr(database, "zlib", counter.real)
+    monkeypatch.setattr(storage, "zlib", counter.real)
     return db, counter.calls
 
 

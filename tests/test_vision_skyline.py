@@ -97,7 +97,7 @@ def _path_cost_of(cost_t: np.ndarray, path: np.ndarray, jump_cost: float) -> flo
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dp_path_is_optimal_against_an_exhaustive_oracle(seed: int) -> None:
-    from appliance.vision.skyline_detect import _dp_path
+    from appliance.vision.skyline_pixels import _dp_path
 
     rng = np.random.default_rng(seed)
     w, h, jump, jump_cost = 30, 12, 2, 0.3

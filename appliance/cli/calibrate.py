@@ -222,7 +222,11 @@ def register(subparsers: Any) -> None:
         "calibrate", help="calibrate the theodolite sigma, camera, compass, inclinometers"
     )
     sub = parser.add_subparsers(dest="target", metavar="TARGET", required=True)
+    for add in (_add_theodolite, _add_camera, _add_pose, _add_compass, _add_inclinometer):
+        add(sub)
 
+
+def _add_theodolite(sub: Any) -> None:
     p = sub.add_parser("theodolite", help="sigma interval of the elevation residuals against a theodolite")
     p.add_argument("points", type=Path, help="CSV: point,camera_elevation_deg,theodolite_elevation_deg")
     p.add_argument("--config", type=Path, help="configuration TOML to receive [estimator] sigma_deg")
@@ -235,6 +239,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object with n, s_deg and sigma_deg")
     p.set_defaults(func=_theodolite)
 
+
+def _add_camera(sub: Any) -> None:
     p = sub.add_parser(
         "camera", help="intrinsics (focal length, principal point, plumb_bob) from chessboards"
     )
@@ -248,6 +254,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_camera)
 
+
+def _add_pose(sub: Any) -> None:
     p = sub.add_parser(
         "pose",
         help="camera orientation (and focal length, radial distortion) from ground-control points in a photo",
@@ -271,6 +279,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_pose)
 
+
+def _add_compass(sub: Any) -> None:
     p = sub.add_parser("compass", help="hard and soft iron from a logged rotation, and the mounting offset")
     p.add_argument(
         "log", type=Path, help="CSV with columns mag_x_gauss,mag_y_gauss,mag_z_gauss (+ optional ones)"
@@ -299,6 +309,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_compass)
 
+
+def _add_inclinometer(sub: Any) -> None:
     p = sub.add_parser("inclinometer", help="offsets by the two-position (reversal) method")
     p.add_argument("readings", type=Path, help="CSV: stage_deg,tilt_x_deg,tilt_y_deg at stage 0 and 180 deg")
     p.add_argument(

@@ -26,21 +26,20 @@ The codes and ranges are quantised as :mod:`appliance.terrain.quantize` says, on
 and the terrain grid lets the estimator render exact skylines between nodes; candidate node (0, 0)
 is terrain node (row0, col0), same spacing.
 
-The checksums are verified when the database is loaded: a flipped bit is a one-line error naming the
-block.  A file that passed is recorded (:mod:`appliance.terrain.verified`) and, unchanged since, is not
-read through again on later loads; its header is checked every time.  The first-pass arrays are
-made at build time so that no estimate has to make them.
+The checksums (:mod:`appliance.terrain.storage`) are verified when the database is loaded: a flipped
+bit is a one-line error naming the block.  A file that passed is recorded
+(:mod:`appliance.terrain.verified`) and, unchanged since, is not read through again on later loads;
+its header is checked every time.  The first-pass arrays are made at build time so that no
+estimate has to make them.
 """
 
 from __future__ import annotations
 
-import errno
 import json
 import os
-import time
 import zlib
-from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor, as_completed
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -64,13 +63,20 @@ from appliance.terrain.quantize import (
     store_centidegrees,
     turn_and_quantize,
 )
+from appliance.terrain.storage import (
+    CHECKSUM_BLOCK,
+    file_block_checksums,
+    pread_into,
+    pwrite_all,
+    run_threads,
+    verify_checksums,
+)
 from appliance.terrain.sweep import HorizonSweeper
-from appliance.terrain.verified import FileIdentity, digest_of, is_verified, remember_verified
+from appliance.terrain.verified import FileIdentity
 
 MAGIC = b"VIPERDB\0"
 FORMAT_VERSION = 3
 ALIGN = 64
-CHECKSUM_BLOCK = 1 << 20  # bytes of the array section per CRC32
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,17 +135,6 @@ class SkylineDatabase:
         return body_named(self.header["body"]).effective_radius_m(self.header["refraction"])
 
 
-def run_threads(fn: Callable[[int], None], items: Iterable[int], workers: int | None = None) -> Iterator[int]:
-    """Call ``fn`` on every item from a pool of threads (default: one per core); yields each item as
-    it completes.  ``fn`` is expected to spend its time in kernels that release the GIL."""
-    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=max(int(n), 1)) as pool:
-        futures = {pool.submit(fn, i): i for i in items}
-        for fut in as_completed(futures):
-            fut.result()
-            yield futures[fut]
-
-
 def build_database(
     dem: Dem,
     out_path: str | Path,
@@ -155,10 +150,10 @@ def build_database(
     """Render every candidate node's skyline and write the database atomically; returns its header.
 
     Azimuths are swept in parallel on ``workers`` threads (default: one per core), each running
-    single-threaded kernels that release the GIL: a busy machine slows the build in proportion,
-    with no threads spinning at barriers.  A node's horizon comes from the terrain within
-    ``max_range_m`` of it and nothing beyond (an exact cut-off, see HorizonSweeper), so a build in
-    tiles, each with a halo of that range, equals a build of the whole map node for node.
+    single-threaded kernels that release the GIL (DESIGN.md, "Decisions").  A node's horizon comes
+    from the terrain within ``max_range_m`` of it and nothing beyond (an exact cut-off, see
+    HorizonSweeper), so a build in tiles, each with a halo of that range, equals a build of the
+    whole map node for node.
 
     Memory: each azimuth's skylines go to an unnamed scratch file beside the output as they are
     swept (3 bytes per node and azimuth on disk, besides the output), and are read back a chunk of
@@ -219,25 +214,7 @@ def build_on_grids(
     sweeper = HorizonSweeper(Z, terr.dx_m, terr.dy_m, height_m, r_eff, (ro, co, cand.n_rows, cand.n_cols),
                              lattice_origin, lattice_shape, max_range_m)
     left_out = None if keep is None else ~np.asarray(keep, dtype=bool)
-    header = {
-        "format": "viper-skyline-db",
-        "format_version": FORMAT_VERSION,
-        "dem_sha256": dem.sha256,
-        "dem_source": Path(dem.source).name,
-        "dem_crs": dem.crs.to_wkt(),
-        "body": dem.body.name.value,
-        "refraction": dem.body.refraction if refraction is None else refraction,
-        "height_m": height_m,
-        "max_range_m": max_range_m,
-        "n_azimuths": n_azimuths,
-        "grid": {
-            "crs_wkt": cand.crs_wkt, "x0": cand.x0, "y0": cand.y0, "dx": cand.dx, "dy": cand.dy,
-            "n_rows": cand.n_rows, "n_cols": cand.n_cols, "dx_m": cand.dx_m, "dy_m": cand.dy_m,
-        },
-        "search_bounds": list(search_bounds),
-        "distance_code": {"min_m": DISTANCE_MIN_M, "log_step": DISTANCE_LOG_STEP},
-        "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
-    }
+    header = _header(dem, cand, terr, offset, search_bounds, height_m, n_azimuths, refraction, max_range_m)
     ground = Z[ro : ro + cand.n_rows, co : co + cand.n_cols].ravel().astype(np.float32)
     if left_out is not None:
         ground[left_out] = np.nan
@@ -268,6 +245,32 @@ def build_on_grids(
         finally:
             os.close(fd)
     return header
+
+
+def _header(dem: Dem, cand: NodeGrid, terr: NodeGrid, offset: tuple[int, int],
+            search_bounds: tuple[float, float, float, float], height_m: float, n_azimuths: int,
+            refraction: float | None, max_range_m: float) -> dict:
+    """The JSON header of a database (before its array layout and checksum entry)."""
+    ro, co = offset
+    return {
+        "format": "viper-skyline-db",
+        "format_version": FORMAT_VERSION,
+        "dem_sha256": dem.sha256,
+        "dem_source": Path(dem.source).name,
+        "dem_crs": dem.crs.to_wkt(),
+        "body": dem.body.name.value,
+        "refraction": dem.body.refraction if refraction is None else refraction,
+        "height_m": height_m,
+        "max_range_m": max_range_m,
+        "n_azimuths": n_azimuths,
+        "grid": {
+            "crs_wkt": cand.crs_wkt, "x0": cand.x0, "y0": cand.y0, "dx": cand.dx, "dy": cand.dy,
+            "n_rows": cand.n_rows, "n_cols": cand.n_cols, "dx_m": cand.dx_m, "dy_m": cand.dy_m,
+        },
+        "search_bounds": list(search_bounds),
+        "distance_code": {"min_m": DISTANCE_MIN_M, "log_step": DISTANCE_LOG_STEP},
+        "terrain": {"n_rows": terr.n_rows, "n_cols": terr.n_cols, "row0": ro, "col0": co},
+    }
 
 
 #: Nodes turned, quantised and written together (their arrays are held in memory at once, two
@@ -382,89 +385,10 @@ def _write(fd: int, plan: _FilePlan, spill: int, gamma_deg: np.ndarray, step_az:
     pwrite_all(fd, np.frombuffer(plan.head, np.uint8), 0)
 
 
-def pwrite_all(fd: int, arr: np.ndarray, offset: int) -> None:
-    """Write the bytes of the contiguous array ``arr`` at ``offset`` of ``fd``."""
-    view = np.ascontiguousarray(arr).data.cast("B")
-    while view:
-        k = os.pwrite(fd, view, offset)
-        view = view[k:]
-        offset += k
-
-
-def pread_into(fd: int, arr: np.ndarray, offset: int) -> None:
-    """Fill the contiguous array ``arr`` with the bytes at ``offset`` of ``fd``."""
-    view = arr.data.cast("B")
-    while view:
-        k = os.preadv(fd, [view], offset)
-        if k == 0:
-            raise OSError(errno.EIO, f"the file ends {len(view)} bytes short")
-        view = view[k:]
-        offset += k
-
-
-def file_block_checksums(fd: int, start: int, size: int, workers: int | None = None) -> list[int]:
-    """CRC32 of each CHECKSUM_BLOCK bytes of the ``size`` bytes at ``start`` of ``fd`` (a database's
-    array section), read back a block at a time."""
-    crcs = {}
-
-    def one(lo: int) -> None:
-        buf = np.empty(min(CHECKSUM_BLOCK, size - lo), np.uint8)
-        pread_into(fd, buf, start + lo)
-        crcs[lo] = zlib.crc32(buf.data)
-
-    for _ in run_threads(one, range(0, size, CHECKSUM_BLOCK), workers):
-        pass
-    return [crcs[lo] for lo in range(0, size, CHECKSUM_BLOCK)]
-
-
-def verify_checksums(p: Path, header: dict, head: bytes, body: np.ndarray, identity: FileIdentity | None = None,
-                     full_check: bool = False) -> None:
-    """Compare the header and every block of ``body`` (the array section, checksum table included)
-    with the table written at build; a mismatch is a DatabaseError naming the block.
-
-    The header is always checked.  The blocks are not when a record of :mod:`appliance.terrain.verified`
-    says that this file (``identity``: fstat of the open file ``body`` maps), unchanged since, with
-    this header and table, passed them all (unless ``full_check``); a file that passes them all is
-    recorded so."""
-    spec = header.get("checksum")
-    if spec is None:
-        return  # a version 2 file written before the checksums
-    try:
-        size, offset, n_blocks = int(spec["block_bytes"]), int(spec["offset"]), int(spec["blocks"])
-        if spec.get("algorithm") != "crc32" or size != CHECKSUM_BLOCK or n_blocks != -(-offset // size):
-            raise ValueError(f"checksum entry {spec}")
-    except (KeyError, TypeError, ValueError) as exc:
-        raise DatabaseError(f"{p}: corrupt database header ({exc})") from None
-    if body.size < offset + 4 * (1 + n_blocks):
-        raise DatabaseError(f"{p}: truncated database: {body.size} bytes of arrays and checksums, expected "
-                            f"{offset + 4 * (1 + n_blocks)}")
-    table = body[offset : offset + 4 * (1 + n_blocks)].view("<u4")
-    if zlib.crc32(head) != int(table[0]):
-        raise DatabaseError(f"{p}: the header fails its CRC32 check: the file is damaged; rebuild it")
-    digest = digest_of(head, table.tobytes())
-    if identity is not None and not full_check and is_verified(identity, digest):
-        return
-    started_ns = time.time_ns()
-    arrays = body[:offset]
-    # zlib releases the GIL on large buffers: the blocks are checked on every core
-    with ThreadPoolExecutor(max_workers=max(len(os.sched_getaffinity(0)), 1)) as pool:
-        crcs = list(pool.map(lambda lo: zlib.crc32(arrays[lo : lo + size].data), range(0, offset, size)))
-    for k in range(n_blocks):
-        lo = k * size
-        if crcs[k] != int(table[1 + k]):
-            hi = min(lo + size, offset)
-            raise DatabaseError(
-                f"{p}: block {k} of {n_blocks} (array bytes {lo}-{hi - 1}) fails its CRC32 check: the file "
-                "is damaged; rebuild it"
-            )
-    if identity is not None:
-        remember_verified(identity, digest, str(p.resolve()), started_ns)
-
-
 def load_database(path: str | Path, dem: Dem | None = None, full_check: bool = False) -> SkylineDatabase:
     """Memory-map a database; refuses a foreign format or version, or one from another DEM, and a
-    damaged file (see :func:`verify_checksums`; ``full_check``: every block even if this file was
-    verified before and has not changed since)."""
+    damaged file (see :func:`appliance.terrain.storage.verify_checksums`; ``full_check``: every
+    block even if this file was verified before and has not changed since)."""
     p = Path(path)
     try:
         fh = p.open("rb")

@@ -103,29 +103,41 @@ def open_map(paths: list[str], vrt_path: str | Path | None, crs: str | None = No
 
 def write_vrt(paths: list[Path], vrt_path: str | Path, crs: str | None = None) -> Path:
     """Write the VRT of adjacent DEM files; refuses different CRSs or pixel lattices in one line."""
+    infos = [_source_info(p, crs) for p in paths]
+    offsets = _lattice_offsets(infos)
+    with atomic_output(vrt_path) as tmp:
+        tmp.write_text("\n".join(_vrt_lines(infos, offsets)))
+    return Path(vrt_path)
+
+
+def _source_info(p: Path, crs: str | None) -> dict[str, Any]:
+    """The size, georeferencing and sample type of one source of a mosaic (``crs`` in place of its own)."""
     import rasterio
     import rasterio.crs
     from rasterio.errors import RasterioError
 
-    infos: list[dict[str, Any]] = []
-    for p in paths:
-        if not p.is_file():
-            load_dem(p)  # the one-line error for a missing file or a folder
-        if p.suffix.lower() in _NON_GDAL:
-            raise DemError(f"{p}: a mosaic is made of GDAL rasters (GeoTIFF, .hgt, VRT...), not {p.suffix} grids")
-        try:
-            with rasterio.open(p) as ds:
-                info = {
-                    "path": p, "width": ds.width, "height": ds.height, "transform": ds.transform,
-                    "crs": rasterio.crs.CRS.from_user_input(crs) if crs else ds.crs, "dtype": ds.dtypes[0],
-                    "nodata": ds.nodata, "scale": ds.scales[0], "offset": ds.offsets[0], "units": ds.units[0],
-                }
-        except RasterioError as exc:
-            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise DemError(f"{p}: not a readable DEM ({reason})") from None
-        if info["crs"] is None:
-            raise DemError(f"{p}: the file carries no CRS (give one with --crs, e.g. EPSG:32632)")
-        infos.append(info)
+    if not p.is_file():
+        load_dem(p)  # the one-line error for a missing file or a folder
+    if p.suffix.lower() in _NON_GDAL:
+        raise DemError(f"{p}: a mosaic is made of GDAL rasters (GeoTIFF, .hgt, VRT...), not {p.suffix} grids")
+    try:
+        with rasterio.open(p) as ds:
+            info = {
+                "path": p, "width": ds.width, "height": ds.height, "transform": ds.transform,
+                "crs": rasterio.crs.CRS.from_user_input(crs) if crs else ds.crs, "dtype": ds.dtypes[0],
+                "nodata": ds.nodata, "scale": ds.scales[0], "offset": ds.offsets[0], "units": ds.units[0],
+            }
+    except RasterioError as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DemError(f"{p}: not a readable DEM ({reason})") from None
+    if info["crs"] is None:
+        raise DemError(f"{p}: the file carries no CRS (give one with --crs, e.g. EPSG:32632)")
+    return info
+
+
+def _lattice_offsets(infos: list[dict[str, Any]]) -> list[tuple[int, int]]:
+    """The (row, col) of each source on the first one's pixel lattice; refuses sources of another
+    CRS, pixel size, height scale or lattice."""
     first = infos[0]
     t0 = first["transform"]
     for info in infos[1:]:
@@ -147,6 +159,13 @@ def write_vrt(paths: list[Path], vrt_path: str | Path, crs: str | None = None) -
             raise DemError(f"{first['path']} and {info['path']} are not on one pixel lattice "
                            f"(offset {col:.4f} x {row:.4f} pixels)")
         offsets.append((round(row), round(col)))
+    return offsets
+
+
+def _vrt_lines(infos: list[dict[str, Any]], offsets: list[tuple[int, int]]) -> list[str]:
+    """The lines of the VRT placing each source at its offset on the common lattice."""
+    first = infos[0]
+    t0 = first["transform"]
     r_min = min(r for r, _ in offsets)
     c_min = min(c for _, c in offsets)
     height = max(r + info["height"] for (r, _), info in zip(offsets, infos)) - r_min
@@ -182,9 +201,7 @@ def write_vrt(paths: list[Path], vrt_path: str | Path, crs: str | None = None) -
             lines.append(f"      <NODATA>{_nodata_text(info['nodata'])}</NODATA>")
         lines.append("    </ComplexSource>")
     lines += ["  </VRTRasterBand>", "</VRTDataset>", ""]
-    with atomic_output(vrt_path) as tmp:
-        tmp.write_text("\n".join(lines))
-    return Path(vrt_path)
+    return lines
 
 
 _GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16", "uint32": "UInt32",

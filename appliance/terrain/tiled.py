@@ -36,10 +36,7 @@ from appliance.terrain.mosaic import MapSource
 INDEX = "index.json"
 INDEX_FORMAT = "viper-tiled-db"
 INDEX_VERSION = 1
-#: Candidate nodes per tile: an SRTM 3-arc-second tile's worth.  Each tile sweeps its own halo (the
-#: horizon's reach on every side), so larger tiles sweep less terrain in all; a worker's memory is one
-#: tile's terrain window: 454 MiB at 90 m and 927 MiB at 30 m for the largest window of the N43E006 +
-#: N43E007 mosaic (bench/results/tiled_build.md, tiled_build_30m.md).
+#: Candidate nodes per tile: an SRTM 3-arc-second tile's worth (DESIGN.md, "Decisions", says why).
 DEFAULT_TILE_NODES = (1201, 1201)
 
 log = logging.getLogger("appliance.terrain.tiled")

@@ -15,16 +15,12 @@ longitudes [W, E) (modulo 360); the north cap lat >= ``cap_deg``, the south cap 
 
 Each facet is an ordinary single-file database (format 3) on its own grid: a transverse Mercator
 centred on a band's box, or a polar stereographic centred on a cap's pole (its scale set to one at
-mid-cap, so within the cap it stays within a percent of true), at ``spacing_m``.  The default
-spacing is half the map's pixel size: a camera 1.5 m above the ground sees, near at hand, the slopes
-of the map's surface right under it; a grid at the pixel size but off the pixel centres (a facet's
-grid cannot follow the map's pixels) resamples that surface into a smoother one, and its skylines
-then stand a degree or more off the map's (measured on the LOLA map: 0.3-2 deg RMS at 7.6 km,
-0.1-0.8 deg at 3.8 km).  Its candidate nodes are the grid's nodes inside its box; the rectangle's other
-nodes are left out of the database like nodes on nodata (:func:`build_on_grids` ``keep``).  Its
-terrain grid is the candidates' rectangle and the horizon's reach all round, resampled bilinearly
-from the map, which reads across the 0/360 seam and across the poles (:meth:`Dem.sample`), so a
-facet by the seam or a pole sees the terrain on the far side.
+mid-cap, so within the cap it stays within a percent of true), at ``spacing_m``, by default half
+the map's pixel size (DESIGN.md, "Decisions", says why).  Its candidate nodes are the grid's nodes
+inside its box; the rectangle's other nodes are left out of the database like nodes on nodata
+(:func:`build_on_grids` ``keep``).  Its terrain grid is the candidates' rectangle and the horizon's
+reach all round, resampled bilinearly from the map, which reads across the 0/360 seam and across the
+poles (:meth:`Dem.sample`), so a facet by the seam or a pole sees the terrain on the far side.
 
 The horizon's reach defaults to the distance at which the map's highest point sinks below the
 horizon of an eye at its lowest point, sqrt(2 R_eff (z_max - z_min)) (about 260 km on the Moon):
