@@ -80,8 +80,7 @@ def test_every_key_is_read_somewhere():
     # a key that nothing reads says more than the configuration does
     repo = Path(__file__).resolve().parents[1]
     config_modules = ("config.py", "_config_platform.py", "_config_checks.py")
-    code = "
-".join(p.read_text(encoding="utf-8") for folder in ("appliance", "calibration")
+    code = "\n".join(p.read_text(encoding="utf-8") for folder in ("appliance", "calibration")
                      for p in (repo / folder).rglob("*.py") if p.name not in config_modules)
     unread = [k for k in _keys(Config) if k.rsplit(".", 1)[-1] not in RECORD_ONLY
               and not re.search(rf"\.{k.rsplit('.', 1)[-1]}\b", code)]
