@@ -44,7 +44,7 @@ from appliance._config_platform import (
     SimFaultsConfig,
     StageConfig,
 )
-from appliance.errors import ConfigError
+from appliance.errors import ConfigError, InputError
 
 __all__ = [
     "CameraDeviceConfig", "CompassConfig", "CompassKind", "Compression", "Config", "DevicesConfig", "EstimatorConfig",
@@ -272,8 +272,6 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
 def override(obj: T, flag: str, **changes: Any) -> T:
     """``obj`` with ``changes`` given on the command line, checked as the file's values are (by the
     section's ``__post_init__``); a value out of range is an :class:`InputError` naming ``flag``."""
-    from appliance.errors import InputError
-
     try:
         return dataclasses.replace(obj, **changes)  # type: ignore[type-var]
     except ConfigError as exc:

@@ -58,7 +58,7 @@ def _commented(lines: list[str], lineno: int) -> bool:
         return True
     i = lineno - 2
     while i >= 0 and (lines[i].strip().startswith(("from ", "import ")) or lines[i].rstrip().endswith((",", "("))
-                      or lines[i].strip() == ")"):
+                      or lines[i].strip() in (")", "")):
         i -= 1
     return i >= 0 and lines[i].strip().startswith("#")
 

@@ -10,8 +10,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from viper_calibration import compass, inclinometer, theodolite
+from viper_calibration.config_edit import significant, update_toml_table
+
+from appliance.atomic import check_output_path, write_text_atomic
 from appliance.config import Config, from_mapping
 from appliance.errors import ConfigError
+from appliance.vision.intrinsics import load_intrinsics
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -32,10 +37,8 @@ def _validate_config_text(path: Path) -> Any:
 
 
 def _theodolite(args: argparse.Namespace) -> int:
-    from viper_calibration.config_edit import significant, update_toml_table
-    from viper_calibration.theodolite import calibrate_sigma, format_report, read_points_csv
-
-    result = calibrate_sigma(read_points_csv(args.points), confidence=args.confidence, map_sigma_deg=args.map_share)
+    points = theodolite.read_points_csv(args.points)
+    result = theodolite.calibrate_sigma(points, confidence=args.confidence, map_sigma_deg=args.map_share)
     sensor = [significant(v) for v in result.sigma_deg]
     lo, hi = (significant(v) for v in result.estimator_sigma_deg)
     if args.config is not None:
@@ -58,7 +61,7 @@ def _theodolite(args: argparse.Namespace) -> int:
             )
         )
     else:
-        print(format_report(result))
+        print(theodolite.format_report(result))
         if args.config is not None:
             print(f"wrote estimator.sensor_sigma_deg = [{lo}, {hi}] (the floor of the sigma the estimator learns) "
                   f"to {args.config}")
@@ -98,14 +101,13 @@ def _pattern(text: str) -> tuple[int, int]:
 
 
 def _camera(args: argparse.Namespace) -> int:
-    from viper_calibration.camera import calibrate_camera, format_report
+    # OpenCV loads only for the camera and pose subcommands
+    from viper_calibration.camera import calibrate_camera, format_report, write_camera_calibration
 
     result = calibrate_camera(
         args.images, pattern_size=args.pattern, square_size_m=args.square_m, min_boards=args.min_boards
     )
     if args.output is not None:
-        from viper_calibration.camera import write_camera_calibration
-
         write_camera_calibration(args.output, result.intrinsics)
     if args.json:
         print(json.dumps(result.as_dict()))
@@ -117,9 +119,7 @@ def _camera(args: argparse.Namespace) -> int:
 
 
 def _compass(args: argparse.Namespace) -> int:
-    from viper_calibration.compass import calibrate_compass_file, format_report, write_compass_calibration
-
-    result = calibrate_compass_file(
+    result = compass.calibrate_compass_file(
         args.log,
         mode=args.mode,
         accel_path=args.accel,
@@ -129,44 +129,36 @@ def _compass(args: argparse.Namespace) -> int:
         declination_deg=args.declination_deg,
     )
     if args.output is not None:
-        write_compass_calibration(args.output, result)
+        compass.write_compass_calibration(args.output, result)
     if args.json:
         print(json.dumps(result.as_dict()))
     else:
-        print(format_report(result))
+        print(compass.format_report(result))
         if args.output is not None:
             print(f"wrote [compass] to {args.output}")
     return 0
 
 
 def _inclinometer(args: argparse.Namespace) -> int:
-    from viper_calibration.inclinometer import (
-        calibrate_reversal,
-        format_report,
-        read_reversal_csv,
-        write_inclinometer_calibration,
-    )
-
-    result = calibrate_reversal(
-        read_reversal_csv(args.readings), angle_tolerance_deg=args.angle_tolerance_deg
+    result = inclinometer.calibrate_reversal(
+        inclinometer.read_reversal_csv(args.readings), angle_tolerance_deg=args.angle_tolerance_deg
     )
     if args.output is not None:
-        write_inclinometer_calibration(args.output, result)
+        inclinometer.write_inclinometer_calibration(args.output, result)
     if args.json:
         print(json.dumps(result.as_dict()))
     else:
-        print(format_report(result))
+        print(inclinometer.format_report(result))
         if args.output is not None:
             print(f"wrote [inclinometer] to {args.output}")
     return 0
 
 
 def _pose(args: argparse.Namespace) -> int:
+    # OpenCV loads only for the camera and pose subcommands
     from viper_calibration.camera import write_camera_calibration
     from viper_calibration.pose import fit_pose, format_report, read_control_points
 
-    from appliance.atomic import check_output_path, write_text_atomic
-    from appliance.vision.intrinsics import load_intrinsics
     from appliance.vision.panorama import read_image
 
     for out in filter(None, [args.out, args.camera_out]):
@@ -198,7 +190,7 @@ def _pose(args: argparse.Namespace) -> int:
 
 
 def _refine(text: str) -> tuple[str, ...]:
-    from viper_calibration.pose import REFINABLE
+    from viper_calibration.pose import REFINABLE  # OpenCV, only when --refine is given
 
     names = tuple(t.strip().lower() for t in text.split(",") if t.strip())
     bad = [n for n in names if n not in REFINABLE]

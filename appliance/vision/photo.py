@@ -29,6 +29,7 @@ from appliance.errors import ConfigError, InputError
 from appliance.skyline import Skyline
 from appliance.vision.camera import CameraPose, directions_to_pixels, pixels_to_directions
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
+from appliance.vision.panorama import read_image
 from appliance.vision.skyline_detect import DetectionConfig, detect_rows
 
 MIN_FOV_DEG = 20.0  # a narrower view cannot pin a position down
@@ -152,8 +153,6 @@ def load_photo(
             " pitch_deg, roll_deg"
         )
     if image is None:
-        from appliance.vision.panorama import read_image
-
         image = read_image(path)
     try:
         intrinsics = load_intrinsics(cam)

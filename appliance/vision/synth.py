@@ -22,6 +22,7 @@ import numpy as np
 
 from appliance.errors import InputError
 from appliance.skyline import Skyline
+from appliance.terrain.horizon import render_skyline
 from appliance.vision.camera import CameraPose, pixels_to_directions
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama, Projection, full_circle_width
@@ -114,8 +115,6 @@ def fbm(azimuth_deg: np.ndarray, elevation_deg: np.ndarray, cell_deg: float, oct
 
 def dem_skyline_fn(dem: Any, lat: float, lon: float, height_m: float) -> SkylineFn:
     """The skyline seen from (lat, lon), ``height_m`` above the DEM, via the terrain renderer."""
-    from appliance.terrain.horizon import render_skyline
-
     def fn(azimuth_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h = render_skyline(dem, lat, lon, height_m=height_m, azimuths_deg=np.asarray(azimuth_deg, dtype=np.float64))
         return np.asarray(h.elevation_deg, dtype=np.float64), np.asarray(h.distance_m, dtype=np.float64)
