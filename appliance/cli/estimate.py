@@ -146,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
             for note in pos.notes:
                 LOG.info("  %s", note)
     if report is not None and isinstance(where, SkylineDatabase):
+        # the report's writers load only with --report (start-up time)
         from appliance.outputs.records import write_report_page
 
         write_report_page(where, entries, report)
@@ -181,6 +182,7 @@ def _locate_in_file(args: argparse.Namespace, cfg: Any, db: SkylineDatabase, sky
 def _write_report_files(db: SkylineDatabase, report: Path, i: int, *, name: str, pos: Position, sky: Skyline,
                         truth: tuple[float, float] | None) -> Any:
     """The ``i``-th skyline's PNG, posterior GeoTIFF and GeoJSON files in ``report``; its entry of the page."""
+    # the report's writers load only with --report (start-up time)
     from appliance.outputs.records import (
         ReportEntry,
         write_geotiff,
@@ -202,6 +204,7 @@ def _locate_tiled(args: argparse.Namespace, cfg: Any, skylines: list[tuple[str, 
                   tolerance: float | None) -> tuple[TiledIndex, list[Position]]:
     """Every skyline's answer on a tiled database, searched over the tiles its search area meets
     (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
+    # the tiled search (threads, Dask, the fits on a map's surface) loads only for a tiled database
     from appliance.locate.tile_cache import SearchParams
     from appliance.locate.tiled_index import box_around, open_surface, open_tiled
     from appliance.locate.tiled_search import locate_tiled
