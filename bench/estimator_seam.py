@@ -39,17 +39,12 @@ sys.path.insert(0, str(HERE.parent))
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import body_named, geodesic_distance_m  # noqa: E402
 from appliance.config import EstimatorConfig  # noqa: E402
-from appliance.locate.tiled_search import (  # noqa: E402
-    SearchParams,
-    TiledEstimate,
-    TiledIndex,
-    _run,
-    best_tile,
-    locate_tiled,
-    open_tiled,
-    search_tile,
-    tile_floor,
-)
+from appliance.locate.position import Position  # noqa: E402
+from appliance.locate.tile_cache import SearchParams  # noqa: E402
+from appliance.locate.tile_combination import best_tile  # noqa: E402
+from appliance.locate.tile_search import search_tile, tile_floor  # noqa: E402
+from appliance.locate.tiled_index import TiledIndex, open_tiled  # noqa: E402
+from appliance.locate.tiled_search import _run, locate_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.dem import Dem  # noqa: E402
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline  # noqa: E402
@@ -134,15 +129,17 @@ def draw_positions(dem: Dem, n: int, rng: np.random.Generator) -> tuple[list[tup
     return out, drawn, skipped
 
 
-def answer(est: TiledEstimate, index: TiledIndex, truth: tuple[float, float]) -> dict:
+def answer(pos: Position, index: TiledIndex, truth: tuple[float, float]) -> dict:
     """What must not change between the two runs: best position, status and region."""
+    est = pos.tiled
+    assert est is not None
     return {"lat": est.lat, "lon": est.lon, "tile": est.tile, "status": est.status(index, truth),
             "ambiguous": est.ambiguous, "log_lower": est.log_lower, "log_upper": est.log_upper,
             "region": sorted((c.tile, c.node) for c in est.region)}
 
 
 def run(index: TiledIndex, skies: list[Skyline], truths: list[tuple[float, float]], params: SearchParams,
-        client: Any) -> tuple[list[float], list[dict], list[TiledEstimate]]:
+        client: Any) -> tuple[list[float], list[dict], list[Position]]:
     locate_tiled(index, skies[0], params, client=client)  # warm-up: page in, compile
     times, answers, ests = [], [], []
     for sky, truth in zip(skies, truths):
@@ -171,13 +168,14 @@ def profile(index: TiledIndex, skies: list[Skyline], params: SearchParams) -> di
         floor = max(_run(index, tile_floor, index.tiles, None, sky, params))
         rows["floor"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        first = _run(index, search_tile, index.tiles, None, sky, params, "", False, rescore_floor=floor, region=False)
+        first = _run(index, search_tile, index.tiles, None, sky, params, refine=False, rescore_floor=floor,
+                     region=False)
         rows["grid"].append(time.perf_counter() - t)
         t = time.perf_counter()
         best = best_tile(first)
         rows["combine"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        _run(index, search_tile, [t for t in index.tiles if t.file == best], None, sky, params, "", True,
+        _run(index, search_tile, [t for t in index.tiles if t.file == best], None, sky, params, refine=True,
              rescore_floor=floor)
         rows["refine"].append(time.perf_counter() - t)
         rows["n_refined"].append(1)

@@ -31,15 +31,10 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import geodesic_distance_m  # noqa: E402
-from appliance.locate.tiled_search import (  # noqa: E402
-    SCREEN_PLACES,
-    SURFACE_PLACES,
-    SearchParams,
-    box_around,
-    locate_tiled,
-    open_surface,
-    open_tiled,
-)
+from appliance.locate.surface_fit import SCREEN_PLACES, SURFACE_PLACES  # noqa: E402
+from appliance.locate.tile_cache import SearchParams  # noqa: E402
+from appliance.locate.tiled_index import box_around, open_surface, open_tiled  # noqa: E402
+from appliance.locate.tiled_search import locate_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.database import load_database  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
@@ -128,7 +123,7 @@ def main() -> int:
             r = locate_tiled(index, sky, PARAMS, box=box_around(float(lat), float(lon), args.box_km * 1e3, "moon"),
                              surface=surface)
             row["box"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
-                          r.ambiguous, len(r.tiles_searched))
+                          r.tiled.ambiguous, len(r.tiled.tiles_searched))
             rows.append(row)
             print(k, "box", [round(v, 2) if isinstance(v, float) else v for v in row["box"]], flush=True)
             write()
@@ -138,7 +133,7 @@ def main() -> int:
             t0 = time.perf_counter()
             r = locate_tiled(index, skies[k], PARAMS, client=client, surface=surface)
             rows[k]["whole"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
-                                r.ambiguous, len(r.tiles_searched))
+                                r.tiled.ambiguous, len(r.tiled.tiles_searched))
             print(k, "whole", [round(v, 2) if isinstance(v, float) else v for v in rows[k]["whole"]], flush=True)
             write()
     return 0

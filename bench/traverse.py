@@ -121,7 +121,7 @@ def skyline_traverse(seed: int, n_stops: int) -> list[dict]:
         fused = None
         if belief is not None and moved is not None:
             prior, fix = transported_prior(db, grid, belief, moved), transported_fix(db, grid, belief, moved)
-            fused = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, prior, position_prior=fix, **kw)
+            fused = locate(db, sky, est.sigma_deg, est.heading_tolerance_deg, log_prior=prior, position_prior=fix, **kw)
         belief, moved = (fused or alone), Move(0.0, 0.0, 0.0)
         rows.append(_stop_row(db, stop, alone, fused, (lat, lon)))
     return rows

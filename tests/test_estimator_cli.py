@@ -183,7 +183,7 @@ def test_a_large_region_is_written_truncated_with_its_full_count(db_path, tmp_pa
     sky = read_skyline_csv(_skyline_at(tmp_path, "a.csv", 36.5731, -84.2687))
     pos = position.locate(db, sky, (0.3, 1.2), 4.0)
     nodes = np.arange(0, 60, 5)  # twelve cells
-    big = dataclasses.replace(pos, result=dataclasses.replace(pos.result, region_nodes=nodes))
+    big = dataclasses.replace(pos, estimate=dataclasses.replace(pos.result, region_nodes=nodes))
     lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(nodes))
     monkeypatch.setattr(position, "MAX_REGION_CELLS_IN_JSON", 5)
     region = big.to_json(db)["region"]

@@ -98,7 +98,7 @@ def test_an_ambiguous_fix_is_not_carried_as_a_gaussian(valley):
     fix = transported_fix(db, g, pos, move)
     assert fix is not None
     # the same fix flagged ambiguous: its posterior has another place a Gaussian would hide
-    amb = dataclasses.replace(pos, result=dataclasses.replace(res, ambiguous=True))
+    amb = dataclasses.replace(pos, estimate=dataclasses.replace(res, ambiguous=True))
     assert transported_fix(db, g, amb, move) is None
 
 

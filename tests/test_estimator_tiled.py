@@ -17,9 +17,12 @@ from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
 from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
-from appliance.locate import tiled_search
+from appliance.locate import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
 from appliance.locate.position import locate, skyline_grid
-from appliance.locate.tiled_search import SearchParams, global_log_upper_bound, locate_tiled, open_tiled
+from appliance.locate.tile_cache import SearchParams
+from appliance.locate.tile_combination import global_log_upper_bound
+from appliance.locate.tiled_index import box_around, open_tiled
+from appliance.locate.tiled_search import locate_tiled
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import load_database
 from appliance.terrain.dem import load_dem
@@ -72,23 +75,23 @@ def test_interior_estimate_in_the_right_tile_and_as_the_single_file(built):
     sky = _skyline(lat, lon)
     res = locate_tiled(index, sky, PARAMS)
     cell = _cell_m(whole)
-    assert res.tile == _tile_holding(index, lat, lon)
-    assert res.truth_error_m((lat, lon)) <= 2 * cell
-    assert res.status(index, (lat, lon)) == "ok"
-    assert sorted(res.tiles_searched) == sorted(t.file for t in index.tiles)
-    assert math.isclose(sum(res.tile_share.values()), 1.0, rel_tol=1e-9)
-    assert res.tile_share[res.tile] > 0.99
-    assert res.log_lower <= res.log_upper <= 0.0
+    assert res.tiled.tile == _tile_holding(index, lat, lon)
+    assert res.tiled.truth_error_m((lat, lon)) <= 2 * cell
+    assert res.tiled.status(index, (lat, lon)) == "ok"
+    assert sorted(res.tiled.tiles_searched) == sorted(t.file for t in index.tiles)
+    assert math.isclose(sum(res.tiled.tile_share.values()), 1.0, rel_tol=1e-9)
+    assert res.tiled.tile_share[res.tiled.tile] > 0.99
+    assert res.tiled.log_lower <= res.tiled.log_upper <= 0.0
     # the single-file database over the same area: the same node, the same place
     wdb = load_database(whole)
     single = locate(wdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
-    tdb = load_database(index.path(next(t for t in index.tiles if t.file == res.tile)))
-    node_tiled = tdb.grid.xy_to_lonlat(*tdb.grid.node_xy(res.best.node))
+    tdb = load_database(index.path(next(t for t in index.tiles if t.file == res.tiled.tile)))
+    node_tiled = tdb.grid.xy_to_lonlat(*tdb.grid.node_xy(res.tiled.best.node))
     node_single = wdb.grid.xy_to_lonlat(*wdb.grid.node_xy(single.result.node))
     assert np.allclose(node_tiled, node_single, atol=1e-9)
     body = body_named(wdb.header["body"])
     assert geodesic_distance_m(res.lat, res.lon, single.lat, single.lon, body) <= 0.1 * cell
-    assert res.ambiguous == single.result.ambiguous
+    assert res.tiled.ambiguous == single.result.ambiguous
 
 
 def test_one_tile_combines_to_its_own_estimate(built):
@@ -100,14 +103,14 @@ def test_one_tile_combines_to_its_own_estimate(built):
     name = _tile_holding(index, lat, lon)
     tile = next(t for t in index.tiles if t.file == name)
     res = locate_tiled(index, sky, PARAMS, box=(lon - 1e-4, lat - 1e-4, lon + 1e-4, lat + 1e-4))
-    assert res.tiles_searched == (name,)
+    assert res.tiled.tiles_searched == (name,)
     # a tiled search keeps the sigma it is given on every tile (no noise learned per tile)
     own = locate(load_database(index.path(tile)), sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg,
                  occlusion_weight=PARAMS.occlusion_weight, learn_noise=False)
-    assert res.log_lower == pytest.approx(own.result.log_lower, abs=1e-9)
-    assert res.log_upper == pytest.approx(math.log(own.result.upper), abs=1e-9)
-    assert sorted(c.node for c in res.region) == sorted(int(v) for v in own.result.region_nodes)
-    assert res.ambiguous == own.result.ambiguous
+    assert res.tiled.log_lower == pytest.approx(own.result.log_lower, abs=1e-9)
+    assert res.tiled.log_upper == pytest.approx(math.log(own.result.upper), abs=1e-9)
+    assert sorted(c.node for c in res.tiled.region) == sorted(int(v) for v in own.result.region_nodes)
+    assert res.tiled.ambiguous == own.result.ambiguous
 
 
 def test_near_a_tile_border(built):
@@ -119,12 +122,12 @@ def test_near_a_tile_border(built):
     body = body_named(load_database(whole).header["body"])
     assert geodesic_distance_m(lat, lon, border_lat, lon, body) < cell  # within a cell of the border
     res = locate_tiled(index, _skyline(lat, lon, seed=1), PARAMS)
-    assert res.truth_error_m((lat, lon)) <= 2 * cell
+    assert res.tiled.truth_error_m((lat, lon)) <= 2 * cell
     # never 'ok' when the truth lies outside the region
-    if res.status(index, (lat, lon)) == "ok":
-        assert res.truth_in_region(index, (lat, lon))
+    if res.tiled.status(index, (lat, lon)) == "ok":
+        assert res.tiled.truth_in_region(index, (lat, lon))
     rec = res.to_json(index, (lat, lon))
-    assert rec["tile"] == res.tile and rec["status"] in ("ok", "ambiguous")
+    assert rec["tile"] == res.tiled.tile and rec["status"] in ("ok", "ambiguous")
     assert 0.0 <= rec["lower"] <= rec["upper"] <= 1.0
 
 
@@ -162,23 +165,23 @@ def test_a_search_box_opens_only_the_tiles_it_meets(built, monkeypatch):
     folder, _ = built
     index = open_tiled(folder)
     opened: list[str] = []
-    real = tiled_search._open_tile
+    real = tile_cache.open_tile
 
     def recording(folder, tile, *a, **k):
         opened.append(tile.file)
         return real(folder, tile, *a, **k)
 
-    monkeypatch.setattr(tiled_search, "_open_tile", recording)
+    monkeypatch.setattr(tile_cache, "open_tile", recording)
     lat, lon = INTERIOR
     sky = _skyline(lat, lon)
     # a box well inside one tile
-    box = tiled_search.box_around(lat, lon, 200.0, index.body)
+    box = box_around(lat, lon, 200.0, index.body)
     holding = _tile_holding(index, lat, lon)
     t = next(t for t in index.tiles if t.file == holding)
     assert t.bounds_lonlat[0] < box[0] and box[2] < t.bounds_lonlat[2]
     assert t.bounds_lonlat[1] < box[1] and box[3] < t.bounds_lonlat[3]
     res = locate_tiled(index, sky, PARAMS, box=box)
-    assert set(opened) == {holding} and res.tiles_searched == (holding,)
+    assert set(opened) == {holding} and res.tiled.tiles_searched == (holding,)
     # a box across the northern tiles only
     opened.clear()
     north = [t for t in index.tiles if t.bounds_lonlat[1] > min(u.bounds_lonlat[1] for u in index.tiles)]
@@ -274,9 +277,9 @@ def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
     assert code != 0 and len(err.splitlines()) == 1 and "no tile" in err
 
 
-def _made_up_tile(name: str, lon: float, lo: float, up: float) -> tiled_search.TileOutcome:
+def _made_up_tile(name: str, lon: float, lo: float, up: float) -> tiled_answer.TileOutcome:
     """A tile of one candidate at (lon, 0) with unnormalised log lower and upper posterior lo, up."""
-    return tiled_search.TileOutcome(
+    return tiled_answer.TileOutcome(
         name, None, {"notes": [], "heading_correction_deg": 0.0}, 0, 0.0, lon, 0.0, 0.0, lo, up, lo, up, lo,
         math.log(100.0 * 100.0), (100.0, 100.0), False, np.array([0]), np.array([[lon, 0.0]]), np.array([0]),
         np.array([0.0]), np.array([up]), np.array([[lon, 0.0]]))
@@ -287,27 +290,27 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
     the same mode far less likely: ok."""
     best = _made_up_tile("a.viperdb", 0.0, -10.0, -8.0)
     rival = _made_up_tile("b.viperdb", 0.01, -11.0, -9.0)
-    res = tiled_search.combine([best, rival], "earth")
-    assert res.tile == "a.viperdb" and res.ambiguous and res.status() == "ambiguous"
-    assert {c.tile for c in res.region} == {"a.viperdb", "b.viperdb"}
+    res = tile_combination.combine([best, rival], "earth")
+    assert res.tiled.tile == "a.viperdb" and res.tiled.ambiguous and res.tiled.status() == "ambiguous"
+    assert {c.tile for c in res.tiled.region} == {"a.viperdb", "b.viperdb"}
     # the best's bounds over both tiles: lower lo / (lo + the rival's up), upper up / (up + the rival's lo)
-    assert res.log_lower == pytest.approx(-10.0 - np.logaddexp(-10.0, -9.0))
-    assert res.log_upper == pytest.approx(-8.0 - np.logaddexp(-8.0, -11.0))
-    assert sum(res.tile_share.values()) == pytest.approx(1.0)
+    assert res.tiled.log_lower == pytest.approx(-10.0 - np.logaddexp(-10.0, -9.0))
+    assert res.tiled.log_upper == pytest.approx(-8.0 - np.logaddexp(-8.0, -11.0))
+    assert sum(res.tiled.tile_share.values()) == pytest.approx(1.0)
     weak = _made_up_tile("b.viperdb", 0.01, -40.0, -38.0)
-    res = tiled_search.combine([weak, best], "earth")
-    assert res.tile == "a.viperdb" and not res.ambiguous and res.status() == "ok"
-    assert [c.tile for c in res.region] == ["a.viperdb"]
+    res = tile_combination.combine([weak, best], "earth")
+    assert res.tiled.tile == "a.viperdb" and not res.tiled.ambiguous and res.tiled.status() == "ok"
+    assert [c.tile for c in res.tiled.region] == ["a.viperdb"]
     # as likely but within two cells (200 m) of the best: the same place, not a rival
     near = _made_up_tile("b.viperdb", 0.001, -11.0, -9.0)
-    res = tiled_search.combine([best, near], "earth")
-    assert {c.tile for c in res.region} == {"a.viperdb", "b.viperdb"}
-    assert not any("holds a place" in n for n in res.notes)
-    assert res.region_area_m2 == pytest.approx(2 * 100.0 * 100.0)
-    failed = tiled_search.TileOutcome("c.viperdb", "no candidate node has terrain along the measured azimuths")
-    assert tiled_search.combine([best, failed], "earth").tiles_failed == ("c.viperdb",)
+    res = tile_combination.combine([best, near], "earth")
+    assert {c.tile for c in res.tiled.region} == {"a.viperdb", "b.viperdb"}
+    assert not any("holds a place" in n for n in res.tiled.notes)
+    assert res.tiled.region_area_m2 == pytest.approx(2 * 100.0 * 100.0)
+    failed = tiled_answer.TileOutcome("c.viperdb", "no candidate node has terrain along the measured azimuths")
+    assert tile_combination.combine([best, failed], "earth").tiled.tiles_failed == ("c.viperdb",)
     with pytest.raises(EstimationError):
-        tiled_search.combine([failed], "earth")
+        tile_combination.combine([failed], "earth")
 
 
 def test_refining_only_the_best_tile_gives_the_answer_of_refining_all(built):
@@ -317,8 +320,8 @@ def test_refining_only_the_best_tile_gives_the_answer_of_refining_all(built):
     index = open_tiled(folder)
     for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
         sky = _skyline(lat, lon, seed=k)
-        every = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=True) for t in index.tiles]
-        all_refined = tiled_search.combine(every, index.body).to_json(index, (lat, lon))
+        every = [tile_search.search_tile(str(folder), t, sky, PARAMS, refine=True) for t in index.tiles]
+        all_refined = tile_combination.combine(every, index.body).to_json(index, (lat, lon))
         two_rounds = locate_tiled(index, sky, PARAMS).to_json(index, (lat, lon))
         all_refined.pop("elapsed_ms")
         two_rounds.pop("elapsed_ms")
@@ -332,7 +335,7 @@ def test_each_tile_rescores_what_one_search_of_the_whole_lattice_would(built):
     index = open_tiled(folder)
     lat, lon = INTERIOR
     sky = _skyline(lat, lon)
-    floors = [tiled_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles]
+    floors = [tile_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles]
     wdb = load_database(whole)
     sg = skyline_grid(wdb)
     whole_best = first_pass(sg, sky.azimuth_deg, sky.elevation_deg, PARAMS.sigma_deg,
@@ -356,14 +359,14 @@ def test_each_tile_rescores_what_one_search_of_the_whole_lattice_would(built):
 def _record_loads(monkeypatch) -> list[str]:
     """The names of the tile files the tiled search loads from now on, with none kept mapped yet."""
     loads: list[str] = []
-    real = tiled_search.load_database
+    real = tile_cache.load_database
 
     def recording(path, *a, **k):
         loads.append(path.name)
         return real(path, *a, **k)
 
-    monkeypatch.setattr(tiled_search, "load_database", recording)
-    monkeypatch.setattr(tiled_search, "_open_tiles", {})
+    monkeypatch.setattr(tile_cache, "load_database", recording)
+    monkeypatch.setattr(tile_cache, "_open_tiles", {})
     return loads
 
 
@@ -393,11 +396,11 @@ def test_the_tiles_kept_mapped_stay_within_their_node_budget(built, monkeypatch)
     loads = _record_loads(monkeypatch)
     a, b = index.tiles[0], index.tiles[1]
     # room for one tile: the second evicts the first, which is then mapped again
-    monkeypatch.setattr(tiled_search, "OPEN_TILE_NODES", max(a.n_rows * a.n_cols, b.n_rows * b.n_cols))
+    monkeypatch.setattr(tile_cache, "OPEN_TILE_NODES", max(a.n_rows * a.n_cols, b.n_rows * b.n_cols))
     for t in (a, a, b, a):
-        tiled_search._open_tile(str(folder), t, None)
+        tile_cache.open_tile(str(folder), t, None)
     assert loads == [a.file, b.file, a.file]
-    assert len(tiled_search._open_tiles) == 1
+    assert len(tile_cache._open_tiles) == 1
 
 
 def test_each_tile_scores_its_first_pass_once_per_search(built, monkeypatch):
@@ -406,20 +409,20 @@ def test_each_tile_scores_its_first_pass_once_per_search(built, monkeypatch):
     folder, _ = built
     index = open_tiled(folder)
     sky = _skyline(*INTERIOR)
-    monkeypatch.setattr(tiled_search, "_first_passes", {})
+    monkeypatch.setattr(tile_cache, "_first_passes", {})
     made: list[int] = []
-    real = tiled_search.first_pass
+    real = tile_cache.first_pass
 
     def counting(grid, *a, **k):
         made.append(id(grid))
         return real(grid, *a, **k)
 
-    monkeypatch.setattr(tiled_search, "first_pass", counting)
+    monkeypatch.setattr(tile_cache, "first_pass", counting)
     kept = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
     assert len(made) == len(index.tiles) == len(set(made))
     # with no room to keep any first pass, every round makes its own
-    monkeypatch.setattr(tiled_search, "FIRST_PASS_BYTES", 0)
-    monkeypatch.setattr(tiled_search, "_first_passes", {})
+    monkeypatch.setattr(tile_cache, "FIRST_PASS_BYTES", 0)
+    monkeypatch.setattr(tile_cache, "_first_passes", {})
     made.clear()
     remade = locate_tiled(index, sky, PARAMS).to_json(index, INTERIOR)
     assert len(made) > len(index.tiles)
@@ -456,17 +459,17 @@ def test_tiles_searched_on_threads_give_the_records_of_one_tile_after_the_other(
     folder, _ = built
     index = open_tiled(folder)
     made: list[tuple[int, str, int]] = []
-    real = tiled_search.first_pass
+    real = tile_cache.first_pass
 
     def counting(grid, *a, **k):
         made.append((id(grid), threading.current_thread().name, numba.get_num_threads()))
         return real(grid, *a, **k)
 
-    monkeypatch.setattr(tiled_search, "first_pass", counting)
+    monkeypatch.setattr(tile_cache, "first_pass", counting)
     records = {}
     for threads in (1, 3):
         monkeypatch.setattr(tiled_search, "TILE_THREADS", threads)
-        monkeypatch.setattr(tiled_search, "_first_passes", {})
+        monkeypatch.setattr(tile_cache, "_first_passes", {})
         made.clear()
         records[threads] = []
         for k, (lat, lon) in enumerate((INTERIOR, (36.5652, -84.2795))):
@@ -474,7 +477,7 @@ def test_tiles_searched_on_threads_give_the_records_of_one_tile_after_the_other(
             rec.pop("elapsed_ms")
             records[threads].append(rec)
         assert len(made) == 2 * len(index.tiles) == 2 * len({g for g, _, _ in made})
-        assert len(tiled_search._first_passes) == 2 * len(index.tiles)
+        assert len(tile_cache._first_passes) == 2 * len(index.tiles)
         on_pool = {name.startswith("viper-tile") and n == 1 for _, name, n in made}
         assert on_pool == {threads > 1 and numba.threading_layer() != "workqueue"}
     assert records[3] == records[1]
@@ -486,16 +489,16 @@ def test_the_best_tile_needs_no_region_but_the_combination_does(built):
     folder, _ = built
     index = open_tiled(folder)
     sky = _skyline(*INTERIOR)
-    floor = max(tiled_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles)
-    bare = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor, region=False)
+    floor = max(tile_search.tile_floor(str(folder), t, sky, PARAMS) for t in index.tiles)
+    bare = [tile_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor, region=False)
             for t in index.tiles]
-    full = [tiled_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor)
+    full = [tile_search.search_tile(str(folder), t, sky, PARAMS, refine=False, rescore_floor=floor)
             for t in index.tiles]
     assert all(o.region_nodes.size == 0 and not o.has_region for o in bare)
-    best = tiled_search.best_tile(bare)
-    assert best == tiled_search.combine(full, index.body).tile == _tile_holding(index, *INTERIOR)
+    best = tile_combination.best_tile(bare)
+    assert best == tile_combination.combine(full, index.body).tiled.tile == _tile_holding(index, *INTERIOR)
     with pytest.raises(ValueError, match="without its region"):
-        tiled_search.combine(bare, index.body)
+        tile_combination.combine(bare, index.body)
     mixed = [f if f.file == best else b for b, f in zip(bare, full, strict=True)]
-    combined = tiled_search.combine(mixed, index.body).to_json(index)
-    assert combined == tiled_search.combine(full, index.body).to_json(index)
+    combined = tile_combination.combine(mixed, index.body).to_json(index)
+    assert combined == tile_combination.combine(full, index.body).to_json(index)

@@ -16,7 +16,9 @@ import pytest
 from appliance.bodies import MOON, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, InputError
-from appliance.locate.tiled_search import SearchParams, TiledIndex, locate_tiled, open_surface, open_tiled, select_tiles
+from appliance.locate.tile_cache import SearchParams
+from appliance.locate.tiled_index import TiledIndex, open_surface, open_tiled, select_tiles
+from appliance.locate.tiled_search import locate_tiled
 from appliance.locate.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import build_database, load_database
@@ -248,8 +250,8 @@ def test_estimate_near_the_seam_within_two_cells(moon, seam_db):
     sky = _read(az, render_skyline(dem, lat, lon, HEIGHT_M, az, index.max_range_m).elevation_deg, seed=3)
     res = locate_tiled(index, sky, PARAMS)
     cell = load_database(index.path(index.tiles[0])).grid.dx_m  # the facet's spacing
-    assert res.truth_error_m((lat, lon)) <= 2.0 * cell
-    assert res.tile == index.tiles[0].file
+    assert res.tiled.truth_error_m((lat, lon)) <= 2.0 * cell
+    assert res.tiled.tile == index.tiles[0].file
 
 
 def test_estimate_in_the_cap_within_two_cells(moon, cap_db):
@@ -269,7 +271,7 @@ def test_estimate_in_the_cap_within_two_cells(moon, cap_db):
         node = int(round(float(r))) * db.grid.n_cols + int(round(float(c)))
         n_lon, n_lat = db.grid.xy_to_lonlat(*db.grid.node_xy(node))
         res = locate_tiled(index, _read(db.azimuths_deg, db.skylines_deg(node), seed), PARAMS)
-        assert res.truth_error_m((float(n_lat), float(n_lon))) <= 2.0 * db.grid.dx_m
+        assert res.tiled.truth_error_m((float(n_lat), float(n_lon))) <= 2.0 * db.grid.dx_m
         assert geodesic_distance_m(lat, lon, res.lat, res.lon, dem.body) <= 3.0 * db.grid.dx_m
 
 
@@ -315,15 +317,15 @@ def test_fit_on_the_maps_surface_finds_the_renderers_skyline_in_the_cap(moon, ca
         sky = _read(az, render_skyline(dem, lat, lon, HEIGHT_M, az, index.max_range_m).elevation_deg, seed)
         err_deg = np.random.default_rng(seed).uniform(-4.0, 4.0)
         res = locate_tiled(index, sky, PARAMS, surface=surface)
-        assert res.fit is not None
-        assert res.truth_error_m((lat, lon)) <= 2.0 * cell
+        assert res.tiled.fit is not None
+        assert res.tiled.truth_error_m((lat, lon)) <= 2.0 * cell
         assert abs(res.heading_correction_deg - err_deg) < 0.5
-        assert res.fit.rms_deg < 0.3
+        assert res.tiled.fit.rms_deg < 0.3
         rec = res.to_json(index, (lat, lon))
         assert (rec["lat"], rec["lon"]) == (round(res.lat, 8), round(res.lon, 8))
-        assert rec["surface_fit"]["places"] == res.fit.places >= 1
-        assert rec["surface_fit"]["screened"] == res.fit.screened >= res.fit.places
-        assert rec["status"] == ("ambiguous" if res.ambiguous else "ok")
+        assert rec["surface_fit"]["places"] == res.tiled.fit.places >= 1
+        assert rec["surface_fit"]["screened"] == res.tiled.fit.screened >= res.tiled.fit.places
+        assert rec["status"] == ("ambiguous" if res.tiled.ambiguous else "ok")
 
 
 def test_fit_on_the_maps_surface_gives_the_same_answer_on_dask(moon, cap_db, client):

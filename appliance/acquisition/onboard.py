@@ -64,7 +64,7 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
         raise EstimationError(
             f"skyline has {skyline.valid_fraction:.0%} valid azimuths, below {cfg.min_valid_fraction:.0%}"
         )
-    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, log_prior, source=source,
+    return locate(db, skyline, cfg.sigma_deg, cfg.heading_tolerance_deg, log_prior=log_prior, source=source,
                   occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m,
                   position_prior=position_prior, sigma_floor_deg=cfg.sigma_floor_deg)
 

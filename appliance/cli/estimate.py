@@ -16,9 +16,10 @@ from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
 from appliance.extras import require
-from appliance.locate.position import Move, area_text, fix_status, locate, locate_sequence
-from appliance.skyline import read_skyline_csv
-from appliance.terrain.database import load_database
+from appliance.locate.position import Move, Position, answer_text, locate, locate_sequence
+from appliance.locate.tiled_index import TiledIndex
+from appliance.skyline import Skyline, read_skyline_csv
+from appliance.terrain.database import SkylineDatabase, load_database
 
 LOG = logging.getLogger(__name__)
 
@@ -101,16 +102,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = load_config(args.config).estimator
-    if args.sigma is not None:
-        cfg = override(cfg, "--sigma", sigma_deg=_pair(args.sigma, "--sigma"))
-    if args.heading_tolerance is not None:
-        cfg = override(cfg, "--heading-tolerance", heading_tolerance_deg=args.heading_tolerance)
-    if args.occlusion_weight is not None:
-        cfg = override(cfg, "--occlusion-weight", occlusion_weight=args.occlusion_weight)
-    if args.map_sigma is not None:
-        cfg = override(cfg, "--map-sigma", map_vertical_sigma_m=args.map_sigma)
-    sigma = cfg.sigma_deg
+    cfg = _estimator_config(args)
     tolerance = None if args.unknown_heading else cfg.heading_tolerance_deg
     truths = [_lat_lon(t, "--truth") for t in args.truth]
     if truths and len(truths) != len(args.skylines):
@@ -127,18 +119,14 @@ def run(args: argparse.Namespace) -> int:
                              f"[estimator] min_valid_fraction {cfg.min_valid_fraction:.0%}")
     tiled_only = [o for o, v in (("--search-bounds", args.search_bounds), ("--near", args.near),
                                  ("--scheduler", args.scheduler), ("--workers", args.workers)) if v is not None]
-    if Path(args.db).is_dir():  # a tiled database (tiled_search.is_tiled): its module is loaded only then
-        return _run_tiled(args, cfg, skylines, truths, tolerance)
-    if tiled_only:
-        raise InputError(f"{tiled_only[0]} needs a tiled database (a folder with index.json), not {args.db}")
-    db = load_database(args.db)
-    height = _checked_height(args.height)
-    occ, map_sigma = cfg.occlusion_weight, cfg.map_vertical_sigma_m
-    if args.fuse:
-        positions = locate_sequence(db, skylines, moves, sigma, tolerance, height, occ, map_sigma)
+    where: SkylineDatabase | TiledIndex
+    if Path(args.db).is_dir():  # a tiled database (tiled_index.is_tiled): its search is loaded only then
+        where, positions = _locate_tiled(args, cfg, skylines, tolerance)
     else:
-        positions = [locate(db, sky, sigma, tolerance, source=name, height_m=height, occlusion_weight=occ,
-                            map_sigma_m=map_sigma, sigma_floor_deg=cfg.sigma_floor_deg) for name, sky in skylines]
+        if tiled_only:
+            raise InputError(f"{tiled_only[0]} needs a tiled database (a folder with index.json), not {args.db}")
+        where = load_database(args.db)
+        positions = _locate_in_file(args, cfg, where, skylines, moves, tolerance)
     report = Path(args.report) if args.report else None
     if report is not None:
         from appliance.outputs import report as pages  # the report writers (rasterio, figures) load only for --report
@@ -147,30 +135,55 @@ def run(args: argparse.Namespace) -> int:
     entries = []
     for i, (pos, (name, sky)) in enumerate(zip(positions, skylines)):
         truth = truths[i] if truths else None
-        record = pos.to_json(db, truth)
-        if report is not None:
-            entries.append(pages.write_estimate_files(db, report, i, name, pos, sky, truth))
+        record = pos.to_json(where, truth)
+        if report is not None and isinstance(where, SkylineDatabase):  # a tiled database refuses --report
+            entries.append(pages.write_estimate_files(where, report, i, name, pos, sky, truth))
         if args.json:
             print(json.dumps(record), flush=True)
         else:
-            err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
-            status = fix_status(pos) if record["status"] == "ok" else record["status"]
-            print(f"{name}: {pos.lat:.6f}, {pos.lon:.6f}  {status}"
-                  f"  heading correction {pos.result.heading_correction_deg:+.1f} deg"
-                  f"  region {area_text(pos.result.region_area_m2)} ({pos.result.region_nodes.size} cells)"
-                  f"  residual {pos.result.rms_residual_deg:.2f} deg{err}")
-            for note in pos.result.notes:
+            print(f"{name}: {answer_text(pos, record)}")
+            for note in pos.notes:
                 LOG.info("  %s", note)
-    if report is not None:
-        pages.write_estimate_report(db, entries, report)
+    if report is not None and isinstance(where, SkylineDatabase):
+        pages.write_estimate_report(where, entries, report)
     return 0
 
 
-def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[tuple[float, float]],
-               tolerance: float | None) -> int:
-    """``viper estimate`` on a tiled database: every skyline searched over the tiles its search area
-    meets (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
-    from appliance.locate.tiled_search import SearchParams, box_around, locate_tiled, open_surface, open_tiled
+def _estimator_config(args: argparse.Namespace) -> Any:
+    """The configuration's [estimator] table with the command line's options over it."""
+    cfg = load_config(args.config).estimator
+    if args.sigma is not None:
+        cfg = override(cfg, "--sigma", sigma_deg=_pair(args.sigma, "--sigma"))
+    if args.heading_tolerance is not None:
+        cfg = override(cfg, "--heading-tolerance", heading_tolerance_deg=args.heading_tolerance)
+    if args.occlusion_weight is not None:
+        cfg = override(cfg, "--occlusion-weight", occlusion_weight=args.occlusion_weight)
+    if args.map_sigma is not None:
+        cfg = override(cfg, "--map-sigma", map_vertical_sigma_m=args.map_sigma)
+    return cfg
+
+
+def _locate_in_file(args: argparse.Namespace, cfg: Any, db: SkylineDatabase, skylines: list[tuple[str, Skyline]],
+                    moves: list[Move], tolerance: float | None) -> list[Position]:
+    """Every skyline's answer on one database file, alone or fused as a sequence of stations."""
+    height = _checked_height(args.height)
+    occ, map_sigma = cfg.occlusion_weight, cfg.map_vertical_sigma_m
+    if args.fuse:
+        return locate_sequence(db, skylines, moves, cfg.sigma_deg, tolerance, height_m=height, occlusion_weight=occ,
+                               map_sigma_m=map_sigma)
+    return [locate(db, sky, cfg.sigma_deg, tolerance, source=name, height_m=height, occlusion_weight=occ,
+                   map_sigma_m=map_sigma, sigma_floor_deg=cfg.sigma_floor_deg) for name, sky in skylines]
+
+
+
+def _locate_tiled(args: argparse.Namespace, cfg: Any, skylines: list[tuple[str, Skyline]],
+                  tolerance: float | None) -> tuple[TiledIndex, list[Position]]:
+    """Every skyline's answer on a tiled database, searched over the tiles its search area meets
+    (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
+    # the tiled search (threads, Dask, the fits on a map's surface) loads only for a tiled database
+    from appliance.locate.tile_cache import SearchParams
+    from appliance.locate.tiled_index import box_around, open_surface, open_tiled
+    from appliance.locate.tiled_search import locate_tiled
 
     if args.fuse or args.report:
         raise InputError(f"{'--fuse' if args.fuse else '--report'} is not available with a tiled database; "
@@ -190,21 +203,8 @@ def _run_tiled(args: argparse.Namespace, cfg: Any, skylines: list, truths: list[
         print(f"viper estimate: warning: {args.db}: estimates stay on the facets' grid, not fitted on the map's "
               f"own surface: {why_not}", file=sys.stderr)
     with _dask_client(args.scheduler, args.workers) as client:
-        results = [locate_tiled(index, sky, params, box, client, name, surface) for name, sky in skylines]
-    for i, (res, (name, _)) in enumerate(zip(results, skylines)):
-        truth = truths[i] if truths else None
-        record = res.to_json(index, truth)
-        if args.json:
-            print(json.dumps(record), flush=True)
-        else:
-            err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
-            print(f"{name}: {res.lat:.6f}, {res.lon:.6f}  {record['status']}  tile {res.tile}"
-                  f"  heading correction {res.heading_correction_deg:+.1f} deg"
-                  f"  region {res.region_area_m2 / 1e6:.3f} km^2 ({len(res.region)} cells)"
-                  f"  residual {record['rms_residual_deg']:.2f} deg{err}")
-            for note in res.notes:
-                LOG.info("  %s", note)
-    return 0
+        return index, [locate_tiled(index, sky, params, box=box, client=client, source=name, surface=surface)
+                       for name, sky in skylines]
 
 
 @contextmanager

@@ -1,18 +1,17 @@
 """From a skyline database and measured skylines to positions in the map's coordinates.
 
-The glue between the database file (terrain) and the pure estimator: builds the estimator's
-arrays, runs single estimates or a fused sequence, and turns results into coordinates and the
-JSON record that ``viper estimate --json`` prints.
+The glue between the database file (terrain) and the pure estimator: runs single estimates or a
+fused sequence, and turns results into the answer placed on the map (:class:`Position`, also the
+answer of a tiled search, :mod:`appliance.locate.tiled_search`) and the JSON record that
+``viper estimate --json`` prints.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from pyproj import CRS
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import (
@@ -26,8 +25,10 @@ from appliance.estimator import (
     transport_prior,
 )
 from appliance.estimator.estimate import OCCLUSION_WEIGHT
-from appliance.estimator.exact import Terrain
 from appliance.estimator.raycast import bilinear
+from appliance.locate.search_grid import crs_name, skyline_grid
+from appliance.locate.tiled_answer import TileCombination
+from appliance.locate.tiled_index import TiledIndex
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -49,9 +50,15 @@ class Move:
 
 @dataclass(frozen=True)
 class Position:
-    """An estimate placed on the map."""
+    """An answer placed on the map: where (lat, lon, and x, y in the grid's CRS), the grid's cell and
+    the skyline answered.
 
-    result: EstimateResult
+    From one database, ``estimate`` is the estimator's answer on its grid (:attr:`result`).  From a
+    tiled database, ``tiled`` is the combination of the searched tiles
+    (:class:`appliance.locate.tiled_answer.TileCombination`), whose posterior bounds, region, status
+    and notes are the answer's; no one grid's estimate stands for it, and ``estimate`` is None."""
+
+    estimate: EstimateResult | None
     lat: float
     lon: float
     x: float
@@ -59,18 +66,43 @@ class Position:
     crs: str
     cell_size_m: tuple[float, float]
     source: str = ""
+    tiled: TileCombination | None = None
+
+    @property
+    def result(self) -> EstimateResult:
+        """The estimator's answer on the one grid searched (ValueError for a tiled search's answer)."""
+        if self.estimate is None:
+            raise ValueError("a tiled search's answer has no single grid's estimate: read its 'tiled' combination")
+        return self.estimate
+
+    @property
+    def heading_correction_deg(self) -> float:
+        """The compass's error the answer found (deg)."""
+        return self.result.heading_correction_deg if self.tiled is None else self.tiled.heading_correction_deg
+
+    @property
+    def notes(self) -> list[str]:
+        return self.result.notes if self.tiled is None else self.tiled.notes
 
     def region_lonlat(self, db: SkylineDatabase, limit: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Longitudes and latitudes of the region's cells (the first ``limit`` of them)."""
         lon, lat = db.grid.xy_to_lonlat(*db.grid.node_xy(self.result.region_nodes[:limit]))
         return np.atleast_1d(lon), np.atleast_1d(lat)
 
-    def to_json(self, db: SkylineDatabase, truth: tuple[float, float] | None = None,
+    def to_json(self, db: SkylineDatabase | TiledIndex, truth: tuple[float, float] | None = None,
                 max_cells: int | None = None) -> dict:
-        """The estimate's record; the region lists its first ``max_cells`` cells (default
-        MAX_REGION_CELLS_IN_JSON) and counts them all."""
+        """The answer's record against the database it came from (a file, or a tiled database's
+        index); the region lists its first ``max_cells`` cells (default MAX_REGION_CELLS_IN_JSON) and
+        counts them all."""
+        limit = MAX_REGION_CELLS_IN_JSON if max_cells is None else max_cells
+        if self.tiled is not None:
+            if not isinstance(db, TiledIndex):
+                raise TypeError("a tiled search's answer is recorded against its tiled database's index")
+            return self.tiled.to_json(db, truth, limit)
+        if isinstance(db, TiledIndex):
+            raise TypeError("an answer from one database file is recorded against that file")
         r = self.result
-        lon, lat = self.region_lonlat(db, MAX_REGION_CELLS_IN_JSON if max_cells is None else max_cells)
+        lon, lat = self.region_lonlat(db, limit)
         cells = [[round(float(a), 7), round(float(b), 7)] for a, b in zip(lat, lon)]
         out: dict = {
             "skyline": self.source,
@@ -194,35 +226,35 @@ def status_text(db: SkylineDatabase, pos: Position, truth: tuple[float, float] |
     return fix_status(pos) if estimate_status(db, pos, truth) == "ok" else "ambiguous"
 
 
-def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
-    g = db.grid
-    terrain = Terrain(db.terrain_m, db.terrain_origin[0], db.terrain_origin[1], db.convergence_deg, db.height_m,
-                      db.r_eff_m, float(db.header["max_range_m"]))
-    dc = db.header["distance_code"]
-    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
-                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]),
-                       first_pass=(db.coarse_codes, db.coarse_partial, db.coarse_tau2))
-
-
-def crs_name(db: SkylineDatabase) -> str:
-    """The grid's CRS as EPSG:n where it has a code, else its PROJ string."""
-    return _crs_label(db.grid.crs_wkt)
-
-
-@functools.lru_cache(maxsize=512)
-def _crs_label(crs_wkt: str) -> str:
-    # looking a custom CRS up in the EPSG catalogue takes tens of ms: once per CRS (a whole-body
-    # database has a few hundred facets, each on its own projection)
-    crs = CRS.from_wkt(crs_wkt)
-    epsg = crs.to_epsg()
-    return f"EPSG:{epsg}" if epsg else crs.to_proj4()
+def answer_text(pos: Position, record: dict) -> str:
+    """The answer in one line as ``viper estimate`` prints it, from the answer and its record
+    (:meth:`Position.to_json`): position, status, the tile of a tiled search, heading correction,
+    region, residual and, where the record has the truth, the error."""
+    err = f"  error {record['truth']['error_m']:.0f} m" if "truth" in record else ""
+    if pos.tiled is None:
+        r = pos.result
+        status = fix_status(pos) if record["status"] == "ok" else record["status"]
+        tile, area, cells, residual = "", area_text(r.region_area_m2), int(r.region_nodes.size), r.rms_residual_deg
+    else:
+        status, tile = record["status"], f"  tile {pos.tiled.tile}"
+        area, cells = f"{pos.tiled.region_area_m2 / 1e6:.3f} km^2", len(pos.tiled.region)
+        residual = record["rms_residual_deg"]
+    return (f"{pos.lat:.6f}, {pos.lon:.6f}  {status}{tile}  heading correction {pos.heading_correction_deg:+.1f} deg"
+            f"  region {area} ({cells} cells)  residual {residual:.2f} deg{err}")
 
 
 def place(db: SkylineDatabase, result: EstimateResult, source: str = "") -> Position:
+    """The estimator's answer on ``db``'s grid placed on the map."""
     x, y = db.grid.rc_to_xy(result.row, result.col)
     lon, lat = db.grid.xy_to_lonlat(x, y)
     return Position(result, float(lat), float(lon), float(x), float(y), crs_name(db),
                     (db.grid.dx_m, db.grid.dy_m), source)
+
+
+def place_tiled(tiled: TileCombination, source: str = "") -> Position:
+    """A tiled search's answer placed on the map: where its combination puts it (its best tile's
+    node, or its fit on the map's own surface), in that tile's grid coordinates."""
+    return Position(None, tiled.lat, tiled.lon, tiled.x, tiled.y, tiled.crs, tiled.best.cell_size_m, source, tiled)
 
 
 def locate(
@@ -230,6 +262,7 @@ def locate(
     skyline: Skyline,
     sigma_deg: tuple[float, float],
     heading_tolerance_deg: float | None,
+    *,
     log_prior: np.ndarray | None = None,
     source: str = "",
     grid: SkylineGrid | None = None,
@@ -291,6 +324,7 @@ def locate_sequence(
     moves: list[Move],
     sigma_deg: tuple[float, float],
     heading_tolerance_deg: float | None,
+    *,
     height_m: float | None = None,
     occlusion_weight: float = OCCLUSION_WEIGHT,
     map_sigma_m: float = 0.0,
@@ -305,8 +339,9 @@ def locate_sequence(
     out: list[Position] = []
     prior, fix = None, None
     for i, (name, sky) in enumerate(skylines):
-        pos = locate(db, sky, sigma_deg, heading_tolerance_deg, prior, name, g, height_m, occlusion_weight,
-                     map_sigma_m, fix)
+        pos = locate(db, sky, sigma_deg, heading_tolerance_deg, log_prior=prior, source=name, grid=g,
+                     height_m=height_m, occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m,
+                     position_prior=fix)
         out.append(pos)
         if i < len(moves):
             prior, fix = transported_prior(db, g, pos, moves[i]), transported_fix(db, g, pos, moves[i])

@@ -163,8 +163,8 @@ def _grid_heights(dem: Dem, frame: LocalFrame, cell_m: float, half: int) -> np.n
     return dem.sample_lonlat(lon, lat)
 
 
-def local_terrain(dem: Dem, lat: float, lon: float, cell_m: float, reach_m: float, height_m: float, r_eff_m: float,
-                  margin_m: float, outer_cell_m: float | None = None,
+def local_terrain(dem: Dem, lat: float, lon: float, cell_m: float, *, reach_m: float, height_m: float,
+                  r_eff_m: float, margin_m: float, outer_cell_m: float | None = None,
                   near_reach_m: float = math.inf) -> tuple[Terrain, LocalFrame]:
     """The map's heights on a square grid of ``cell_m`` around (lat, lon), in the azimuthal
     equidistant frame centred there (grid north is true north at the centre), out to ``reach_m``
@@ -192,7 +192,7 @@ def local_cell_m(dem: Dem, lat: float, lon: float, node_spacing_m: float) -> flo
     return max(fine, node_spacing_m / MAX_FINE_PER_NODE)
 
 
-def _look_heading(terrain: Terrain, cell_m: float, m: np.ndarray, row: float, col: float, height_m: float,
+def _look_heading(terrain: Terrain, cell_m: float, m: np.ndarray, row: float, col: float, *, height_m: float,
                   bounds: tuple[float, float]) -> float | None:
     """The heading (deg, a whole azimuth step) within ``bounds`` whose shift of one render at
     (row, col) fits ``m`` best; None where the render sees too little."""
@@ -226,9 +226,10 @@ class PlaceSearch:
         self.per_node = node / self.cell
         r_eff = dem.body.effective_radius_m(settings.refraction)
         outer = node / (SCREEN_OUTER_PER_NODE if screening else FINE_PER_NODE)
-        self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, settings.reach_m,
-                                                 settings.height_m, r_eff, MARGIN_NODES * node, outer,
-                                                 NEAR_NODES * node)
+        self.terrain, self.frame = local_terrain(dem, place.lat, place.lon, self.cell, reach_m=settings.reach_m,
+                                                 height_m=settings.height_m, r_eff_m=r_eff,
+                                                 margin_m=MARGIN_NODES * node, outer_cell_m=outer,
+                                                 near_reach_m=NEAR_NODES * node)
         self.centre = self.terrain.heights_m.shape[1] // 2
         self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
         self.model = Model(w, occlusion_cap_deg2(settings.occlusion_weight, self.sig_ref), settings.map_sigma_m)
@@ -251,7 +252,7 @@ class PlaceSearch:
         lo, hi = self.bounds
         # a look scans SCREEN_SCAN_DEG either side of its start: a compass's window needs no first guess
         heading = 0.5 * (lo + hi) if hi - lo <= 2.0 * SCREEN_SCAN_DEG else _look_heading(
-            self.terrain, self.cell, self.m, row, col, self.settings.height_m, self.bounds)
+            self.terrain, self.cell, self.m, row, col, height_m=self.settings.height_m, bounds=self.bounds)
         if heading is not None:
             cost, heading = screen(self.terrain, self.cell, self.cell, self.m, row, col, 0.0, heading, self.bounds,
                                    self.settings.height_m, self.sig_ref, self.model)
