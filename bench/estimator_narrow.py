@@ -34,7 +34,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.estimator import SkylineGrid, estimate  # noqa: E402
-from appliance.locate.position import skyline_grid  # noqa: E402
+from appliance.locating.position import skyline_grid  # noqa: E402
 from bench.estimator_speed import tile_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 from tests.reference_render import reference_skyline  # noqa: E402

@@ -39,12 +39,12 @@ sys.path.insert(0, str(HERE.parent))
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import body_named, geodesic_distance_m  # noqa: E402
 from appliance.config import EstimatorConfig  # noqa: E402
-from appliance.locate.position import Position  # noqa: E402
-from appliance.locate.tile_cache import SearchParams  # noqa: E402
-from appliance.locate.tile_combination import best_tile  # noqa: E402
-from appliance.locate.tile_search import search_tile, tile_floor  # noqa: E402
-from appliance.locate.tiled_index import TiledIndex, open_tiled  # noqa: E402
-from appliance.locate.tiled_search import _run, locate_tiled  # noqa: E402
+from appliance.locating.position import Position  # noqa: E402
+from appliance.locating.tile_cache import SearchParams  # noqa: E402
+from appliance.locating.tile_combination import best_tile  # noqa: E402
+from appliance.locating.tile_search import search_tile, tile_floor  # noqa: E402
+from appliance.locating.tiled_index import TiledIndex, open_tiled  # noqa: E402
+from appliance.locating.tiled_search import _run, locate_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.dem import Dem  # noqa: E402
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline  # noqa: E402

@@ -30,7 +30,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.estimator import SkylineGrid, estimate  # noqa: E402
-from appliance.locate.position import skyline_grid  # noqa: E402
+from appliance.locating.position import skyline_grid  # noqa: E402
 from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402
 from appliance.terrain.dem import Dem, load_dem  # noqa: E402
 from bench.results_file import append_result  # noqa: E402

@@ -24,9 +24,9 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from appliance.locate.tile_cache import SearchParams  # noqa: E402
-from appliance.locate.tiled_index import open_tiled  # noqa: E402
-from appliance.locate.tiled_search import locate_tiled  # noqa: E402
+from appliance.locating.tile_cache import SearchParams  # noqa: E402
+from appliance.locating.tiled_index import open_tiled  # noqa: E402
+from appliance.locating.tiled_search import locate_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402

@@ -28,7 +28,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.config import EstimatorConfig  # noqa: E402
 from appliance.estimator import estimate  # noqa: E402
-from appliance.locate.position import place, skyline_grid, truth_in_region  # noqa: E402
+from appliance.locating.position import place, skyline_grid, truth_in_region  # noqa: E402
 from appliance.sim.demo import demo_database  # noqa: E402
 from appliance.terrain.dem import load_dem  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402

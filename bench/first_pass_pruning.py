@@ -54,7 +54,7 @@ from appliance.estimator.search import (  # noqa: E402
     box_decimate,
     ssd_coarse_best,
 )
-from appliance.locate.position import skyline_grid  # noqa: E402
+from appliance.locating.position import skyline_grid  # noqa: E402
 from appliance.numerics import FAST_FINITE  # noqa: E402
 from bench.estimator_speed import bench_skyline, tile_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402

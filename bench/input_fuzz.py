@@ -63,9 +63,9 @@ import numpy as np
 
 from appliance.config import load_config
 from appliance.errors import ViperError
-from appliance.locate.tile_cache import SearchParams
-from appliance.locate.tiled_index import open_surface, open_tiled
-from appliance.locate.tiled_search import locate_tiled
+from appliance.locating.tile_cache import SearchParams
+from appliance.locating.tiled_index import open_surface, open_tiled
+from appliance.locating.tiled_search import locate_tiled
 from appliance.native import native_messages
 from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv
 from appliance.terrain.database import build_database, load_database

@@ -17,14 +17,14 @@ true azimuths, camera 1.5 m above the ground.  The measured skyline, per trial, 
   0.12 deg RMS, plus white noise of 0.03 deg RMS;
 - missing: one contiguous block of 15-40 deg, then 3 % of all azimuths scattered over the rest (NaN).
 
-Estimate: appliance.locate.position.locate with the defaults of EstimatorConfig(), as the session's
+Estimate: appliance.locating.position.locate with the defaults of EstimatorConfig(), as the session's
 onboard estimate calls it (bench/session_chain.py).  Error: geodesic metres on the DEM's ellipsoid,
 and cells (the geometric mean node spacing).  "ok" means the answer does not say ambiguous.  Each
 trial has its own seed (np.random.default_rng(seed)), so any one can be rerun alone with
 ``--first SEED --trials 1``.
 
 Targets: >= 97 % within two cells; of those, >= 90 % say ok; no answer beyond two cells says ok;
-truth inside the region >= 95 %.  Truth inside the 95 % ellipse (appliance.locate.position.truth_in_ellipse)
+truth inside the region >= 95 %.  Truth inside the 95 % ellipse (appliance.locating.position.truth_in_ellipse)
 and the stated radius (R95 = sqrt(5.991 * largest eigenvalue of result.covariance_m2)) are reported
 where the estimator provides them, n/a otherwise.
 
@@ -52,8 +52,8 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.config import EstimatorConfig  # noqa: E402
 from appliance.estimator import SkylineGrid  # noqa: E402
-from appliance.locate import position  # noqa: E402
-from appliance.locate.position import Position, locate, skyline_grid, truth_in_region  # noqa: E402
+from appliance.locating import position  # noqa: E402
+from appliance.locating.position import Position, locate, skyline_grid, truth_in_region  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.database import SkylineDatabase  # noqa: E402
 from appliance.terrain.dem import Dem  # noqa: E402
@@ -75,7 +75,7 @@ OCCLUDER_RISE_DEG = (0.5, 5.0)
 #: chi-square with two degrees of freedom at 95 %
 CHI2_95_2D = 5.991
 
-#: appliance.locate.position.truth_in_ellipse, where the estimator has it
+#: appliance.locating.position.truth_in_ellipse, where the estimator has it
 TruthInEllipse = Callable[[SkylineDatabase, Position, tuple[float, float]], bool]
 truth_in_ellipse: TruthInEllipse | None = getattr(position, "truth_in_ellipse", None)
 

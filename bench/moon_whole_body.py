@@ -31,10 +31,10 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import geodesic_distance_m  # noqa: E402
-from appliance.locate.surface_fit import SCREEN_PLACES, SURFACE_PLACES  # noqa: E402
-from appliance.locate.tile_cache import SearchParams  # noqa: E402
-from appliance.locate.tiled_index import box_around, open_surface, open_tiled  # noqa: E402
-from appliance.locate.tiled_search import locate_tiled  # noqa: E402
+from appliance.locating.surface_fit import SCREEN_PLACES, SURFACE_PLACES  # noqa: E402
+from appliance.locating.tile_cache import SearchParams  # noqa: E402
+from appliance.locating.tiled_index import box_around, open_surface, open_tiled  # noqa: E402
+from appliance.locating.tiled_search import locate_tiled  # noqa: E402
 from appliance.skyline import Skyline  # noqa: E402
 from appliance.terrain.database import load_database  # noqa: E402
 from appliance.terrain.horizon import render_skyline  # noqa: E402
@@ -170,7 +170,7 @@ def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spaci
         "",
         ("Answers fitted on the map's own surface (up to "
          f"{SCREEN_PLACES} contending places of the facets' region screened on the map, the grid's best and the "
-         f"{SURFACE_PLACES - 1} that screen best fitted, appliance/locate/verification.py)." if fitted else
+         f"{SURFACE_PLACES - 1} that screen best fitted, appliance/locating/verification.py)." if fitted else
          "Answers on the facets' grid alone (refined on the facets' resampled surface), not fitted on the map."),
         "",
         f"Load before the estimates (uptime): {load_before}",

@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 from appliance.acquisition.replay import read_session, replay_session  # noqa: E402
 from appliance.config import EstimatorConfig  # noqa: E402
 from appliance.errors import ViperError  # noqa: E402
-from appliance.locate.position import estimate_status  # noqa: E402
+from appliance.locating.position import estimate_status  # noqa: E402
 from appliance.terrain.database import load_database  # noqa: E402
 from bench.input_fuzz import _demo_seed, mutate  # noqa: E402
 from bench.results_file import append_result  # noqa: E402

@@ -39,7 +39,7 @@ from appliance.acquisition.platform import Frame  # noqa: E402
 from appliance.acquisition.procedures import TaggedFrame, capture_angles  # noqa: E402
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.config import EstimatorConfig, SessionConfig  # noqa: E402
-from appliance.locate.position import fix_status, locate, skyline_grid, truth_in_ellipse, truth_in_region  # noqa: E402
+from appliance.locating.position import fix_status, locate, skyline_grid, truth_in_ellipse, truth_in_region  # noqa: E402
 from appliance.sim.demo import demo_database  # noqa: E402
 from appliance.sim.field_session import random_position  # noqa: E402
 from appliance.skyline import Skyline, format_skyline_csv, parse_skyline_csv  # noqa: E402

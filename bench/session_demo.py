@@ -15,7 +15,7 @@ import numpy as np
 
 from appliance.atomic import write_text_atomic
 from appliance.cli.demo import demo_config
-from appliance.locate.position import truth_error_m
+from appliance.locating.position import truth_error_m
 from appliance.sim.demo import demo_database
 from appliance.sim.field_session import run_field_session
 from appliance.terrain.dem import load_dem

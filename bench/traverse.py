@@ -7,7 +7,7 @@ its odometry line with 15 m of noise per axis, 640x480 frames at time rate 20, s
 detection, the estimate alone and fused).  ``--mode skyline`` is the fast path: at each stop a skyline
 rendered from the DEM and read as ``viper demo --skyline-only`` reads it (0.2 deg noise, 25 deg
 occluded, 11 dropouts, compass error up to +-4 deg), the same legs and odometry noise, the same
-fusion (:func:`appliance.locate.position.transported_prior`).
+fusion (:func:`appliance.locating.position.transported_prior`).
 
 Errors are against the simulated true position of each stop (session mode: also against the GPS
 truth the session logs).  Target (issue 16): the 90th-percentile error over the stops after the
@@ -33,7 +33,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.config import EstimatorConfig, SimConfig  # noqa: E402
-from appliance.locate.position import (  # noqa: E402
+from appliance.locating.position import (  # noqa: E402
     Move,
     estimate_status,
     locate,

@@ -60,7 +60,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance import estimator  # noqa: E402
 from appliance.errors import DatabaseError  # noqa: E402
-from appliance.locate.position import place, skyline_grid, truth_in_region  # noqa: E402
+from appliance.locating.position import place, skyline_grid, truth_in_region  # noqa: E402
 from appliance.sim import terrain_world as tw  # noqa: E402
 from appliance.sim.demo import sensor_reading  # noqa: E402
 from appliance.terrain.database import SkylineDatabase, build_database, load_database  # noqa: E402

@@ -218,8 +218,8 @@ def test_the_estimator_and_the_configuration_share_one_set_of_defaults():
 
     from appliance.config import EstimatorConfig
     from appliance.estimator import estimate
-    from appliance.locate.position import locate
-    from appliance.locate.tile_cache import SearchParams
+    from appliance.locating.position import locate
+    from appliance.locating.tile_cache import SearchParams
 
     cfg = EstimatorConfig()
     given = inspect.signature(estimate).parameters

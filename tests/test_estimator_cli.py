@@ -176,7 +176,7 @@ def test_a_large_region_is_written_truncated_with_its_full_count(db_path, tmp_pa
     """The JSON record keeps the region's first cells only, names its full size, and says so."""
     import dataclasses
 
-    from appliance.locate import position
+    from appliance.locating import position
     from appliance.skyline import read_skyline_csv
 
     db = load_database(db_path)

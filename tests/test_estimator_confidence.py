@@ -11,7 +11,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.stats import chi2
 
 from appliance.estimator import confidence
-from appliance.locate.position import altitude_m, fix_status, locate, truth_in_ellipse, truth_in_region
+from appliance.locating.position import altitude_m, fix_status, locate, truth_in_ellipse, truth_in_region
 from appliance.logbook.messages import LocationFix
 from appliance.skyline import Skyline
 from appliance.terrain.horizon import render_skyline

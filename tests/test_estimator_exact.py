@@ -12,7 +12,7 @@ from appliance.estimator import estimate
 from appliance.estimator.exact import jacobian, render
 from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, occlusion_cap_deg2
 from appliance.estimator.search import ssd_for_shifts
-from appliance.locate.position import estimate_status, place, skyline_grid
+from appliance.locating.position import estimate_status, place, skyline_grid
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline

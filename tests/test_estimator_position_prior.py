@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from appliance.estimator import PositionPrior, estimate, transport_fix
-from appliance.locate.position import Move, place, skyline_grid, transported_fix
+from appliance.locating.position import Move, place, skyline_grid, transported_fix
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import render_skyline

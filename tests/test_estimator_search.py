@@ -333,7 +333,7 @@ def test_the_ground_gradient_at_some_nodes_is_the_whole_maps_there(shape):
 
 
 def test_the_grids_gradient_at_nodes_matches_its_whole_one(window_db):
-    from appliance.locate.position import skyline_grid
+    from appliance.locating.position import skyline_grid
 
     grid = skyline_grid(window_db)
     nodes = np.random.default_rng(3).choice(grid.codes.shape[0], 500, replace=False)
@@ -348,7 +348,7 @@ def test_the_grids_gradient_at_nodes_matches_its_whole_one(window_db):
 
 def test_ranking_shifts_without_the_normalisers_scores_them_the_same(window_db):
     from appliance.estimator.search import TauModel, ssd_for_shifts
-    from appliance.locate.position import skyline_grid
+    from appliance.locating.position import skyline_grid
 
     grid = skyline_grid(window_db)
     assert grid.distance_codes is not None

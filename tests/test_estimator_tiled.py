@@ -17,12 +17,12 @@ from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
 from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
-from appliance.locate import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
-from appliance.locate.position import locate, skyline_grid
-from appliance.locate.tile_cache import SearchParams
-from appliance.locate.tile_combination import global_log_upper_bound
-from appliance.locate.tiled_index import box_around, open_tiled
-from appliance.locate.tiled_search import locate_tiled
+from appliance.locating import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
+from appliance.locating.position import locate, skyline_grid
+from appliance.locating.tile_cache import SearchParams
+from appliance.locating.tile_combination import global_log_upper_bound
+from appliance.locating.tiled_index import box_around, open_tiled
+from appliance.locating.tiled_search import locate_tiled
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import load_database
 from appliance.terrain.dem import load_dem

@@ -276,7 +276,7 @@ def test_the_build_gives_the_same_bytes_on_one_thread_or_several(tmp_path):
 def test_the_stored_first_pass_is_what_the_estimator_would_make(jacksboro_db):
     import dataclasses
 
-    from appliance.locate.position import skyline_grid
+    from appliance.locating.position import skyline_grid
 
     _, db = jacksboro_db
     stored = skyline_grid(db)

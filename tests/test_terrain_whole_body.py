@@ -16,10 +16,10 @@ import pytest
 from appliance.bodies import MOON, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, InputError
-from appliance.locate.tile_cache import SearchParams
-from appliance.locate.tiled_index import TiledIndex, open_surface, open_tiled, select_tiles
-from appliance.locate.tiled_search import locate_tiled
-from appliance.locate.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
+from appliance.locating.tile_cache import SearchParams
+from appliance.locating.tiled_index import TiledIndex, open_surface, open_tiled, select_tiles
+from appliance.locating.tiled_search import locate_tiled
+from appliance.locating.verification import FitSettings, Place, PlaceSearch, distinct_places, fit_place, screen_places
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import build_database, load_database
 from appliance.terrain.dem import load_dem

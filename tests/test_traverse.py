@@ -24,7 +24,7 @@ from appliance.config import Config, TraverseConfig
 from appliance.drivers.odometry import OdometryReport, format_line
 from appliance.drivers.odometry_reader import open_odometry
 from appliance.estimator import transport_prior
-from appliance.locate.position import truth_error_m
+from appliance.locating.position import truth_error_m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
 from appliance.sim.field_session import run_field_traverse
@@ -186,7 +186,7 @@ def _bare_traverse(tmp_path, clock, reader, timeout_s=600.0):
 
 
 def test_a_lost_odometry_line_breaks_the_fusion_chain(tmp_path):
-    from appliance.locate.position import Move
+    from appliance.locating.position import Move
 
     port = PtyPort(tmp_path / "odometry")
     reader = open_odometry(str(port.path), read_timeout_s=0.05)

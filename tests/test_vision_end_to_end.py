@@ -34,7 +34,7 @@ def test_synthetic_jacksboro_panorama_to_skyline_csv(tmp_path: Path) -> None:
 
     # the detected skyline locates the camera on a database of the map around it
     from appliance.config import EstimatorConfig
-    from appliance.locate.position import locate, truth_error_m
+    from appliance.locating.position import locate, truth_error_m
     from appliance.terrain.database import build_database, load_database
 
     db_path = tmp_path / "around.viperdb"

@@ -1,7 +1,7 @@
 """The onboard estimate: tagged frames -> panorama -> skyline -> position.
 
 Stitching uses the tags, not image features (:mod:`appliance.vision.posed_stitch`).  The position
-comes from the skyline database with :func:`appliance.locate.position.locate` (the interval-valued
+comes from the skyline database with :func:`appliance.locating.position.locate` (the interval-valued
 posterior of the paper, section 4); :mod:`appliance.outputs.records` turns it into the log's
 records, for the session and for ``viper replay`` alike.
 """
@@ -24,7 +24,7 @@ from appliance.vision.posed_stitch import PosedImage, stitch_posed
 
 if TYPE_CHECKING:
     from appliance.estimator.exact import PositionPrior
-    from appliance.locate.position import Position
+    from appliance.locating.position import Position
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
 
@@ -58,7 +58,7 @@ def locate_skyline(db: SkylineDatabase, skyline: Skyline, cfg: EstimatorConfig, 
     """The position of ``skyline`` in ``db`` (under ``log_prior``, per node, and ``position_prior``,
     its continuous form, when given: a traverse's transported posterior); refuses a skyline with too
     few valid azimuths."""
-    from appliance.locate.position import locate  # as above: only when a session estimates
+    from appliance.locating.position import locate  # as above: only when a session estimates
 
     if skyline.valid_fraction < cfg.min_valid_fraction:
         raise EstimationError(

@@ -40,7 +40,7 @@ from appliance.vision.skyline_detect import detect_skyline
 
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
-    from appliance.locate.position import Position
+    from appliance.locating.position import Position
     from appliance.terrain.database import SkylineDatabase
 
 

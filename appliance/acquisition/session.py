@@ -31,7 +31,7 @@ from appliance.skyline import Skyline
 
 if TYPE_CHECKING:
     from appliance.estimator.exact import PositionPrior
-    from appliance.locate.position import Position
+    from appliance.locating.position import Position
     from appliance.logbook.live import Publisher
     from appliance.terrain.database import SkylineDatabase
 
@@ -321,7 +321,7 @@ class Session:
             self.outcome("estimate", Status.DEGRADED, "no skyline database configured ([session] database)")
             return
         # the estimator's compiled kernels load only when a session estimates
-        from appliance.locate.position import fix_status, truth_error_m
+        from appliance.locating.position import fix_status, truth_error_m
         from appliance.outputs.records import estimate_fix, skyline_payload, write_estimate_records
         from appliance.vision.skyline_detect import detect_skyline
 

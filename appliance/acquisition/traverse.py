@@ -4,7 +4,7 @@ At each stop the usual session runs (:class:`appliance.acquisition.session.Sessi
 GPS truth, capture, estimate).  Before every stop after the first, the traverse waits for the rover's
 odometry line (:mod:`appliance.drivers.odometry`: the displacement from the previous stop and its
 sigma), and the stop's estimate takes as its prior the last estimate's posterior moved by that
-displacement and blurred by its sigma (:func:`appliance.locate.position.transported_prior`).  The stop
+displacement and blurred by its sigma (:func:`appliance.locating.position.transported_prior`).  The stop
 reports both: its estimate from its own skyline alone (``/estimate/alone/fix``) and the fused one,
 which is the stop's position (``/estimate/fix`` and the other estimate topics).
 
@@ -36,7 +36,14 @@ from appliance.acquisition.session import (
 from appliance.config import Config
 from appliance.drivers.factory import Devices
 from appliance.drivers.odometry import OdometryReport
-from appliance.locate.position import Move, Position, estimate_status, skyline_grid, transported_fix, transported_prior
+from appliance.locating.position import (
+    Move,
+    Position,
+    estimate_status,
+    skyline_grid,
+    transported_fix,
+    transported_prior,
+)
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook, LogbookFullError

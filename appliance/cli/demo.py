@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         return run_skyline_only(args)
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.acquisition.replay import session_report
-    from appliance.locate.position import area_text, fix_status, truth_error_m
+    from appliance.locating.position import area_text, fix_status, truth_error_m
     from appliance.sim.field_session import run_field_session
 
     out = check_output_folder(args.out)
@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_skyline_only(args: argparse.Namespace) -> int:
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
-    from appliance.locate.position import area_text, fix_status
+    from appliance.locating.position import area_text, fix_status
     from appliance.sim.demo import run_demo
 
     check_output_folder(args.out)
@@ -140,7 +140,7 @@ def run_skyline_only(args: argparse.Namespace) -> int:
 def run_traverse(args: argparse.Namespace) -> int:
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.acquisition.session_facts import read_session_facts
-    from appliance.locate.position import truth_error_m
+    from appliance.locating.position import truth_error_m
     from appliance.outputs.report import write_traverse_report
     from appliance.sim.field_session import run_field_traverse
 

@@ -16,8 +16,8 @@ from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
 from appliance.extras import require
-from appliance.locate.position import Move, Position, answer_text, locate, locate_sequence
-from appliance.locate.tiled_index import TiledIndex
+from appliance.locating.position import Move, Position, answer_text, locate, locate_sequence
+from appliance.locating.tiled_index import TiledIndex
 from appliance.skyline import Skyline, read_skyline_csv
 from appliance.terrain.database import SkylineDatabase, load_database
 
@@ -181,9 +181,9 @@ def _locate_tiled(args: argparse.Namespace, cfg: Any, skylines: list[tuple[str, 
     """Every skyline's answer on a tiled database, searched over the tiles its search area meets
     (in process, or as Dask tasks with --scheduler or --workers), the tiles combined."""
     # the tiled search (threads, Dask, the fits on a map's surface) loads only for a tiled database
-    from appliance.locate.tile_cache import SearchParams
-    from appliance.locate.tiled_index import box_around, open_surface, open_tiled
-    from appliance.locate.tiled_search import locate_tiled
+    from appliance.locating.tile_cache import SearchParams
+    from appliance.locating.tiled_index import box_around, open_surface, open_tiled
+    from appliance.locating.tiled_search import locate_tiled
 
     if args.fuse or args.report:
         raise InputError(f"{'--fuse' if args.fuse else '--report'} is not available with a tiled database; "

@@ -13,7 +13,7 @@ from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
 from appliance.errors import InputError
-from appliance.locate.position import estimate_status
+from appliance.locating.position import estimate_status
 from appliance.logsetup import ProgressCallback
 
 if TYPE_CHECKING:

@@ -147,7 +147,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "Session description: identifier, platform, configuration", {"session_id": _STR, "platform": _STR}
     ),
     "viper.Estimate": _object(
-        "The estimate's full record (appliance.locate.position.Position.to_json) and its error against the GPS truth",
+        "The estimate's full record (appliance.locating.position.Position.to_json) and its error against the GPS truth",
         {
             "skyline": _STR,
             "lat": _NUM,

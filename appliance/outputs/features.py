@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import rasterio.features
 
-from appliance.locate.position import Position, covariance_json, fix_status, radius_json
+from appliance.locating.position import Position, covariance_json, fix_status, radius_json
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 

@@ -14,7 +14,7 @@ import numpy as np
 import rasterio
 
 from appliance.atomic import atomic_output, write_text_atomic
-from appliance.locate.position import Position
+from appliance.locating.position import Position
 from appliance.outputs.features import estimate_feature, region_feature, truth_feature
 from appliance.outputs.picture import estimate_figure
 from appliance.skyline import Skyline

@@ -20,7 +20,7 @@ import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import resample_to_grid
-from appliance.locate.position import Position, truth_error_m
+from appliance.locating.position import Position, truth_error_m
 from appliance.outputs.features import region_mask, rendered_skyline
 
 if TYPE_CHECKING:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from appliance.estimator.exact import EYE_SIGMA_M
-from appliance.locate.position import Position, altitude_m, truth_error_m
+from appliance.locating.position import Position, altitude_m, truth_error_m
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from appliance.atomic import check_output_folder, write_text_atomic
-from appliance.locate.position import Position, estimate_status, status_text, truth_error_m
+from appliance.locating.position import Position, estimate_status, status_text, truth_error_m
 from appliance.outputs import html as rp
 from appliance.outputs.files import (
     save_png,

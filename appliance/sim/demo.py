@@ -12,7 +12,7 @@ import numpy as np
 from appliance.bodies import geodesic_distance_m
 from appliance.config import EstimatorConfig
 from appliance.estimator import estimate
-from appliance.locate.position import Position, place, skyline_grid
+from appliance.locating.position import Position, place, skyline_grid
 from appliance.outputs.files import write_png
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import SkylineDatabase, build_database, load_database

@@ -29,14 +29,14 @@ no terrain farther away can form a skyline.
 Each facet is one Dask task.  A task loads the whole map (a whole-body map small enough for that,
 the LOLA Moon at 4 px/deg is 2 MB; the windowed reads of a regional tiled build are not needed
 here, :mod:`appliance.terrain.tiled`).  The folder's ``index.json`` is the tiled format
-(:mod:`appliance.locate.tiled_index` reads it unchanged): each facet is a tile with row0 = col0 = 0, its
+(:mod:`appliance.locating.tiled_index` reads it unchanged): each facet is a tile with row0 = col0 = 0, its
 own grid's size and its box as ``bounds_lonlat``, whose W may be below 0 for a box across the seam
 (the search compares longitudes modulo 360).  Since every facet has its own grid, the combination
-over facets weighs each by its own cell area (:func:`appliance.locate.tile_combination.combine`).
+over facets weighs each by its own cell area (:func:`appliance.locating.tile_combination.combine`).
 
 The index also records where the map itself is, with its SHA-256 (``surface``): a search fits its
 contending places on the map's own surface while the map is there and unchanged
-(:func:`appliance.locate.surface_fit.fit_on_surface`).
+(:func:`appliance.locating.surface_fit.fit_on_surface`).
 
 A rerun into the same folder with the same parameters keeps the facets already built.
 """
@@ -275,7 +275,7 @@ def build_whole_body(
         "refraction": refr,
         "body": dem.body.name.value,
         "sources": [{"name": n, "sha256": s} for n, s in source.sources],
-        # where the map itself stays, for the search's fits on its own surface (appliance.locate.surface_fit)
+        # where the map itself stays, for the search's fits on its own surface (appliance.locating.surface_fit)
         "surface": {"path": str(Path(source.path).resolve()), "crs": source.crs, "sha256": source.sha256},
     }
     jobs = [TileJob(f.file, _lattice_entry(grids[f.file]), build_facet,

@@ -3,7 +3,7 @@
 A tile's outcome (:class:`TileOutcome`) is small enough to travel back from a Dask worker: the
 tile's own JSON record, its best candidate's posterior bounds and normalisers, its most likely
 nodes.  Their combination (:class:`TileCombination`, made by
-:func:`appliance.locate.tile_combination.combine`) is what a :class:`appliance.locate.position.Position`
+:func:`appliance.locating.tile_combination.combine`) is what a :class:`appliance.locating.position.Position`
 of a tiled search carries: the posterior bounds, the region across tiles, the status and the notes
 of the answer, and, for a whole-body database, the answer's fit on the map's own surface.
 """
@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
-from appliance.locate.tile_cache import open_tile
-from appliance.locate.tiled_index import TiledIndex
+from appliance.locating.tile_cache import open_tile
+from appliance.locating.tiled_index import TiledIndex
 from appliance.terrain.grid import lon_overlap
 
 
@@ -74,7 +74,7 @@ class RegionCell:
 
 @dataclass(frozen=True)
 class SurfaceFit:
-    """The answer fitted on the map's own surface (:mod:`appliance.locate.verification`): where, in which
+    """The answer fitted on the map's own surface (:mod:`appliance.locating.verification`): where, in which
     tile's grid coordinates, the compass's error, the fit's RMS residual and how many contending
     places were looked at."""
 
@@ -177,7 +177,7 @@ class TileCombination:
         return False
 
     def to_json(self, index: TiledIndex | None, truth: tuple[float, float] | None, max_cells: int) -> dict:
-        """The single-file record (:meth:`appliance.locate.position.Position.to_json`) of the best tile, its
+        """The single-file record (:meth:`appliance.locating.position.Position.to_json`) of the best tile, its
         bounds, region and status replaced by the combined ones, and which tiles were searched; the
         region lists its first ``max_cells`` cells and counts them all."""
         out = dict(self.best.record)

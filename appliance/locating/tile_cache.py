@@ -19,15 +19,15 @@ import numpy as np
 
 from appliance.errors import DatabaseError
 from appliance.estimator.estimate import OCCLUSION_WEIGHT, FirstPass, SkylineGrid, first_pass
-from appliance.locate.search_grid import skyline_grid
-from appliance.locate.tiled_index import TileEntry
+from appliance.locating.search_grid import skyline_grid
+from appliance.locating.tiled_index import TileEntry
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase, load_database
 
 
 @dataclass(frozen=True)
 class SearchParams:
-    """What every tile's search shares (the arguments of :func:`appliance.locate.position.locate`)."""
+    """What every tile's search shares (the arguments of :func:`appliance.locating.position.locate`)."""
 
     sigma_deg: tuple[float, float]
     heading_tolerance_deg: float | None

@@ -2,7 +2,7 @@
 
 The glue between the database file (terrain) and the pure estimator: runs single estimates or a
 fused sequence, and turns results into the answer placed on the map (:class:`Position`, also the
-answer of a tiled search, :mod:`appliance.locate.tiled_search`) and the JSON record that
+answer of a tiled search, :mod:`appliance.locating.tiled_search`) and the JSON record that
 ``viper estimate --json`` prints.
 """
 
@@ -26,9 +26,9 @@ from appliance.estimator import (
 )
 from appliance.estimator.estimate import OCCLUSION_WEIGHT
 from appliance.estimator.raycast import bilinear
-from appliance.locate.search_grid import crs_name, skyline_grid
-from appliance.locate.tiled_answer import TileCombination
-from appliance.locate.tiled_index import TiledIndex
+from appliance.locating.search_grid import crs_name, skyline_grid
+from appliance.locating.tiled_answer import TileCombination
+from appliance.locating.tiled_index import TiledIndex
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -55,7 +55,7 @@ class Position:
 
     From one database, ``estimate`` is the estimator's answer on its grid (:attr:`result`).  From a
     tiled database, ``tiled`` is the combination of the searched tiles
-    (:class:`appliance.locate.tiled_answer.TileCombination`), whose posterior bounds, region, status
+    (:class:`appliance.locating.tiled_answer.TileCombination`), whose posterior bounds, region, status
     and notes are the answer's; no one grid's estimate stands for it, and ``estimate`` is None."""
 
     estimate: EstimateResult | None

@@ -2,7 +2,7 @@
 
 The facets resample the map (:mod:`appliance.terrain.whole_body`), and on their grid alone the
 place a skyline was seen from can rank far down the region.  The region's contending places are
-therefore screened and fitted on renders of the map itself (:mod:`appliance.locate.verification`),
+therefore screened and fitted on renders of the map itself (:mod:`appliance.locating.verification`),
 and the best fit is the answer; the posterior bounds and the region stay the grid's.
 """
 
@@ -12,16 +12,16 @@ import dataclasses
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator.estimate import SAME_ANSWER_CELLS
-from appliance.locate.search_grid import crs_name
-from appliance.locate.tile_cache import SearchParams, open_tile
-from appliance.locate.tiled_answer import SurfaceFit, TileCombination
-from appliance.locate.tiled_index import TiledIndex
-from appliance.locate.verification import FitSettings, Place, PlaceFit, distinct_places, fit_places, screen_places
+from appliance.locating.search_grid import crs_name
+from appliance.locating.tile_cache import SearchParams, open_tile
+from appliance.locating.tiled_answer import SurfaceFit, TileCombination
+from appliance.locating.tiled_index import TiledIndex
+from appliance.locating.verification import FitSettings, Place, PlaceFit, distinct_places, fit_places, screen_places
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 
 #: At most this many of the region's distinct places (by upper posterior on the facets' grid) are
-#: screened on the map (:func:`appliance.locate.verification.screen_places`).
+#: screened on the map (:func:`appliance.locating.verification.screen_places`).
 SCREEN_PLACES = 400
 #: Places fitted on the map: the grid's best place and the SURFACE_PLACES - 1 that screen best.
 SURFACE_PLACES = 24
@@ -33,7 +33,7 @@ def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skylin
     contending places (the best, then the region's distinct places by upper posterior, at most
     SCREEN_PLACES) screened on renders of the map, the grid's best and the SURFACE_PLACES - 1 that
     screen best each fitted between nodes on renders of the map, the best fit kept
-    (:mod:`appliance.locate.verification`).  The posterior bounds and the region stay the grid's; a fit
+    (:mod:`appliance.locating.verification`).  The posterior bounds and the region stay the grid's; a fit
     farther than SAME_ANSWER_CELLS from the grid's best makes the answer ambiguous.  None where no
     place can be fitted."""
     spacing = max(est.best.cell_size_m)

@@ -3,7 +3,7 @@
 A tiled database is a folder holding ``index.json`` and one format-3 database per tile, each a
 window of one mosaic-wide candidate lattice (or, for a whole body, a facet on its own grid,
 :mod:`appliance.terrain.whole_body`).  Opening one checks the index only; a search maps the tiles it
-touches (:mod:`appliance.locate.tile_cache`).  A search box, or a position and radius, chooses the
+touches (:mod:`appliance.locating.tile_cache`).  A search box, or a position and radius, chooses the
 tiles (longitudes compared modulo 360).
 """
 

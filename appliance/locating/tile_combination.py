@@ -26,8 +26,8 @@ import numpy as np
 from appliance.bodies import body_named
 from appliance.errors import EstimationError
 from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS
-from appliance.locate.position import Position, place_tiled
-from appliance.locate.tiled_answer import RegionCell, TileCombination, TileOutcome
+from appliance.locating.position import Position, place_tiled
+from appliance.locating.tiled_answer import RegionCell, TileCombination, TileOutcome
 
 
 def _log_sum(values: Sequence[float]) -> float:

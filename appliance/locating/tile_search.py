@@ -1,7 +1,7 @@
 """One tile's part of a tiled search: its first pass's floor, and its search reduced to what travels back.
 
 Each runs where the tile is mapped: in the searching process, or as a Dask task on a worker
-(:mod:`appliance.locate.tiled_search`).  What a tile's search sends back (:class:`TileOutcome`)
+(:mod:`appliance.locating.tiled_search`).  What a tile's search sends back (:class:`TileOutcome`)
 holds no per-node maps: the tile's own record, its best candidate's bounds and normalisers, and
 its TOP_NODES most likely nodes.
 """
@@ -15,10 +15,10 @@ import numpy as np
 
 from appliance.errors import EstimationError
 from appliance.estimator import EstimateResult
-from appliance.locate.position import locate
-from appliance.locate.tile_cache import SearchParams, tile_first_pass
-from appliance.locate.tiled_answer import TileOutcome
-from appliance.locate.tiled_index import TileEntry
+from appliance.locating.position import locate
+from appliance.locating.tile_cache import SearchParams, tile_first_pass
+from appliance.locating.tiled_answer import TileOutcome
+from appliance.locating.tiled_index import TileEntry
 from appliance.skyline import Skyline
 from appliance.terrain.grid import NodeGrid
 
@@ -48,7 +48,7 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
 
     ``region`` False leaves the tile's own region (its nodes and their lon/lat) out of the outcome:
     the combination reads it from the best tile only, and a round that only picks the best tile
-    (:func:`appliance.locate.tile_combination.best_tile`) needs none.  A tile the skyline does not
+    (:func:`appliance.locating.tile_combination.best_tile`) needs none.  A tile the skyline does not
     single a place out on (sea, a plain) holds a region of most of its nodes, whose projection to
     lon/lat costs more than the tile's search on the grid."""
     t0 = time.perf_counter()

@@ -1,12 +1,12 @@
 """Position from a skyline against a tiled skyline database: a folder of ordinary databases.
 
-A tiled database (:mod:`appliance.locate.tiled_index`) holds one database per tile.  A search runs
-the ordinary estimator on every tile that the search area touches (:mod:`appliance.locate.tile_search`:
+A tiled database (:mod:`appliance.locating.tiled_index`) holds one database per tile.  A search runs
+the ordinary estimator on every tile that the search area touches (:mod:`appliance.locating.tile_search`:
 in process, or one Dask task per tile on a cluster) and then combines the tiles as one grid would
-have been combined (:mod:`appliance.locate.tile_combination`); the answer is a
-:class:`appliance.locate.position.Position`, as from one database, carrying the combination.  A
+have been combined (:mod:`appliance.locating.tile_combination`); the answer is a
+:class:`appliance.locating.position.Position`, as from one database, carrying the combination.  A
 whole-body database's answer is then fitted on the map's own surface
-(:mod:`appliance.locate.surface_fit`).
+(:mod:`appliance.locating.surface_fit`).
 
 Nothing here touches devices or logs: the module maps a folder and skylines to numbers.
 """
@@ -23,12 +23,12 @@ from typing import Any
 
 import numba
 
-from appliance.locate.position import Position, place_tiled
-from appliance.locate.surface_fit import fit_on_surface
-from appliance.locate.tile_cache import SearchParams
-from appliance.locate.tile_combination import best_tile, combine, combine_tiles
-from appliance.locate.tile_search import search_tile, tile_floor
-from appliance.locate.tiled_index import Box, TiledIndex, TileEntry, select_tiles
+from appliance.locating.position import Position, place_tiled
+from appliance.locating.surface_fit import fit_on_surface
+from appliance.locating.tile_cache import SearchParams
+from appliance.locating.tile_combination import best_tile, combine, combine_tiles
+from appliance.locating.tile_search import search_tile, tile_floor
+from appliance.locating.tiled_index import Box, TiledIndex, TileEntry, select_tiles
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 
@@ -53,8 +53,8 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
     is too.
 
     With the ``surface`` a whole-body database was built from
-    (:func:`appliance.locate.tiled_index.open_surface`), the answer is fitted on that map itself
-    (:func:`appliance.locate.surface_fit.fit_on_surface`) instead of refined on the facets'
+    (:func:`appliance.locating.tiled_index.open_surface`), the answer is fitted on that map itself
+    (:func:`appliance.locating.surface_fit.fit_on_surface`) instead of refined on the facets'
     resampled grid."""
     t0 = time.perf_counter()
     tiles = select_tiles(index, box)
