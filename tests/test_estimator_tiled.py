@@ -16,7 +16,7 @@ from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
-from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
+from appliance.estimator.rescore import MIN_RESCORE, RESCORE_MARGIN_NATS
 from appliance.locate import tiled_search
 from appliance.locate.position import locate, skyline_grid
 from appliance.locate.tiled_search import SearchParams, global_log_upper_bound, locate_tiled, open_tiled

@@ -132,6 +132,12 @@ def occlusion_cap_deg2(weight: float, sigma_deg: float) -> float:
     return 2.0 * sigma_deg * sigma_deg * math.log(1.0 / kappa)
 
 
+def capped_cost(ssd: np.ndarray, occluded: np.ndarray, cap_deg2: float) -> np.ndarray:
+    """Residual sums (deg^2) with each occluded measurement (by weight) counting the cap: the cost
+    at sigma's reference that ranks headings and places.  ``ssd`` itself when the cap is infinite."""
+    return ssd if not math.isfinite(cap_deg2) else ssd + occluded * cap_deg2
+
+
 def _occlusion_split(n: float, occluded: np.ndarray, weight: float) -> tuple[np.ndarray, np.ndarray]:
     """The Gaussian's sample count and the sigma-free part of the mixture's log-likelihood:
     log(w / H) per occluded measurement, log(1 - w) per other one."""

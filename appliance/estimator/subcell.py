@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from appliance.estimator.estimate import SkylineGrid
+    from appliance.estimator.skyline_grid import SkylineGrid
 
 #: A first lattice of quarter cells and quarter steps over +-1, then twentieths over +-1/5.
 COARSE = np.linspace(-1.0, 1.0, 9)
