@@ -44,10 +44,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 from appliance.estimator import COARSE_STRIDE, estimate, parallax  # noqa: E402
-from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, best_column_bounds  # noqa: E402
-from appliance.estimator.measurement import measure  # noqa: E402
-from appliance.estimator.rescore import RESCORE_MARGIN_NATS  # noqa: E402
-from appliance.estimator.search import (  # noqa: E402
+from appliance.estimator.coarse_kernels import (  # noqa: E402
     BLOCK,
     SHIFT_RUN,
     _code_units,
@@ -55,6 +52,9 @@ from appliance.estimator.search import (  # noqa: E402
     box_decimate,
     ssd_coarse_best,
 )
+from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, best_column_bounds  # noqa: E402
+from appliance.estimator.measurement import measure  # noqa: E402
+from appliance.estimator.rescore import RESCORE_MARGIN_NATS  # noqa: E402
 from appliance.locate.position import skyline_grid  # noqa: E402
 from appliance.numerics import FAST_FINITE  # noqa: E402
 from bench.estimator_speed import bench_skyline, tile_database  # noqa: E402

@@ -44,7 +44,7 @@ def reading(true_el: np.ndarray, correction_deg: float, rng, noise=0.0, missing=
 
 def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(monkeypatch):
     from appliance.estimator import coarse
-    from appliance.estimator.search import box_decimate, ssd_coarse
+    from appliance.estimator.coarse_kernels import box_decimate, ssd_coarse
 
     g = make_grid(6, 7)
     rng = np.random.default_rng(1)
@@ -197,7 +197,7 @@ def _every_shift_reference(C, off, step, m, w, T, w_lut, p_lut, cap):
 
 @pytest.mark.parametrize("cap", [math.inf, 2.0])
 def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
-    from appliance.estimator.search import ssd_coarse_best
+    from appliance.estimator.coarse_kernels import ssd_coarse_best
 
     rng = np.random.default_rng(7)
     n, d = 300, 90
@@ -241,7 +241,7 @@ def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
 def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_reference(view):
     """A view of a few runs of azimuths (one across the circle's seam): the azimuths not measured
     are skipped in pairs, and the sums, best shifts and normalisers are still the reference's."""
-    from appliance.estimator.search import ssd_coarse_best
+    from appliance.estimator.coarse_kernels import ssd_coarse_best
 
     rng = np.random.default_rng(11)
     n, d = 200, 90
@@ -276,7 +276,7 @@ def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_ref
 @pytest.mark.parametrize("cap", [math.inf, 2.0])
 @pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-3, 5), np.arange(90)])
 def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
-    from appliance.estimator.search import ssd_coarse
+    from appliance.estimator.coarse_kernels import ssd_coarse
 
     rng = np.random.default_rng(8)
     n, d = 200, 90

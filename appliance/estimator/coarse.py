@@ -17,9 +17,9 @@ import numpy as np
 
 from appliance.errors import InputError
 from appliance.estimator import parallax
+from appliance.estimator.coarse_kernels import box_decimate, ssd_coarse, ssd_coarse_best
 from appliance.estimator.likelihood import best_column_bounds
 from appliance.estimator.measurement import Measurement
-from appliance.estimator.search import box_decimate, ssd_coarse, ssd_coarse_best
 from appliance.estimator.skyline_grid import COARSE_STRIDE, SkylineGrid
 
 

@@ -15,8 +15,8 @@ from functools import cached_property
 import numpy as np
 
 from appliance.estimator import parallax
-from appliance.estimator.exact import Terrain
-from appliance.estimator.search import decimated
+from appliance.estimator.coarse_kernels import decimated
+from appliance.estimator.raycast import Terrain
 
 #: The first pass scores skylines averaged over runs of this many azimuths.
 COARSE_STRIDE = 4
