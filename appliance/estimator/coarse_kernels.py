@@ -16,6 +16,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from appliance.estimator.likelihood import is_occluded, kernel_cap
 from appliance.estimator.search import BLOCK, MAX_MISSING_FRACTION, MISSING_CODE
 from appliance.numerics import FAST_FINITE
 
@@ -100,7 +101,7 @@ def _gappy_shift(row: np.ndarray, ww: np.ndarray, mt: np.ndarray, w: np.ndarray,
         if w[t] > 0 and c != MISSING_CODE:
             e = mt[t] - np.float32(c)
             q = ww[ts] * e * e
-            if e > 0 and q > cap_c:
+            if is_occluded(e, q, cap_c):
                 occ += w[t]
             else:
                 acc += w[t] * q
@@ -159,17 +160,17 @@ def _three_shifts(mt: np.ndarray, w: np.ndarray, c0: np.ndarray, c1: np.ndarray,
         wt = w[t]
         e = mm - c0[t]
         q = v0[t] * e * e
-        h = e > 0 and q > cap_c
+        h = is_occluded(e, q, cap_c)
         a0 += wt * (np.float32(0.0) if h else q)
         o0 += wt if h else np.float32(0.0)
         e = mm - c1[t]
         q = v1[t] * e * e
-        h = e > 0 and q > cap_c
+        h = is_occluded(e, q, cap_c)
         a1 += wt * (np.float32(0.0) if h else q)
         o1 += wt if h else np.float32(0.0)
         e = mm - c2[t]
         q = v2[t] * e * e
-        h = e > 0 and q > cap_c
+        h = is_occluded(e, q, cap_c)
         a2 += wt * (np.float32(0.0) if h else q)
         o2 += wt if h else np.float32(0.0)
     return a0, a1, a2, o0, o1, o2
@@ -297,7 +298,7 @@ def _add_singles(mt: np.ndarray, w: np.ndarray, cf: np.ndarray, vf: np.ndarray, 
             for k in range(k_pad):
                 e = mtt - c_t[k]
                 q = v_t[k] * e * e
-                hidden = e > 0 and q > cap_c
+                hidden = is_occluded(e, q, cap_c)
                 acc[k] += wt * (np.float32(0.0) if hidden else q)
                 occ[k] += wt if hidden else np.float32(0.0)
         else:
@@ -427,7 +428,7 @@ def ssd_coarse_best(
     arg = np.empty(n, dtype=np.int64)
     pen = np.empty(n, dtype=np.float32)
     _ssd_coarse_best(C, offset_deg, step_deg, partial, m, w, out, occ, arg, T, lut_w, lut_p, use, pen,
-                     float(min(cap_deg2, 1e30)), math.isfinite(cap_deg2))
+                     kernel_cap(cap_deg2), math.isfinite(cap_deg2))
     return out, occ, arg, pen
 
 
@@ -447,7 +448,7 @@ def ssd_coarse(
     pen = np.empty(C.shape[0], dtype=np.float32)
     occ = np.empty_like(out) if occluded is None else occluded
     _ssd_coarse(C, offset_deg, step_deg, partial, m, w, np.asarray(shifts, dtype=np.int64), out, T, lut_w, lut_p,
-                use, pen, float(min(cap_deg2, 1e30)), occ)
+                use, pen, kernel_cap(cap_deg2), occ)
     return out, pen
 
 

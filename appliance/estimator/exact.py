@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from appliance.estimator.likelihood import kernel_cap, occluded_mask, variance_weighted
 from appliance.estimator.raycast import Terrain, bilinear, render
 
 DEG = 180.0 / math.pi
@@ -67,26 +68,26 @@ class Model:
         u = self.weights_for(valid)
         if self.map_sigma_m > 0.0:
             m2 = (DEG * self.map_sigma_m / np.maximum(distance_m, 1.0)) ** 2
-            u = u * sigma_deg**2 / (sigma_deg**2 + m2)
+            u = variance_weighted(u, sigma_deg, m2)
         return u
 
     def hidden(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The measurements taken for occluders: above the render (residual ``r`` > 0) by more than
         the cap (weighted square u r^2)."""
-        return (r > 0) & (u * r * r > self.cap_deg2)
+        return occluded_mask(r, u * r * r, self.cap_deg2)
 
     def split(self, r: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Over the last axis: the sum of u r^2 over the measurements the terrain explains, and the
         weight of those above it by more than the cap (occluders)."""
         q = u * r * r
-        hidden = (r > 0) & (q > self.cap_deg2)
+        hidden = occluded_mask(r, q, self.cap_deg2)
         return np.sum(np.where(hidden, 0.0, q), axis=-1), np.sum(np.where(hidden, u, 0.0), axis=-1)
 
     def cost(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Sum over the last axis of u r^2, each occluded term counting the cap: the residual sum at
         sigma's reference, which ranks trial positions and headings."""
         ssd, occ = self.split(r, u)
-        return ssd + occ * min(self.cap_deg2, 1e30)
+        return ssd + occ * kernel_cap(self.cap_deg2)
 
 
 @dataclass(frozen=True)

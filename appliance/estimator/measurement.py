@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from appliance.errors import InputError
-from appliance.estimator.likelihood import occlusion_cap_deg2
+from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint, valid_sigma_interval
 
 if TYPE_CHECKING:
     from appliance.estimator.skyline_grid import SkylineGrid
@@ -57,7 +57,7 @@ def measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarra
     """Step 1: the measured skyline (deg) and its weights (0..1) resampled onto the grid's azimuths,
     the arguments checked (InputError), and sigma's midpoint (deg) and the occlusion cap (deg^2)."""
     sig_lo, sig_hi = float(sigma_deg[0]), float(sigma_deg[1])
-    if not 0 < sig_lo <= sig_hi:
+    if not valid_sigma_interval(sig_lo, sig_hi):
         raise InputError(f"sigma interval [{sig_lo}, {sig_hi}] must satisfy 0 < lo <= hi")
     n_az = grid.n_azimuths
     if weights is not None:
@@ -77,7 +77,7 @@ def measure(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarra
             f"skyline covers {n * step:.0f} deg of azimuth ({n} valid azimuths of {n_az}), "
             f"less than the {min_field_of_view_deg:.0f} deg needed to locate anything"
         )
-    sig_ref = 0.5 * (sig_lo + sig_hi)
+    sig_ref = sigma_midpoint(sig_lo, sig_hi)
     return Measurement(m, w_grid, valid, n, float(w_grid.sum()), sig_lo, sig_hi, sig_ref,
                         occlusion_cap_deg2(occlusion_weight, sig_ref), occlusion_weight, map_sigma_m)
 

@@ -16,7 +16,7 @@ import numpy as np
 from appliance.estimator import confidence
 from appliance.estimator.exact import Fit, Model, PositionPrior, marginal_position_covariance
 from appliance.estimator.exact import refine as refine_exact
-from appliance.estimator.likelihood import occlusion_cap_deg2
+from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint
 from appliance.estimator.measurement import Measurement
 from appliance.estimator.posteriors import SAME_ANSWER_CELLS, fit_bounds
 from appliance.estimator.skyline_grid import SkylineGrid, nearest_node
@@ -38,7 +38,7 @@ def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[
     lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
     temper = min(1.0, independent / max(float(np.isfinite(r).sum()), 1.0))
     learned = Measurement(meas.elevation_deg, meas.weight, meas.valid, meas.n_valid, meas.n_eff, lo, hi,
-                          0.5 * (lo + hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)
+                          sigma_midpoint(lo, hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)
     return learned, temper
 
 

@@ -29,6 +29,7 @@ import math
 import numba
 import numpy as np
 
+from appliance.estimator.likelihood import is_occluded, variance_log_normaliser, variance_tables, variance_weight
 from appliance.numerics import FAST_FINITE
 
 MISSING_CODE = 255
@@ -127,8 +128,7 @@ def tau2_tables(sigma_ref_deg: float) -> tuple[np.ndarray, np.ndarray]:
     log-normaliser log(1 + tau^2 / sigma^2) that the wider Gaussian pays."""
     tau2 = TAU2_MIN_DEG2 * np.exp(TAU2_LOG_STEP * np.arange(256, dtype=np.float64))
     tau2[0] = 0.0
-    r = tau2 / (sigma_ref_deg * sigma_ref_deg)
-    return (1.0 / (1.0 + r)).astype(np.float32), np.log1p(r).astype(np.float32)
+    return variance_tables(tau2, sigma_ref_deg)
 
 
 #: The share of the parallax model's spread left once a node's skyline is moved by its own
@@ -235,9 +235,9 @@ def _normal_equations(codes: np.ndarray, dist: np.ndarray, i: int, o: float, st:
         res = mj[t] - e_deg
         t2 = lin2 * tau2_at(codes, dist, i, idx, n_az, o, st, az_step, g2, rho2, inv_d2)
         t2 += map_var_at(dist, i, idx, map2, inv_d2)
-        w = sig2 / (sig2 + t2)
-        p += wj[t] * math.log1p(t2 / sig2)
-        if res > 0.0 and w * res * res > cap:
+        w = variance_weight(sig2, t2)
+        p += wj[t] * variance_log_normaliser(sig2, t2)
+        if is_occluded(res, w * res * res, cap):
             occ += wj[t]
             continue
         w *= wj[t]

@@ -15,7 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from appliance.estimator.exact import Fit, PositionPrior
-from appliance.estimator.likelihood import mixture_log_likelihood, mixture_log_likelihood_bounds, posterior_bounds
+from appliance.estimator.likelihood import (
+    mixture_log_likelihood,
+    mixture_log_likelihood_bounds,
+    posterior_bounds,
+    sigma_midpoint,
+)
 from appliance.estimator.measurement import Measurement
 from appliance.estimator.rescore import Plausible, Rescored
 from appliance.estimator.skyline_grid import SkylineGrid, nearest_node
@@ -75,7 +80,7 @@ def posteriors(meas: Measurement, lp: np.ndarray, plausible: Plausible, rescored
 
     # a precise posterior at sigma's midpoint, marginal over heading: what fusion carries forward
     # (nil at the nodes not rescored)
-    mid = 0.5 * (sig_lo + sig_hi)
+    mid = sigma_midpoint(sig_lo, sig_hi)
     ll_mid = temper * mixture_log_likelihood(ssd_r, n_eff, occ_r, mid, occlusion_weight) + lp_r
     node_mid_r = np.logaddexp.reduce(np.where(np.isfinite(ll_mid), ll_mid, -np.inf), axis=1)
     log_sum_mid = float(np.logaddexp.reduce(node_mid_r))

@@ -21,7 +21,7 @@ import numpy as np
 from appliance.estimator.exact import Fit, Model, PositionPrior
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.exact import screen as screen_exact
-from appliance.estimator.likelihood import occlusion_cap_deg2
+from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint
 from appliance.estimator.measurement import Measurement
 from appliance.estimator.posteriors import Answer, Posteriors, most_likely_fit
 from appliance.estimator.rescore import Rescored
@@ -255,7 +255,7 @@ def _subcell_answer(grid: SkylineGrid, meas: Measurement, lp: np.ndarray, rescor
     the database's skylines (``subcell.py``); the fit of the best likelihood at sigma's midpoint plus
     the prior of its nearest node is kept, else the grid's ``answer``."""
     n_az, step, n, rescore = grid.n_azimuths, grid.az_step_deg, meas.n_valid, rescored.nodes
-    mid = 0.5 * (meas.sigma_lo_deg + meas.sigma_hi_deg)
+    mid = sigma_midpoint(meas.sigma_lo_deg, meas.sigma_hi_deg)
     order = np.argsort(-post.node_lower[scored])[:REFINE_NODES]
     tries = [post.best_node] + [int(v) for v in scored[order] if int(v) != post.best_node]
     best_blend = (-math.inf, answer.rms_deg, answer.row, answer.col, answer.heading_deg)

@@ -15,7 +15,7 @@ import numpy as np
 
 from appliance.errors import EstimationError
 from appliance.estimator import parallax
-from appliance.estimator.likelihood import capped_cost
+from appliance.estimator.likelihood import capped_cost, kernel_cap
 from appliance.estimator.measurement import Measurement
 from appliance.estimator.search import TauModel, ssd_for_shifts
 from appliance.estimator.skyline_grid import SkylineGrid
@@ -121,6 +121,6 @@ def _linearised(grid: SkylineGrid, m: np.ndarray, w: np.ndarray, rows: np.ndarra
     parallax.linearised_fit(grid.codes, grid.distance_codes, grid.offset_deg, grid.step_deg, ge, gn, gamma, jj, mj,
                             np.asarray(rows, dtype=np.int64), np.asarray(shifts, dtype=np.int64), grid.rho2_m2,
                             grid.inverse_range2, sig_ref * sig_ref, parallax.LINEARISED_SCALE**2, half * half,
-                            grid.az_step_deg**2, w[jj].astype(np.float64), float(min(cap, 1e30)),
+                            grid.az_step_deg**2, w[jj].astype(np.float64), kernel_cap(cap),
                             map_sigma_m * map_sigma_m, out, pen, moves, occ)
     return out, pen, moves, occ

@@ -22,6 +22,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from appliance.estimator.likelihood import is_occluded, kernel_cap, variance_weight
 from appliance.estimator.parallax import map_var_at, tau2_at
 from appliance.numerics import FAST_FINITE
 
@@ -38,7 +39,7 @@ def _tau_weights(codes: np.ndarray, dist: np.ndarray, i: int, lo: int, hi: int, 
     for j in range(lo, hi):
         t2 = tau2_at(codes, dist, i, j, n_az, o, st, az_step, g2, rho2, inv_d2)
         t2 += map_var_at(dist, i, j, map2, inv_d2)
-        wn[j] = np.float32(sig2 / (sig2 + t2))
+        wn[j] = np.float32(variance_weight(sig2, t2))
 
 
 @numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
@@ -97,7 +98,7 @@ def _shift_sum(codes: np.ndarray, i: int, sh: int, jj: np.ndarray, mt: np.ndarra
         if c != MISSING_CODE:
             d = mt[t] - np.float32(c)
             q = wn[idx] * d * d
-            if d > 0 and q > cap_c:
+            if is_occluded(d, q, cap_c):
                 occ += wj[t]
             else:
                 acc += wj[t] * q
@@ -188,7 +189,7 @@ def ssd_for_shifts(
     jj = np.nonzero(valid)[0].astype(np.int64)
     mj = np.asarray(measured_deg)[jj].astype(np.float32)
     wj = np.ones(jj.size, np.float32) if weights is None else np.asarray(weights, np.float32)[jj]
-    cap = float(min(cap_deg2, 1e30))
+    cap = kernel_cap(cap_deg2)
     idx = np.arange(codes.shape[0], dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     sh = np.asarray(shifts, dtype=np.int64)
     if sh.ndim == 1:
