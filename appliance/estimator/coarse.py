@@ -1,8 +1,8 @@
 """Step 2's first pass: every node scored cheaply, on skylines averaged over runs of azimuths.
 
-Every node is scored on skylines averaged over runs of COARSE_STRIDE azimuths (``search.py``'s
-compiled kernels): with a compass, at the runs' headings across the compass's tolerance; with none,
-at every heading, keeping each node's best.  Each node's first-pass score bounds its likelihood
+Every node is scored on skylines averaged over runs of COARSE_STRIDE azimuths (the compiled
+kernels of ``coarse_kernels.py``): with a compass, at the runs' headings across the compass's
+tolerance; with none, at every heading, keeping each node's best.  Each node's first-pass score bounds its likelihood
 (:func:`first_pass_bounds`); the plausible nodes are then rescored on every azimuth
 (``rescore.py``), and the nodes left here keep their first-pass bounds in the posterior's sums.
 """

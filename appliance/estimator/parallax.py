@@ -19,7 +19,7 @@ independent,
 The likelihood of a node then uses sigma^2 + tau^2 per azimuth (in quadrature with the sensor's
 sigma): a near ridge counts for little in the grid search, a far one fully, and the true node is
 never ruled out by the parallax of the walls around it.  The exact answer between nodes comes
-from the refinement (``refine.py``), which renders the terrain itself.
+from the exact fit (``exact.py``), which renders the terrain itself.
 """
 
 from __future__ import annotations

@@ -1,4 +1,7 @@
-"""Sub-cell refinement of the best candidate.
+"""Sub-cell refinement between the database's skylines, for a grid without terrain.
+
+With terrain the answer is refined on exact renders (``exact.py``); without, ``refinement.py`` falls
+back to this.
 
 The paper's answer was a grid node, so its error could not fall below the grid's spacing.  Here the
 skyline at a point between nodes is taken as the bilinear blend of the skylines of the nodes
