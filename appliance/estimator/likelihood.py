@@ -111,6 +111,23 @@ def posterior_bounds(log_lo: np.ndarray, log_up: np.ndarray, log_prior: np.ndarr
     return PosteriorBounds(log_lower.reshape(log_lo.shape), log_upper.reshape(log_lo.shape))
 
 
+def log_upper_with_others(log_upper: np.ndarray, log_upper_unnormalised: np.ndarray,
+                          log_others_lower: float) -> np.ndarray:
+    """An upper bound on candidates' upper posterior (nats) once others join the ones it was
+    normalised over (the candidates of other grids), from the upper posterior among its own and the
+    unnormalised one (nats, on the scale of ``log_others_lower``, the others' summed unnormalised
+    lower posterior O).
+
+    Among its own a candidate's upper posterior is u = b / (b + S - a), with b and a its unnormalised
+    upper and lower posterior and S the summed lower ones; with the others O joins the denominator,
+    so 1 / g = 1 / u + O / b exactly.  For no others (O = 0) g is u."""
+    lu = np.minimum(np.asarray(log_upper, dtype=np.float64), 0.0)
+    if log_others_lower == -math.inf:
+        return lu
+    lb = np.asarray(log_upper_unnormalised, dtype=np.float64)
+    return -np.logaddexp(-lu, log_others_lower - lb)
+
+
 #: The span (deg) above the terrain over which an occluder's top may lie, for the occlusion component.
 OCCLUDER_SPAN_DEG = 20.0
 
