@@ -28,7 +28,6 @@ The table is added to bench/results/first_pass_pruning.md.
 from __future__ import annotations
 
 import functools
-import importlib
 import math
 import os
 import resource
@@ -44,9 +43,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from appliance.estimator import parallax  # noqa: E402
-from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, best_column_bounds  # noqa: E402
-from appliance.estimator.search import (  # noqa: E402
+from appliance.estimator import COARSE_STRIDE, estimate, parallax  # noqa: E402
+from appliance.estimator.coarse_kernels import (  # noqa: E402
     BLOCK,
     SHIFT_RUN,
     _code_units,
@@ -54,12 +52,14 @@ from appliance.estimator.search import (  # noqa: E402
     box_decimate,
     ssd_coarse_best,
 )
+from appliance.estimator.likelihood import OCCLUDER_SPAN_DEG, best_column_bounds  # noqa: E402
+from appliance.estimator.measurement import measure  # noqa: E402
+from appliance.estimator.rescore import RESCORE_MARGIN_NATS  # noqa: E402
 from appliance.locating.position import skyline_grid  # noqa: E402
 from appliance.numerics import FAST_FINITE  # noqa: E402
 from bench.estimator_speed import bench_skyline, tile_database  # noqa: E402
 from bench.results_file import append_result  # noqa: E402
 
-EST = importlib.import_module("appliance.estimator.estimate")
 MARGINS_NATS = (250.0, 1000.0)
 #: float32 sums of the bounds may exceed the full sums by a few units in the last place
 ROUNDING = 1.0 - 1e-4
@@ -316,9 +316,9 @@ def main() -> int:
     rows = []
     for sigma in ((0.3, 0.8), (0.5, 2.0), (1.0, 3.0)):
         for weight in (0.0, 0.1):
-            meas = EST._measure(g, az, el, sigma, None, weight, 0.0, 20.0)
-            m_dec = box_decimate(meas.elevation_deg, EST.COARSE_STRIDE)
-            w_nan = box_decimate(np.where(meas.valid, meas.weight, np.nan), EST.COARSE_STRIDE)
+            meas = measure(g, az, el, sigma, None, weight, 0.0, 20.0)
+            m_dec = box_decimate(meas.elevation_deg, COARSE_STRIDE)
+            w_nan = box_decimate(np.where(meas.valid, meas.weight, np.nan), COARSE_STRIDE)
             w_dec = np.nan_to_num(w_nan).astype(np.float32)
             scale = meas.n_eff / max(float(np.nansum(w_nan)), 1e-9)
             tau = (g.coarse_tau2(0.0), *parallax.tau2_tables(meas.sigma_ref_deg))
@@ -329,9 +329,9 @@ def main() -> int:
             lo, up, _ = best_column_bounds((s * np.float32(scale))[:, None], (o * np.float32(scale))[:, None], pen64,
                                            np.zeros(s.size), cap, meas.n_eff, sigma[0], sigma[1], weight)
             best_lo = float(np.max(lo))
-            res = EST.estimate(g, az, el, sigma, None, occlusion_weight=weight, refine=False)
+            res = estimate(g, az, el, sigma, None, occlusion_weight=weight, refine=False)
             region_at = res.log_lower + res.log_evidence_lower
-            needed = float(np.mean(up >= min(region_at, best_lo - EST.RESCORE_MARGIN_NATS)))
+            needed = float(np.mean(up >= min(region_at, best_lo - RESCORE_MARGIN_NATS)))
             cells = [f"{sigma[0]}-{sigma[1]}", f"{weight}", f"{needed:.1%}", f"{best_lo - region_at:.0f}"]
             cap32 = np.float32(min(cap, 1e30))
             d = m_dec.size

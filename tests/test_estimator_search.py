@@ -43,10 +43,8 @@ def reading(true_el: np.ndarray, correction_deg: float, rng, noise=0.0, missing=
 
 
 def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(monkeypatch):
-    import importlib
-
-    est = importlib.import_module("appliance.estimator.estimate")
-    from appliance.estimator.search import ssd_coarse
+    from appliance.estimator import coarse
+    from appliance.estimator.coarse_kernels import box_decimate, ssd_coarse
 
     g = make_grid(6, 7)
     rng = np.random.default_rng(1)
@@ -54,18 +52,18 @@ def test_every_heading_first_pass_keeps_each_nodes_best_heading_across_blocks(mo
     m[rng.choice(N_AZ, 40, replace=False)] = np.nan
     valid = np.isfinite(m)
     w = valid.astype(float)
-    monkeypatch.setattr(est, "HEADING_BLOCK_NODES", 5)  # 42 nodes in blocks of 5
-    score, _, _, band, centre, n_az = est._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3,
-                                                                   math.inf, 0.0)
-    m_dec = est.box_decimate(m, est.COARSE_STRIDE)
-    w_dec = np.nan_to_num(est.box_decimate(np.where(valid, w, np.nan), est.COARSE_STRIDE))
+    monkeypatch.setattr(coarse, "HEADING_BLOCK_NODES", 5)  # 42 nodes in blocks of 5
+    score, _, _, band, centre, n_az = coarse._every_heading_first_pass(g, m, valid, w, float(valid.sum()), 0.3,
+                                                                      math.inf, 0.0)
+    m_dec = box_decimate(m, coarse.COARSE_STRIDE)
+    w_dec = np.nan_to_num(box_decimate(np.where(valid, w, np.nan), coarse.COARSE_STRIDE))
     occ = np.empty((g.codes.shape[0], m_dec.size), dtype=np.float32)
     direct, _ = ssd_coarse(g.coarse, g.offset_deg, g.step_deg, m_dec, np.arange(m_dec.size), None, w_dec,
                            math.inf, occ)
     scale = N_AZ / np.nansum(w_dec) * valid.sum() / N_AZ
     assert np.allclose(score[:, 0], direct.min(axis=1) * scale, rtol=1e-5)
     # the band to rescore is centred on the best coarse heading
-    best = np.argmin(direct, axis=1) * est.COARSE_STRIDE
+    best = np.argmin(direct, axis=1) * coarse.COARSE_STRIDE
     assert np.array_equal(centre % n_az, best % N_AZ)
     assert np.array_equal(band, np.arange(-band.size // 2 + 1, band.size // 2 + 1))
 
@@ -199,7 +197,7 @@ def _every_shift_reference(C, off, step, m, w, T, w_lut, p_lut, cap):
 
 @pytest.mark.parametrize("cap", [math.inf, 2.0])
 def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
-    from appliance.estimator.search import ssd_coarse_best
+    from appliance.estimator.coarse_kernels import ssd_coarse_best
 
     rng = np.random.default_rng(7)
     n, d = 300, 90
@@ -243,7 +241,7 @@ def test_every_shift_kernel_keeps_the_best_shift_of_a_numpy_reference(cap):
 def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_reference(view):
     """A view of a few runs of azimuths (one across the circle's seam): the azimuths not measured
     are skipped in pairs, and the sums, best shifts and normalisers are still the reference's."""
-    from appliance.estimator.search import ssd_coarse_best
+    from appliance.estimator.coarse_kernels import ssd_coarse_best
 
     rng = np.random.default_rng(11)
     n, d = 200, 90
@@ -278,7 +276,7 @@ def test_every_shift_kernel_on_a_narrow_view_keeps_the_best_shift_of_a_numpy_ref
 @pytest.mark.parametrize("cap", [math.inf, 2.0])
 @pytest.mark.parametrize("shifts", [np.arange(-1, 2), np.arange(-3, 5), np.arange(90)])
 def test_compass_kernel_matches_a_numpy_reference(cap, shifts):
-    from appliance.estimator.search import ssd_coarse
+    from appliance.estimator.coarse_kernels import ssd_coarse
 
     rng = np.random.default_rng(8)
     n, d = 200, 90

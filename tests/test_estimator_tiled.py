@@ -16,7 +16,7 @@ from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
-from appliance.estimator.estimate import MIN_RESCORE, RESCORE_MARGIN_NATS
+from appliance.estimator.rescore import MIN_RESCORE, RESCORE_MARGIN_NATS
 from appliance.locating import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
 from appliance.locating.position import locate, skyline_grid
 from appliance.locating.tile_cache import SearchParams

@@ -41,7 +41,8 @@ LOG = logging.getLogger(__name__)
 #: the server: the tiled search, the estimate's files, numpy.ma (rasterio's masks), multiprocessing
 #: (the thread pools' locks), and what numba's runtime imports when a parallel kernel loads.
 WARM_MODULES = ("appliance.locating.tiled_search", "appliance.outputs.report", "numpy.ma",
-                "multiprocessing.synchronize", "numba.cpython.charseq", "numba.cpython.randomimpl", "numba.misc.mergesort")
+                "multiprocessing.synchronize", "numba.cpython.charseq", "numba.cpython.randomimpl",
+                "numba.misc.mergesort")
 #: Seconds between the server's checks for finished workers and a request to stop.
 POLL_S = 0.5
 #: How long a stopping server waits for its spare workers to end before killing them (s).

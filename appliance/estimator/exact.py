@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
-from appliance.estimator.raycast import BLOCK_CELLS, bilinear, block_maxima, march, ray_distances
+from appliance.estimator.likelihood import kernel_cap, occluded_mask, variance_weighted
+from appliance.estimator.raycast import Terrain, bilinear, render
 
 DEG = 180.0 / math.pi
 MAX_ITERATIONS = 10
@@ -29,9 +29,6 @@ MAX_ITERATIONS = 10
 #: below which the fit has converged.
 MAX_REJECTIONS = 3
 STOP_REDUCTION = 0.005
-#: The looks' distance schedule (``Terrain.look_distances``).
-LOOK_RELATIVE_STEP = 0.02
-LOOK_COARSE_CELLS = 1.0
 #: The map's height error under the camera (m, one sigma): the eye's height floats this much.
 EYE_SIGMA_M = 2.0
 #: A fit whose RMS residual is within this many sigma is at the noise: annealing stops there.
@@ -45,53 +42,6 @@ ANNEAL = 0.1
 SCREEN_SCAN_DEG = 8.0
 #: How far (cells) a fit may wander from the node it started at.
 MAX_OFFSET_CELLS = 2.0
-
-
-@dataclass(frozen=True)
-class Terrain:
-    """The heights under a node grid, for exact renders between nodes.
-
-    ``heights_m`` has the node grid's spacing; candidate node (0, 0) is its (row0, col0).
-    ``convergence_deg[node]`` is the true azimuth of grid north at the node.
-
-    With an ``outer`` grid (``outer_ratio`` times coarser, both grids square, of odd size and
-    centred on the same point), this one is marched out to ``near_reach_m`` and the outer one beyond: fine
-    heights near the eye, where a camera close to the ground sees the slopes under it, and coarse
-    ones farther away, where a cell subtends little."""
-
-    heights_m: np.ndarray
-    row0: int
-    col0: int
-    convergence_deg: np.ndarray
-    height_m: float
-    r_eff_m: float
-    reach_m: float
-    outer: Terrain | None = None
-    outer_ratio: float = 1.0
-    near_reach_m: float = math.inf
-
-    def outer_rc(self, row: float, col: float) -> tuple[float, float]:
-        """The outer grid's fractional (row, col) of this grid's (row, col) (heights' indices)."""
-        assert self.outer is not None
-        c_in = 0.5 * (self.heights_m.shape[0] - 1)
-        c_out = 0.5 * (self.outer.heights_m.shape[0] - 1)
-        return c_out + (row - c_in) / self.outer_ratio, c_out + (col - c_in) / self.outer_ratio
-
-    @cached_property
-    def block_max(self) -> np.ndarray:
-        return block_maxima(self.heights64)
-
-    @cached_property
-    def heights64(self) -> np.ndarray:
-        return np.ascontiguousarray(self.heights_m, dtype=np.float64)
-
-    def distances(self, cell_m: float) -> np.ndarray:
-        return ray_distances(cell_m, self.reach_m)
-
-    def look_distances(self, cell_m: float) -> np.ndarray:
-        """A coarser schedule for looks (two per cent of the distance, a cell at most): a quarter
-        of the samples on a large map, angular errors of a few hundredths of a degree."""
-        return ray_distances(cell_m, self.reach_m, relative=LOOK_RELATIVE_STEP, coarse_cells=LOOK_COARSE_CELLS)
 
 
 @dataclass(frozen=True)
@@ -118,21 +68,26 @@ class Model:
         u = self.weights_for(valid)
         if self.map_sigma_m > 0.0:
             m2 = (DEG * self.map_sigma_m / np.maximum(distance_m, 1.0)) ** 2
-            u = u * sigma_deg**2 / (sigma_deg**2 + m2)
+            u = variance_weighted(u, sigma_deg, m2)
         return u
+
+    def hidden(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The measurements taken for occluders: above the render (residual ``r`` > 0) by more than
+        the cap (weighted square u r^2)."""
+        return occluded_mask(r, u * r * r, self.cap_deg2)
 
     def split(self, r: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Over the last axis: the sum of u r^2 over the measurements the terrain explains, and the
         weight of those above it by more than the cap (occluders)."""
         q = u * r * r
-        hidden = (r > 0) & (q > self.cap_deg2)
+        hidden = occluded_mask(r, q, self.cap_deg2)
         return np.sum(np.where(hidden, 0.0, q), axis=-1), np.sum(np.where(hidden, u, 0.0), axis=-1)
 
     def cost(self, r: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Sum over the last axis of u r^2, each occluded term counting the cap: the residual sum at
         sigma's reference, which ranks trial positions and headings."""
         ssd, occ = self.split(r, u)
-        return ssd + occ * min(self.cap_deg2, 1e30)
+        return ssd + occ * kernel_cap(self.cap_deg2)
 
 
 @dataclass(frozen=True)
@@ -177,40 +132,6 @@ class Fit:
     @property
     def rms_deg(self) -> float:
         return math.sqrt(self.ssd / max(self.n, 1))
-
-
-def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
-           dist: np.ndarray, height_m: float, outer_looks: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Elevation (deg), range (m) per grid azimuth and ground height from fractional node (row, col).
-
-    ``dist`` is the ray's schedule on this grid; an outer grid is sampled on its own
-    :meth:`Terrain.distances`, or with ``outer_looks`` on the looks' coarser schedule."""
-    Z = terrain.heights64
-    tr, tc = row + terrain.row0, col + terrain.col0
-    ground = bilinear(Z, tr, tc)
-    tan = np.empty(grid_azimuth_deg.size)
-    far = np.empty(grid_azimuth_deg.size)
-    if not math.isfinite(ground):
-        return np.full(grid_azimuth_deg.size, np.nan), far, ground
-    az = np.radians(grid_azimuth_deg)
-    outer = terrain.outer
-    if outer is None:
-        march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
-              tan, far)
-        return np.degrees(np.arctan(tan)), far, ground
-    march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
-          terrain.block_max, BLOCK_CELLS, tan, far)
-    ratio = terrain.outer_ratio
-    outer_cell = min(dx_m, dy_m) * ratio
-    beyond = outer.look_distances(outer_cell) if outer_looks else outer.distances(outer_cell)
-    tan_o = np.empty(az.size)
-    far_o = np.empty(az.size)
-    march(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
-          beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
-    take = np.isfinite(tan_o) & ~(tan >= tan_o)
-    tan = np.where(take, tan_o, tan)
-    far = np.where(take, far_o, far)
-    return np.degrees(np.arctan(tan)), far, ground
 
 
 def _gradient(terrain: Terrain, row: float, col: float, dx_m: float, dy_m: float) -> tuple[float, float]:
@@ -336,82 +257,129 @@ def refine(
     spread when the annealing starts (below).  With ``tilt_sigma_deg`` > 0 the head's residual tilt is
     fitted too: two more parameters, the elevation change t1 cos(a) + t2 sin(a) over the sensor's
     azimuth a (a pitch and a roll of the levelled head), each under a Gaussian prior of that sigma (deg)."""
-    mdl = Model() if model is None else model
-    n_az = measured.size
-    step = 360.0 / n_az
-    az = np.arange(n_az) * step
-    valid = np.isfinite(measured)
-    n_valid = int(valid.sum())
-    h_m = terrain.height_m if height_m is None else float(height_m)
-    dist = terrain.distances(min(dx_m, dy_m))
-    gamma = float(terrain.convergence_deg[node_row * n_cols + node_col])
-    sig2 = sigma_deg * sigma_deg
-    lo_h, hi_h = heading_bounds_deg
-    tilted = tilt_sigma_deg > 0.0
-    tilt_basis = np.stack([np.cos(np.radians(az)), np.sin(np.radians(az))], axis=1) if tilted else np.zeros((n_az, 0))
-
-    def evaluate(p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        s, d, _ = render(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, dist, h_m + p[3])
-        ok = valid & np.isfinite(s) & np.isfinite(d)
-        r = np.where(ok, measured - np.where(ok, s + tilt_basis @ p[4:], 0.0), 0.0)
-        if ok.sum() < 0.9 * n_valid or not ok.any():
-            return math.inf, r, s, d, ok
-        u = mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg)
-        return float(mdl.cost(r, u)) * n_valid / ok.sum(), r, s, d, ok
-
-    def clamp(q: np.ndarray) -> np.ndarray:
-        q[0] = min(max(q[0], node_row - max_offset_cells), node_row + max_offset_cells)
-        q[1] = min(max(q[1], node_col - max_offset_cells), node_col + max_offset_cells)
-        q[2] = min(max(q[2], lo_h), hi_h)
-        return q
-
+    fitter = _Fitter(terrain, dx_m, dy_m, measured, node_row, node_col, n_cols, height_m, sigma_deg,
+                     heading_bounds_deg, Model() if model is None else model, max_offset_cells, tilt_sigma_deg,
+                     position_prior)
     r0, c0 = (float(node_row), float(node_col)) if start is None else start
-    p = clamp(np.array([r0, c0, float(heading_deg), 0.0] + [0.0] * tilt_basis.shape[1]))
-    cost, r, s, d, ok = evaluate(p)
-    if not math.isfinite(cost):
+    here = fitter.trial(fitter.clamp(np.array([r0, c0, float(heading_deg), 0.0] + [0.0] * fitter.n_tilt)))
+    if not math.isfinite(here.cost):
         return None
     # Annealed weights: each azimuth counts by 1 / (sigma^2 + J var J^T), with var the spread of
     # the parameters still in doubt.  Far from the optimum the near ridges, whose skyline swings by
     # degrees within a cell, count for little and the far ones steer; as the fit closes in, the
     # spread shrinks and every azimuth counts fully.  Cauchy weights keep a ridge that jumped to
     # another one near the eye from pulling the fit.
-    eye2 = mdl.eye_sigma_m**2
-    spread = np.array([start_spread_cells**2, start_spread_cells**2, (0.5 * step) ** 2, eye2]
-                      + [tilt_sigma_deg**2] * tilt_basis.shape[1])
-    P = np.zeros((p.size, p.size))
-    P[3, 3] = 1.0 / eye2
-    if tilted:
-        P[4, 4] = P[5, 5] = 1.0 / tilt_sigma_deg**2
-    mu = np.zeros(p.size)
-    if position_prior is not None:
-        P[:2, :2] = position_prior.information
-        mu[:2] = position_prior.row, position_prior.col
-
-    def belief(q: np.ndarray) -> float:
-        dq = q - mu
-        dq[2] = 0.0
-        return float(dq @ P @ dq)
-
+    spread = np.array([start_spread_cells**2, start_spread_cells**2, (0.5 * fitter.step) ** 2, fitter.eye2]
+                      + [tilt_sigma_deg**2] * fitter.n_tilt)
     lam = 1e-3
     iterations = 0
     while iterations < MAX_ITERATIONS:
         iterations += 1
-        okd = ok & np.isfinite(d)
-        dd = np.where(okd, d, 1.0)
-        J_all = np.where(okd[:, None], np.hstack([jacobian(terrain, dx_m, dy_m, p[0], p[1], az + p[2] - gamma, s, dd),
-                                                  tilt_basis]), 0.0)
-        u = mdl.weights(ok, dd, sigma_deg)
-        var = sig2 + (J_all * J_all) @ spread
+        here, lam, improved = fitter.iterate(here, spread, lam)
+        annealing = bool(spread[0] > 1e-4)
+        spread *= ANNEAL
+        # done when no step helps and either the spread is spent or the fit is down to the noise
+        if not improved and (not annealing or here.cost <= (CONVERGED_NOISE * sigma_deg) ** 2 * fitter.n_valid):
+            break
+    return fitter.fit(here, iterations)
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """One trial of a fit: the parameters (row, col, heading, eye offset, tilts), their cost
+    (:meth:`Model.cost`, rescaled to the measured count; inf when too little is rendered), the
+    residuals (deg, 0 where not ``ok``), the rendered elevations (deg) and ranges (m)."""
+
+    p: np.ndarray
+    cost: float
+    r: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+    ok: np.ndarray
+
+
+class _Fitter:
+    """What one :func:`refine` holds fixed (its arguments, the azimuths, the schedule of the ray
+    march, the priors' information ``P`` about ``mu``), and its steps: a trial rendered, one
+    Levenberg-Marquardt iteration, and the fit made from the last trial."""
+
+    def __init__(self, terrain: Terrain, dx_m: float, dy_m: float, measured: np.ndarray, node_row: int,
+                 node_col: int, n_cols: int, height_m: float | None, sigma_deg: float,
+                 heading_bounds_deg: tuple[float, float], model: Model, max_offset_cells: float,
+                 tilt_sigma_deg: float, position_prior: PositionPrior | None) -> None:
+        self.terrain, self.dx_m, self.dy_m, self.measured, self.mdl = terrain, dx_m, dy_m, measured, model
+        self.node_row, self.node_col, self.max_offset_cells = node_row, node_col, max_offset_cells
+        self.sigma_deg, self.sig2, self.heading_bounds_deg = sigma_deg, sigma_deg * sigma_deg, heading_bounds_deg
+        n_az = measured.size
+        self.step = 360.0 / n_az
+        self.az = np.arange(n_az) * self.step
+        self.valid = np.isfinite(measured)
+        self.n_valid = int(self.valid.sum())
+        self.h_m = terrain.height_m if height_m is None else float(height_m)
+        self.dist = terrain.distances(min(dx_m, dy_m))
+        self.gamma = float(terrain.convergence_deg[node_row * n_cols + node_col])
+        self.tilt_sigma_deg, self.tilted = tilt_sigma_deg, tilt_sigma_deg > 0.0
+        self.tilt_basis = (np.stack([np.cos(np.radians(self.az)), np.sin(np.radians(self.az))], axis=1) if self.tilted
+                           else np.zeros((n_az, 0)))
+        self.n_tilt = self.tilt_basis.shape[1]
+        self.eye2 = self.mdl.eye_sigma_m**2
+        size = 4 + self.n_tilt
+        self.P = np.zeros((size, size))
+        self.P[3, 3] = 1.0 / self.eye2
+        if self.tilted:
+            self.P[4, 4] = self.P[5, 5] = 1.0 / tilt_sigma_deg**2
+        self.mu = np.zeros(size)
+        if position_prior is not None:
+            self.P[:2, :2] = position_prior.information
+            self.mu[:2] = position_prior.row, position_prior.col
+
+    def trial(self, p: np.ndarray) -> _Trial:
+        """The render at parameters ``p`` and its cost."""
+        s, d, _ = render(self.terrain, self.dx_m, self.dy_m, p[0], p[1], self.az + p[2] - self.gamma, self.dist,
+                         self.h_m + p[3])
+        ok = self.valid & np.isfinite(s) & np.isfinite(d)
+        r = np.where(ok, self.measured - np.where(ok, s + self.tilt_basis @ p[4:], 0.0), 0.0)
+        if ok.sum() < 0.9 * self.n_valid or not ok.any():
+            return _Trial(p, math.inf, r, s, d, ok)
+        u = self.mdl.weights(ok, np.where(ok, d, 1.0), self.sigma_deg)
+        return _Trial(p, float(self.mdl.cost(r, u)) * self.n_valid / ok.sum(), r, s, d, ok)
+
+    def clamp(self, q: np.ndarray) -> np.ndarray:
+        """``q`` held within the offset allowed from the node and the heading's bounds (in place)."""
+        q[0] = min(max(q[0], self.node_row - self.max_offset_cells), self.node_row + self.max_offset_cells)
+        q[1] = min(max(q[1], self.node_col - self.max_offset_cells), self.node_col + self.max_offset_cells)
+        q[2] = min(max(q[2], self.heading_bounds_deg[0]), self.heading_bounds_deg[1])
+        return q
+
+    def belief(self, q: np.ndarray) -> float:
+        """The priors' term at ``q`` (the heading has none)."""
+        dq = q - self.mu
+        dq[2] = 0.0
+        return float(dq @ self.P @ dq)
+
+    def jacobian(self, t: _Trial, grid_azimuth_deg: np.ndarray, okd: np.ndarray) -> np.ndarray:
+        """:func:`jacobian` at trial ``t`` with the tilts' columns, 0 where ``okd`` is not."""
+        J = jacobian(self.terrain, self.dx_m, self.dy_m, t.p[0], t.p[1], grid_azimuth_deg, t.s,
+                     np.where(okd, t.d, 1.0))
+        return np.where(okd[:, None], np.hstack([J, self.tilt_basis]), 0.0)
+
+    def iterate(self, t: _Trial, spread: np.ndarray, lam: float) -> tuple[_Trial, float, bool]:
+        """One iteration from trial ``t`` with the parameters' ``spread`` and damping ``lam``: the
+        trial it moves to (``t`` when no step helps), the damping after it, and whether it helped
+        enough to go on."""
+        okd = t.ok & np.isfinite(t.d)
+        J_all = self.jacobian(t, self.az + t.p[2] - self.gamma, okd)
+        u = self.mdl.weights(t.ok, np.where(okd, t.d, 1.0), self.sigma_deg)
+        var = self.sig2 + (J_all * J_all) @ spread
         # Cauchy weights keep a ridge that jumped to another one near the eye from pulling the fit;
         # an occluded azimuth does not pull at all
-        w_all = np.where(ok, u / (var * (1.0 + r * r / (ROBUST_SCALE**2 * var))), 0.0)
-        w_all = np.where((r > 0) & (u * r * r > mdl.cap_deg2), 0.0, w_all)
-        A = J_all.T @ (J_all * w_all[:, None]) + P
-        dp = p - mu
+        w_all = np.where(t.ok, u / (var * (1.0 + t.r * t.r / (ROBUST_SCALE**2 * var))), 0.0)
+        w_all = np.where(self.mdl.hidden(t.r, u), 0.0, w_all)
+        A = J_all.T @ (J_all * w_all[:, None]) + self.P
+        dp = t.p - self.mu
         dp[2] = 0.0
-        g = J_all.T @ (w_all * r) - P @ dp
-        here = float(np.sum(w_all * r * r)) + belief(p)
-        improved = False
+        g = J_all.T @ (w_all * t.r) - self.P @ dp
+        here = float(np.sum(w_all * t.r * t.r)) + self.belief(t.p)
         for _ in range(MAX_REJECTIONS):
             try:
                 delta = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
@@ -421,36 +389,30 @@ def refine(
             promised = float(2.0 * g @ delta - delta @ A @ delta)
             if promised < STOP_REDUCTION * here + 1e-12:
                 break
-            q = clamp(p + delta)
-            c2, r2, s2, d2, ok2 = evaluate(q)
-            there = float(np.sum(w_all * r2 * r2)) + belief(q)
-            if math.isfinite(c2) and there < here:
-                gain = here - there
-                p, cost, r, s, d, ok = q, c2, r2, s2, d2, ok2
-                lam = max(lam / 4.0, 1e-6)
-                improved = gain >= STOP_REDUCTION * there
-                break
+            moved = self.trial(self.clamp(t.p + delta))
+            there = float(np.sum(w_all * moved.r * moved.r)) + self.belief(moved.p)
+            if math.isfinite(moved.cost) and there < here:
+                return moved, max(lam / 4.0, 1e-6), here - there >= STOP_REDUCTION * there
             lam *= 8.0
-        annealing = bool(spread[0] > 1e-4)
-        spread *= ANNEAL
-        # done when no step helps and either the spread is spent or the fit is down to the noise
-        if not improved and (not annealing or cost <= (CONVERGED_NOISE * sigma_deg) ** 2 * n_valid):
-            break
-    # the eye's departure from the map's surface is paid for under its prior
-    u = mdl.weights(ok, np.where(ok, d, 1.0), sigma_deg)
-    ssd_u, occ_u = mdl.split(r, u)
-    k = n_valid / max(int(ok.sum()), 1)
-    ssd, occ = float(ssd_u) * k, float(occ_u) * k
-    okd = ok & np.isfinite(d)
-    explained = okd & ~((r > 0) & (u * r * r > mdl.cap_deg2))
-    J = np.where(okd[:, None], np.hstack([jacobian(terrain, dx_m, dy_m, p[0], p[1], az - gamma + p[2], s,
-                                                   np.where(okd, d, 1.0)), tilt_basis]), 0.0)
-    H = J.T @ (J * np.where(explained, u, 0.0)[:, None])
-    cov = _position_covariance(H, P, sig2, ssd, n_valid)
-    tilt_cost = sig2 * float(np.sum(p[4:] ** 2)) / tilt_sigma_deg**2 if tilted else 0.0
-    return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / eye2 + tilt_cost, n_valid,
-               iterations, float(p[3]), occ, cov, np.where(explained, r, np.nan), H, P.copy(),
-               (float(p[4]), float(p[5])) if tilted else (0.0, 0.0))
+        return t, lam, False
+
+    def fit(self, t: _Trial, iterations: int) -> Fit:
+        """The fit at trial ``t``: the eye's departure from the map's surface and the tilts paid for
+        under their priors, the covariance from the curvature over the azimuths the terrain explains."""
+        p, r, ok, sig2, n_valid = t.p, t.r, t.ok, self.sig2, self.n_valid
+        u = self.mdl.weights(ok, np.where(ok, t.d, 1.0), self.sigma_deg)
+        ssd_u, occ_u = self.mdl.split(r, u)
+        k = n_valid / max(int(ok.sum()), 1)
+        ssd, occ = float(ssd_u) * k, float(occ_u) * k
+        okd = ok & np.isfinite(t.d)
+        explained = okd & ~self.mdl.hidden(r, u)
+        J = self.jacobian(t, self.az - self.gamma + p[2], okd)
+        H = J.T @ (J * np.where(explained, u, 0.0)[:, None])
+        cov = _position_covariance(H, self.P, sig2, ssd, n_valid)
+        tilt_cost = sig2 * float(np.sum(p[4:] ** 2)) / self.tilt_sigma_deg**2 if self.tilted else 0.0
+        return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / self.eye2 + tilt_cost, n_valid,
+                   iterations, float(p[3]), occ, cov, np.where(explained, r, np.nan), H, self.P.copy(),
+                   (float(p[4]), float(p[5])) if self.tilted else (0.0, 0.0))
 
 
 def _position_covariance(H: np.ndarray, P: np.ndarray, sig2: float, ssd: float, n_valid: int) -> np.ndarray | None:

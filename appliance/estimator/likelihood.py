@@ -39,10 +39,21 @@ def log_likelihood(ssd: np.ndarray, n: float | np.ndarray, sigma_deg: float) -> 
     return -0.5 * n * (LOG_2PI + math.log(s2)) - ssd / (2.0 * s2)
 
 
+def valid_sigma_interval(sigma_lo: float, sigma_hi: float) -> bool:
+    """Whether [sigma_lo, sigma_hi] (deg) is an interval the bounds can be made over: 0 < lo <= hi."""
+    return 0 < sigma_lo <= sigma_hi
+
+
+def sigma_midpoint(sigma_lo: float, sigma_hi: float) -> float:
+    """Sigma's midpoint (deg): the one sigma of what needs one (the parallax model's weights, the
+    occlusion cap, the midpoint posterior)."""
+    return 0.5 * (sigma_lo + sigma_hi)
+
+
 def log_likelihood_bounds(ssd: np.ndarray, n: float | np.ndarray, sigma_lo: float,
                           sigma_hi: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper log-likelihood over sigma in [sigma_lo, sigma_hi] (deg)."""
-    if not 0 < sigma_lo <= sigma_hi:
+    if not valid_sigma_interval(sigma_lo, sigma_hi):
         raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
     star = np.sqrt(np.maximum(ssd, 0.0) / np.maximum(n, 1))
     s_best = np.clip(star, sigma_lo, sigma_hi)
@@ -100,6 +111,23 @@ def posterior_bounds(log_lo: np.ndarray, log_up: np.ndarray, log_prior: np.ndarr
     return PosteriorBounds(log_lower.reshape(log_lo.shape), log_upper.reshape(log_lo.shape))
 
 
+def log_upper_with_others(log_upper: np.ndarray, log_upper_unnormalised: np.ndarray,
+                          log_others_lower: float) -> np.ndarray:
+    """An upper bound on candidates' upper posterior (nats) once others join the ones it was
+    normalised over (the candidates of other grids), from the upper posterior among its own and the
+    unnormalised one (nats, on the scale of ``log_others_lower``, the others' summed unnormalised
+    lower posterior O).
+
+    Among its own a candidate's upper posterior is u = b / (b + S - a), with b and a its unnormalised
+    upper and lower posterior and S the summed lower ones; with the others O joins the denominator,
+    so 1 / g = 1 / u + O / b exactly.  For no others (O = 0) g is u."""
+    lu = np.minimum(np.asarray(log_upper, dtype=np.float64), 0.0)
+    if log_others_lower == -math.inf:
+        return lu
+    lb = np.asarray(log_upper_unnormalised, dtype=np.float64)
+    return -np.logaddexp(-lu, log_others_lower - lb)
+
+
 #: The span (deg) above the terrain over which an occluder's top may lie, for the occlusion component.
 OCCLUDER_SPAN_DEG = 20.0
 
@@ -130,6 +158,58 @@ def occlusion_cap_deg2(weight: float, sigma_deg: float) -> float:
     if kappa >= 1.0:
         return 0.0
     return 2.0 * sigma_deg * sigma_deg * math.log(1.0 / kappa)
+
+
+def kernel_cap(cap_deg2: float) -> float:
+    """The cap as the compiled kernels take it: a finite float (1e30 where there is none)."""
+    return float(min(cap_deg2, 1e30))
+
+
+@numba.njit(cache=True, inline="always")
+def is_occluded(residual: float | np.floating, weighted_square: float | np.floating,
+                cap: float | np.floating) -> bool | np.bool_:
+    """Whether one measurement is taken for an occluder: above the model (``residual``, measured
+    minus model, > 0) with its weighted square past the cap (the kernels' form, any float type)."""
+    return residual > 0 and weighted_square > cap
+
+
+def occluded_mask(residual: np.ndarray, weighted_square: np.ndarray, cap_deg2: float) -> np.ndarray:
+    """:func:`is_occluded` over arrays."""
+    return (residual > 0) & (weighted_square > cap_deg2)
+
+
+def capped_cost(ssd: np.ndarray, occluded: np.ndarray, cap_deg2: float) -> np.ndarray:
+    """Residual sums (deg^2) with each occluded measurement (by weight) counting the cap: the cost
+    at sigma's reference that ranks headings and places.  ``ssd`` itself when the cap is infinite."""
+    return ssd if not math.isfinite(cap_deg2) else ssd + occluded * cap_deg2
+
+
+# The model's own variance tau^2 at an azimuth (parallax, the map's height error; ``parallax.py``)
+# widens its Gaussian to sigma^2 + tau^2: the squared residual counts sigma^2 / (sigma^2 + tau^2) of
+# itself against sigma, and the wider Gaussian pays its log-normaliser log(1 + tau^2 / sigma^2).
+
+@numba.njit(cache=True, inline="always")
+def variance_weight(sig2: float, tau2: float) -> float:
+    """sigma^2 / (sigma^2 + tau^2): the weight of a squared residual under the model's variance."""
+    return sig2 / (sig2 + tau2)
+
+
+@numba.njit(cache=True, inline="always")
+def variance_log_normaliser(sig2: float, tau2: float) -> float:
+    """log(1 + tau^2 / sigma^2): what the Gaussian widened by tau^2 pays (nats, times 2)."""
+    return math.log1p(tau2 / sig2)
+
+
+def variance_tables(tau2_deg2: np.ndarray, sigma_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`variance_weight` and :func:`variance_log_normaliser` of every tau^2 of a table at one
+    sigma (deg), as float32 (from the ratio r = tau^2 / sigma^2: 1 / (1 + r) and log1p(r))."""
+    r = tau2_deg2 / (sigma_deg * sigma_deg)
+    return (1.0 / (1.0 + r)).astype(np.float32), np.log1p(r).astype(np.float32)
+
+
+def variance_weighted(u: np.ndarray, sigma_deg: float, var_deg2: np.ndarray) -> np.ndarray:
+    """Measurement weights ``u`` times sigma^2 / (sigma^2 + var) (the exact fit's form)."""
+    return u * sigma_deg**2 / (sigma_deg**2 + var_deg2)
 
 
 def _occlusion_split(n: float, occluded: np.ndarray, weight: float) -> tuple[np.ndarray, np.ndarray]:
@@ -245,7 +325,7 @@ def best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarra
     ``weight``), less half the row's log-normaliser ``penalty``, plus its ``log_prior`` (nats).
     Also the count of rows whose chosen sum is finite.  Rounds as the numpy form does: one pass
     over the rows, no temporaries of their size."""
-    if not 0 < sigma_lo <= sigma_hi:
+    if not valid_sigma_interval(sigma_lo, sigma_hi):
         raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
     rows = ssd.shape[0]
     lower = np.empty(rows)

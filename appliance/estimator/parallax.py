@@ -19,7 +19,7 @@ independent,
 The likelihood of a node then uses sigma^2 + tau^2 per azimuth (in quadrature with the sensor's
 sigma): a near ridge counts for little in the grid search, a far one fully, and the true node is
 never ruled out by the parallax of the walls around it.  The exact answer between nodes comes
-from the refinement (``refine.py``), which renders the terrain itself.
+from the exact fit (``exact.py``), which renders the terrain itself.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import math
 import numba
 import numpy as np
 
+from appliance.estimator.likelihood import is_occluded, variance_log_normaliser, variance_tables, variance_weight
 from appliance.numerics import FAST_FINITE
 
 MISSING_CODE = 255
@@ -127,8 +128,7 @@ def tau2_tables(sigma_ref_deg: float) -> tuple[np.ndarray, np.ndarray]:
     log-normaliser log(1 + tau^2 / sigma^2) that the wider Gaussian pays."""
     tau2 = TAU2_MIN_DEG2 * np.exp(TAU2_LOG_STEP * np.arange(256, dtype=np.float64))
     tau2[0] = 0.0
-    r = tau2 / (sigma_ref_deg * sigma_ref_deg)
-    return (1.0 / (1.0 + r)).astype(np.float32), np.log1p(r).astype(np.float32)
+    return variance_tables(tau2, sigma_ref_deg)
 
 
 #: The share of the parallax model's spread left once a node's skyline is moved by its own
@@ -175,6 +175,81 @@ def ground_gradient_at(ground_m: np.ndarray, n_rows: int, n_cols: int, dx_m: flo
     return ge, gn
 
 
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _parallax_row(codes: np.ndarray, dist: np.ndarray, inv_d2: np.ndarray, i: int, idx: int, st: float,
+                  e_deg: float, sin_az: np.ndarray, cos_az: np.ndarray, sg: float, cg: float, ge: float, gn: float,
+                  row: np.ndarray) -> None:
+    """d(elevation) of node i at grid azimuth ``idx`` per move (east m, north m, heading deg, eye
+    height m) into ``row``: its horizon point's parallax at elevation ``e_deg`` under ground gradient
+    (``ge``, ``gn``), the azimuth tables turned by the node's convergence (sine ``sg``, cosine
+    ``cg``); the heading's alone where its range is unknown."""
+    n_az = codes.shape[1]
+    az_step = 360.0 / n_az
+    dc = dist[i, idx]
+    jp = idx + 1 if idx + 1 < n_az else 0
+    jm = idx - 1 if idx > 0 else n_az - 1
+    slope = 0.0
+    if codes[i, jp] != MISSING_CODE and codes[i, jm] != MISSING_CODE:
+        slope = (np.float64(codes[i, jp]) - np.float64(codes[i, jm])) * st / (2.0 * az_step)
+    row[0] = 0.0
+    row[1] = 0.0
+    row[2] = slope
+    row[3] = 0.0
+    if dc != MISSING_CODE:
+        inv_d = math.sqrt(inv_d2[dc])  # deg per metre of range
+        e = e_deg / DEG
+        se = e * (1.0 - 0.6666667 * e * e)
+        ce = 1.0 - e * e
+        sb = sin_az[idx] * cg - cos_az[idx] * sg
+        cb = cos_az[idx] * cg + sin_az[idx] * sg
+        row[0] = inv_d * (se * sb - ce * ge + slope * cb)
+        row[1] = inv_d * (se * cb - ce * gn - slope * sb)
+        row[3] = -inv_d * ce
+
+
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _normal_equations(codes: np.ndarray, dist: np.ndarray, i: int, o: float, st: float, sh: int, jj: np.ndarray,
+                      mj: np.ndarray, wj: np.ndarray, rho2: float, inv_d2: np.ndarray, sig2: float, lin2: float,
+                      cap: float, map2: float, ge: float, gn: float, g2: float, sin_az: np.ndarray, cos_az: np.ndarray,
+                      sg: float, cg: float, A: np.ndarray, b: np.ndarray) -> tuple[float, float, float, int]:
+    """Node i's weighted normal equations at whole shift ``sh`` added into ``A`` and ``b``
+    (:func:`linearised_fit`'s arguments; ``sg``, ``cg`` the sine and cosine of its convergence):
+    its weighted residual sum, log-normaliser, occluded weight and count of azimuths with terrain
+    (``g2`` is the gradient's square)."""
+    n_az = codes.shape[1]
+    az_step = 360.0 / n_az
+    row = np.zeros(4)
+    rr = 0.0
+    p = 0.0
+    occ = 0.0
+    cnt = 0
+    for t in range(jj.size):
+        idx = jj[t] + sh
+        if idx >= n_az:
+            idx -= n_az
+        c = codes[i, idx]
+        if c == MISSING_CODE:
+            continue
+        cnt += 1
+        e_deg = o + st * c
+        res = mj[t] - e_deg
+        t2 = lin2 * tau2_at(codes, dist, i, idx, n_az, o, st, az_step, g2, rho2, inv_d2)
+        t2 += map_var_at(dist, i, idx, map2, inv_d2)
+        w = variance_weight(sig2, t2)
+        p += wj[t] * variance_log_normaliser(sig2, t2)
+        if is_occluded(res, w * res * res, cap):
+            occ += wj[t]
+            continue
+        w *= wj[t]
+        _parallax_row(codes, dist, inv_d2, i, idx, st, e_deg, sin_az, cos_az, sg, cg, ge, gn, row)
+        for u in range(4):
+            b[u] += w * row[u] * res
+            for v in range(4):
+                A[u, v] += w * row[u] * row[v]
+        rr += w * res * res
+    return rr, p, occ, cnt
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, ge: np.ndarray,
                    gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, mj: np.ndarray, rows: np.ndarray,
@@ -214,59 +289,11 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
         if math.isnan(o):
             out[r] = np.inf
             continue
-        st = step[i]
-        sh = shifts[r] % n_az
         A = np.zeros((4, 4))
         b = np.zeros(4)
-        row = np.zeros(4)
-        rr = 0.0
-        p = 0.0
-        occ = 0.0
-        cnt = 0
         g2 = ge[i] * ge[i] + gn[i] * gn[i]
-        for t in range(n_t):
-            idx = jj[t] + sh
-            if idx >= n_az:
-                idx -= n_az
-            c = codes[i, idx]
-            if c == MISSING_CODE:
-                continue
-            cnt += 1
-            e_deg = o + st * c
-            res = mj[t] - e_deg
-            t2 = lin2 * tau2_at(codes, dist, i, idx, n_az, o, st, az_step, g2, rho2, inv_d2)
-            t2 += map_var_at(dist, i, idx, map2, inv_d2)
-            w = sig2 / (sig2 + t2)
-            p += wj[t] * math.log1p(t2 / sig2)
-            if res > 0.0 and w * res * res > cap:
-                occ += wj[t]
-                continue
-            w *= wj[t]
-            dc = dist[i, idx]
-            jp = idx + 1 if idx + 1 < n_az else 0
-            jm = idx - 1 if idx > 0 else n_az - 1
-            slope = 0.0
-            if codes[i, jp] != MISSING_CODE and codes[i, jm] != MISSING_CODE:
-                slope = (np.float64(codes[i, jp]) - np.float64(codes[i, jm])) * st / (2.0 * az_step)
-            row[0] = 0.0
-            row[1] = 0.0
-            row[2] = slope
-            row[3] = 0.0
-            if dc != MISSING_CODE:
-                inv_d = math.sqrt(inv_d2[dc])  # deg per metre of range
-                e = e_deg / DEG
-                se = e * (1.0 - 0.6666667 * e * e)
-                ce = 1.0 - e * e
-                sb = sin_az[idx] * cg - cos_az[idx] * sg
-                cb = cos_az[idx] * cg + sin_az[idx] * sg
-                row[0] = inv_d * (se * sb - ce * ge[i] + slope * cb)
-                row[1] = inv_d * (se * cb - ce * gn[i] - slope * sb)
-                row[3] = -inv_d * ce
-            for u in range(4):
-                b[u] += w * row[u] * res
-                for v in range(4):
-                    A[u, v] += w * row[u] * row[v]
-            rr += w * res * res
+        rr, p, occ, cnt = _normal_equations(codes, dist, i, o, step[i], shifts[r] % n_az, jj, mj, wj, rho2, inv_d2,
+                                            sig2, lin2, cap, map2, ge[i], gn[i], g2, sin_az, cos_az, sg, cg, A, b)
         if cnt < (1.0 - 0.1) * n_t or cnt == 0:
             out[r] = np.inf
             continue

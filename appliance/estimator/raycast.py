@@ -1,5 +1,9 @@
 """Exact skylines on a metric height grid: a compiled ray march for any viewpoint between nodes.
 
+:class:`Terrain` holds the heights under a node grid (a fine grid near the eye, a coarse outer one
+beyond); :func:`render` gives the skyline and the range of each horizon point from any fractional
+node, through :func:`march`.
+
 Rays are straight lines of the grid, one per azimuth, sampled on a distance schedule whose step
 grows with distance (:func:`ray_distances`): a fiftieth of a cell near the eye, half a per cent of
 the distance further out, a quarter cell at most.  The angular error of a missed peak is about the
@@ -16,6 +20,8 @@ distance.  In a valley the walls close most rays within a few kilometres.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -70,6 +76,67 @@ def block_maxima(Z: np.ndarray, block: int = BLOCK_CELLS) -> np.ndarray:
     return np.ascontiguousarray(np.maximum(edge_c, corner))
 
 
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _block_exit(row: float, col: float, dr: float, dc: float, bi: int, bj: int, block: int) -> float:
+    """The distance at which the ray from (row, col) along (``dr``, ``dc``) per metre crosses the far
+    edges of block (``bi``, ``bj``) of ``block`` cells."""
+    exit_d = np.inf
+    if dr > 0.0:
+        exit_d = min(exit_d, ((bi + 1) * block - row) / dr)
+    elif dr < 0.0:
+        exit_d = min(exit_d, (bi * block - row) / dr)
+    if dc > 0.0:
+        exit_d = min(exit_d, ((bj + 1) * block - col) / dc)
+    elif dc < 0.0:
+        exit_d = min(exit_d, (bj * block - col) / dc)
+    return exit_d
+
+
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def _ray(Z: np.ndarray, row: float, col: float, eye_m: float, dr: float, dc: float, dist_m: np.ndarray,
+         inv2r: float, rise: float, block_max: np.ndarray, block: int) -> tuple[float, float]:
+    """The horizon tangent along one ray from (row, col) moving (``dr``, ``dc``) cells per metre and
+    its distance (-inf and NaN where it meets no terrain); ``rise`` is the map's highest point above
+    the eye, ``inv2r`` the curvature's 1 / (2 R_eff)."""
+    n_rows, n_cols = Z.shape
+    n_d = dist_m.size
+    best = -np.inf
+    bd = np.nan
+    k = 0
+    while k < n_d:
+        d = dist_m[k]
+        r = row + d * dr
+        c = col + d * dc
+        if r < 0.0 or c < 0.0 or r > n_rows - 1 or c > n_cols - 1:
+            break
+        # nothing further can rise above the horizon found so far
+        if (rise >= 0.0 and rise / d - d * inv2r <= best) or (rise < 0.0 and best >= 0.0):
+            break
+        r0 = min(int(r), n_rows - 2)
+        c0 = min(int(c), n_cols - 2)
+        bi = r0 // block
+        bj = c0 // block
+        zb = block_max[bi, bj] - eye_m
+        if zb / d - d * inv2r <= best:
+            # leave the block: the distance at which the ray crosses its far edges
+            exit_d = _block_exit(row, col, dr, dc, bi, bj, block)
+            k += 1
+            while k < n_d and dist_m[k] < exit_d:
+                k += 1
+            continue
+        fr = r - r0
+        fc = c - c0
+        z = ((Z[r0, c0] * (1.0 - fc) + Z[r0, c0 + 1] * fc) * (1.0 - fr)
+             + (Z[r0 + 1, c0] * (1.0 - fc) + Z[r0 + 1, c0 + 1] * fc) * fr)
+        if z == z:
+            t = (z - eye_m) / d - d * inv2r
+            if t > best:
+                best = t
+                bd = d
+        k += 1
+    return best, bd
+
+
 @numba.njit(cache=True, nogil=True, fastmath=FAST_FINITE)
 def march(
     Z: np.ndarray,
@@ -93,7 +160,6 @@ def march(
     skips every block (:func:`block_maxima`) whose highest point cannot rise above the horizon
     found so far, and stops once no block of the map can.
     """
-    n_rows, n_cols = Z.shape
     inv2r = 0.5 / r_eff_m
     nb_r, nb_c = block_max.shape
     z_top = -np.inf
@@ -101,53 +167,10 @@ def march(
         for j in range(nb_c):
             z_top = max(z_top, block_max[i, j])
     rise = z_top - eye_m
-    n_d = dist_m.size
     for j in range(grid_azimuth_rad.size):
         a = grid_azimuth_rad[j]
-        dc = math.sin(a) / dx_m
-        dr = -math.cos(a) / dy_m
-        best = -np.inf
-        bd = np.nan
-        k = 0
-        while k < n_d:
-            d = dist_m[k]
-            r = row + d * dr
-            c = col + d * dc
-            if r < 0.0 or c < 0.0 or r > n_rows - 1 or c > n_cols - 1:
-                break
-            # nothing further can rise above the horizon found so far
-            if (rise >= 0.0 and rise / d - d * inv2r <= best) or (rise < 0.0 and best >= 0.0):
-                break
-            r0 = min(int(r), n_rows - 2)
-            c0 = min(int(c), n_cols - 2)
-            bi = r0 // block
-            bj = c0 // block
-            zb = block_max[bi, bj] - eye_m
-            if zb / d - d * inv2r <= best:
-                # leave the block: the distance at which the ray crosses its far edges
-                exit_d = np.inf
-                if dr > 0.0:
-                    exit_d = min(exit_d, ((bi + 1) * block - row) / dr)
-                elif dr < 0.0:
-                    exit_d = min(exit_d, (bi * block - row) / dr)
-                if dc > 0.0:
-                    exit_d = min(exit_d, ((bj + 1) * block - col) / dc)
-                elif dc < 0.0:
-                    exit_d = min(exit_d, (bj * block - col) / dc)
-                k += 1
-                while k < n_d and dist_m[k] < exit_d:
-                    k += 1
-                continue
-            fr = r - r0
-            fc = c - c0
-            z = ((Z[r0, c0] * (1.0 - fc) + Z[r0, c0 + 1] * fc) * (1.0 - fr)
-                 + (Z[r0 + 1, c0] * (1.0 - fc) + Z[r0 + 1, c0 + 1] * fc) * fr)
-            if z == z:
-                t = (z - eye_m) / d - d * inv2r
-                if t > best:
-                    best = t
-                    bd = d
-            k += 1
+        best, bd = _ray(Z, row, col, eye_m, -math.cos(a) / dy_m, math.sin(a) / dx_m, dist_m, inv2r, rise, block_max,
+                        block)
         if best == -np.inf:
             tan_out[j] = np.nan
             dist_out[j] = np.nan
@@ -165,3 +188,89 @@ def bilinear(Z: np.ndarray, row: float, col: float) -> float:
     fr, fc = row - r0, col - c0
     return float((Z[r0, c0] * (1 - fc) + Z[r0, c0 + 1] * fc) * (1 - fr)
                  + (Z[r0 + 1, c0] * (1 - fc) + Z[r0 + 1, c0 + 1] * fc) * fr)
+
+
+#: The looks' distance schedule (``Terrain.look_distances``).
+LOOK_RELATIVE_STEP = 0.02
+LOOK_COARSE_CELLS = 1.0
+
+
+@dataclass(frozen=True)
+class Terrain:
+    """The heights under a node grid, for exact renders between nodes.
+
+    ``heights_m`` has the node grid's spacing; candidate node (0, 0) is its (row0, col0).
+    ``convergence_deg[node]`` is the true azimuth of grid north at the node.
+
+    With an ``outer`` grid (``outer_ratio`` times coarser, both grids square, of odd size and
+    centred on the same point), this one is marched out to ``near_reach_m`` and the outer one beyond: fine
+    heights near the eye, where a camera close to the ground sees the slopes under it, and coarse
+    ones farther away, where a cell subtends little."""
+
+    heights_m: np.ndarray
+    row0: int
+    col0: int
+    convergence_deg: np.ndarray
+    height_m: float
+    r_eff_m: float
+    reach_m: float
+    outer: Terrain | None = None
+    outer_ratio: float = 1.0
+    near_reach_m: float = math.inf
+
+    def outer_rc(self, row: float, col: float) -> tuple[float, float]:
+        """The outer grid's fractional (row, col) of this grid's (row, col) (heights' indices)."""
+        assert self.outer is not None
+        c_in = 0.5 * (self.heights_m.shape[0] - 1)
+        c_out = 0.5 * (self.outer.heights_m.shape[0] - 1)
+        return c_out + (row - c_in) / self.outer_ratio, c_out + (col - c_in) / self.outer_ratio
+
+    @cached_property
+    def block_max(self) -> np.ndarray:
+        return block_maxima(self.heights64)
+
+    @cached_property
+    def heights64(self) -> np.ndarray:
+        return np.ascontiguousarray(self.heights_m, dtype=np.float64)
+
+    def distances(self, cell_m: float) -> np.ndarray:
+        return ray_distances(cell_m, self.reach_m)
+
+    def look_distances(self, cell_m: float) -> np.ndarray:
+        """A coarser schedule for looks (two per cent of the distance, a cell at most): a quarter
+        of the samples on a large map, angular errors of a few hundredths of a degree."""
+        return ray_distances(cell_m, self.reach_m, relative=LOOK_RELATIVE_STEP, coarse_cells=LOOK_COARSE_CELLS)
+
+
+def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
+           dist: np.ndarray, height_m: float, outer_looks: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Elevation (deg), range (m) per grid azimuth and ground height from fractional node (row, col).
+
+    ``dist`` is the ray's schedule on this grid; an outer grid is sampled on its own
+    :meth:`Terrain.distances`, or with ``outer_looks`` on the looks' coarser schedule."""
+    Z = terrain.heights64
+    tr, tc = row + terrain.row0, col + terrain.col0
+    ground = bilinear(Z, tr, tc)
+    tan = np.empty(grid_azimuth_deg.size)
+    far = np.empty(grid_azimuth_deg.size)
+    if not math.isfinite(ground):
+        return np.full(grid_azimuth_deg.size, np.nan), far, ground
+    az = np.radians(grid_azimuth_deg)
+    outer = terrain.outer
+    if outer is None:
+        march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
+              tan, far)
+        return np.degrees(np.arctan(tan)), far, ground
+    march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
+          terrain.block_max, BLOCK_CELLS, tan, far)
+    ratio = terrain.outer_ratio
+    outer_cell = min(dx_m, dy_m) * ratio
+    beyond = outer.look_distances(outer_cell) if outer_looks else outer.distances(outer_cell)
+    tan_o = np.empty(az.size)
+    far_o = np.empty(az.size)
+    march(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
+          beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
+    take = np.isfinite(tan_o) & ~(tan >= tan_o)
+    tan = np.where(take, tan_o, tan)
+    far = np.where(take, far_o, far)
+    return np.degrees(np.arctan(tan)), far, ground

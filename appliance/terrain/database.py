@@ -48,9 +48,7 @@ import numpy as np
 
 from appliance.atomic import atomic_output, scratch_file
 from appliance.errors import DatabaseError, InputError, NodataCandidatesError
-from appliance.estimator import parallax
-from appliance.estimator.estimate import COARSE_STRIDE, SkylineGrid
-from appliance.estimator.search import decimated
+from appliance.estimator import COARSE_STRIDE, SkylineGrid, first_pass_ahead
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import NodeGrid, grid_convergence_deg, lattice_of, plan_grids, terrain_on_grid
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
@@ -335,7 +333,6 @@ def _write(fd: int, plan: _FilePlan, spill: int, gamma_deg: np.ndarray, step_az:
     # table), as the estimator makes them, from a grid with no skylines
     per_node = SkylineGrid(np.empty((n, 0), np.uint8), offs, steps, cand.n_rows, cand.n_cols, cand.dx_m, cand.dy_m,
                            None, ground, distance_min_m=DISTANCE_MIN_M, distance_log_step=DISTANCE_LOG_STEP)
-    g2, rho2, inv_d2 = per_node.ground_gradient2, per_node.rho2_m2, per_node.inverse_range2
 
     def write_chunk(lo: int, codes: np.ndarray, dist: np.ndarray, coarse: np.ndarray, partial: np.ndarray,
                     tau2: np.ndarray) -> None:
@@ -367,9 +364,7 @@ def _write(fd: int, plan: _FilePlan, spill: int, gamma_deg: np.ndarray, step_az:
             for _ in run_threads(quantize_part, range(lo, hi, THREAD_NODES), workers):
                 pass
             # the estimator's first pass, exactly as it would make it from the arrays above (per node)
-            coarse, partial = decimated(codes, offs[lo:hi], COARSE_STRIDE)
-            tau2 = parallax.coarse_tau2_codes(codes, dist, offs[lo:hi], steps[lo:hi], g2[lo:hi], rho2, inv_d2,
-                                              COARSE_STRIDE, 0.0)
+            coarse, partial, tau2 = first_pass_ahead(per_node, codes, dist, slice(lo, hi))
             if written is not None:
                 written.result()
             written = writer.submit(write_chunk, lo, codes, dist, coarse, partial, tau2)

@@ -1,4 +1,7 @@
-"""Sub-cell refinement of the best candidate.
+"""Sub-cell refinement between the database's skylines, for a grid without terrain.
+
+With terrain the answer is refined on exact renders (``exact.py``); without, ``refinement.py`` falls
+back to this.
 
 The paper's answer was a grid node, so its error could not fall below the grid's spacing.  Here the
 skyline at a point between nodes is taken as the bilinear blend of the skylines of the nodes
@@ -15,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from appliance.estimator.estimate import SkylineGrid
+    from appliance.estimator.skyline_grid import SkylineGrid
 
 #: A first lattice of quarter cells and quarter steps over +-1, then twentieths over +-1/5.
 COARSE = np.linspace(-1.0, 1.0, 9)

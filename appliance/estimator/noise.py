@@ -1,0 +1,82 @@
+"""The noise a skyline has, learned from its best exact fit, and what follows from it.
+
+A search starts from a wide sigma interval (the configuration's).  Once the best place is fitted
+exactly, its residuals tell the noise the skyline has: sigma's interval and the share of its
+azimuths that are independent (``confidence.py``), which tempers the likelihood.  The best fit is
+then fitted again at that sigma, its rivals ranked under it, and the answer's covariance made from
+its curvature.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from appliance.estimator import confidence
+from appliance.estimator.exact import Fit, Model, PositionPrior, marginal_position_covariance
+from appliance.estimator.exact import refine as refine_exact
+from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint
+from appliance.estimator.measurement import Measurement
+from appliance.estimator.posteriors import SAME_ANSWER_CELLS, fit_bounds
+from appliance.estimator.skyline_grid import SkylineGrid, nearest_node
+
+#: The prior on a levelled head's residual tilt (deg, 1 sigma per axis), fitted with the learned sigma.
+TILT_SIGMA_DEG = 0.3
+#: The position's spread (cells) when the best fit is fitted again at the learned sigma.
+POLISH_SPREAD_CELLS = 0.05
+
+
+def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[Measurement, float]:
+    """The measurement with sigma's interval learned from ``fit``'s residuals (each end at least
+    ``floor_deg``), and the tempering of its likelihood: independent azimuths over measured ones
+    (``confidence.py``)."""
+    r = fit.residual_deg
+    assert r is not None
+    rms = math.sqrt(float(np.nanmean(r * r))) if np.isfinite(r).any() else meas.sigma_ref_deg
+    independent = confidence.independent_azimuths(r)
+    lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
+    temper = min(1.0, independent / max(float(np.isfinite(r).sum()), 1.0))
+    learned = Measurement(meas.elevation_deg, meas.weight, meas.valid, meas.n_valid, meas.n_eff, lo, hi,
+                          sigma_midpoint(lo, hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)
+    return learned, temper
+
+
+def polished_fit(grid: SkylineGrid, meas: Measurement, fit: Fit, heading_tolerance_deg: float | None,
+                 height_m: float | None, position_prior: PositionPrior | None) -> Fit | None:
+    """``fit`` fitted again from where it stands at the measurement's (learned) sigma: the weights,
+    the occlusion cap and the point where the fit is at the noise follow the noise the skyline has,
+    not the search's.  None when the new fit fails."""
+    assert grid.terrain is not None
+    sigma, step = meas.sigma_ref_deg, grid.az_step_deg
+    tol = heading_tolerance_deg
+    bounds = (-180.0, 180.0) if tol is None else (-tol - step, tol + step)
+    node = nearest_node(grid, fit.row, fit.col)
+    n_row, n_col = divmod(node, grid.n_cols)
+    model = Model(meas.weight, occlusion_cap_deg2(meas.occlusion_weight, sigma), meas.map_sigma_m)
+    return refine_exact(grid.terrain, grid.dx_m, grid.dy_m, meas.elevation_deg, n_row, n_col, grid.n_cols,
+                        fit.heading_deg, height_m, (fit.row, fit.col), sigma, bounds, model, position_prior,
+                        start_spread_cells=POLISH_SPREAD_CELLS, tilt_sigma_deg=TILT_SIGMA_DEG)
+
+
+def rival_fits(fits: list[Fit], best: Fit, grid: SkylineGrid, lp: np.ndarray, meas: Measurement, temper: float,
+               position_prior: PositionPrior | None) -> list[Fit]:
+    """The exact fits at other places (more than SAME_ANSWER_CELLS from ``best``) whose upper
+    log-posterior, at the measurement's sigma interval and tempering, reaches ``best``'s lower one."""
+    others = [f for f in fits if math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
+    if not others:
+        return []
+    lo, up = fit_bounds([best] + others, grid, lp, meas, position_prior, temper)
+    return [f for i, f in enumerate(others, start=1) if up[i] >= lo[0]]
+
+
+def answer_covariance(fit: Fit | None, meas: Measurement, temper: float,
+                      conf: confidence.Modes) -> np.ndarray:
+    """The answer's (row, col) covariance (cells^2): the exact fit's curvature at the learned sigma,
+    tempered, with its priors; without one, the spread of the answer's mode over its nodes."""
+    if fit is not None and fit.curvature is not None and fit.prior_information is not None:
+        sig2 = meas.sigma_ref_deg**2 * confidence.COVARIANCE_SCALE
+        cov = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+        if cov is not None:
+            return cov
+    return conf.main_covariance_cells
