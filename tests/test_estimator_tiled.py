@@ -16,11 +16,11 @@ from appliance.bodies import body_named, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
+from appliance.estimator.likelihood import log_upper_with_others
 from appliance.estimator.rescore import MIN_RESCORE, RESCORE_MARGIN_NATS
 from appliance.locating import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
 from appliance.locating.position import locate, skyline_grid
 from appliance.locating.tile_cache import SearchParams
-from appliance.locating.tile_combination import global_log_upper_bound
 from appliance.locating.tiled_index import box_around, open_tiled
 from appliance.locating.tiled_search import locate_tiled
 from appliance.skyline import Skyline, write_skyline_csv
@@ -215,12 +215,12 @@ def test_global_upper_bound_is_exact_for_one_heading_and_never_below():
     rest_a = np.array([np.logaddexp.reduce(np.delete(lo_a, i)) for i in range(lo_a.size)])
     u_tile = up_a - np.logaddexp(up_a, rest_a)
     exact = up_a - np.logaddexp(up_a, np.logaddexp(rest_a, others))
-    bound = global_log_upper_bound(u_tile, up_a, others)
+    bound = log_upper_with_others(u_tile, up_a, others)
     assert np.allclose(bound, exact, atol=1e-12)
-    assert np.array_equal(global_log_upper_bound(u_tile, up_a, -math.inf), np.minimum(u_tile, 0.0))
+    assert np.array_equal(log_upper_with_others(u_tile, up_a, -math.inf), np.minimum(u_tile, 0.0))
     assert s_lo_a > -math.inf
     # a node of two headings holds the larger u and b of them: a bound on both
-    pair_bound = global_log_upper_bound(np.array([u_tile[:2].max()]), np.array([up_a[:2].max()]), others)[0]
+    pair_bound = log_upper_with_others(np.array([u_tile[:2].max()]), np.array([up_a[:2].max()]), others)[0]
     assert pair_bound >= exact[:2].max() - 1e-12
 
 

@@ -6,9 +6,9 @@ posterior near one.  Each tile therefore also reports its normalisers (the log o
 unnormalised lower, upper and midpoint posteriors, :class:`~appliance.estimator.EstimateResult`)
 and its best candidate's unnormalised bounds; with them the best candidate's lower and upper
 posterior are recomputed over all tiles exactly, and every other node's upper posterior is bounded
-from above (:func:`global_log_upper_bound`).  The region is then every node, in any tile, whose
-bound reaches the best's lower posterior; a node of it in another tile, away from the best, is a
-rival the skyline does not rule out, and the answer is ambiguous.
+from above (:func:`appliance.estimator.likelihood.log_upper_with_others`).  The region is then
+every node, in any tile, whose bound reaches the best's lower posterior; a node of it in another
+tile, away from the best, is a rival the skyline does not rule out, and the answer is ambiguous.
 
 The prior is uniform per unit area: a tile's evidence is weighed by its own cell area, which is the
 same in every tile of one lattice and differs between the facets of a whole-body database
@@ -26,6 +26,7 @@ import numpy as np
 from appliance.bodies import body_named
 from appliance.errors import EstimationError
 from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS
+from appliance.estimator.likelihood import log_upper_with_others
 from appliance.locating.position import Position, place_tiled
 from appliance.locating.tiled_answer import RegionCell, TileCombination, TileOutcome
 
@@ -33,24 +34,6 @@ from appliance.locating.tiled_answer import RegionCell, TileCombination, TileOut
 def _log_sum(values: Sequence[float]) -> float:
     v = [x for x in values if x > -math.inf]
     return float(np.logaddexp.reduce(np.asarray(v))) if v else -math.inf
-
-
-def global_log_upper_bound(log_upper: np.ndarray, log_upper_unnormalised: np.ndarray,
-                           log_others_lower: float) -> np.ndarray:
-    """An upper bound on nodes' upper posterior over all tiles, from their upper posterior within
-    their own tile and their unnormalised one (nats, on the scale of ``log_others_lower``).
-
-    Within a tile a candidate's upper posterior is u = b / (b + S - a), with b and a its own
-    unnormalised upper and lower posterior and S the tile's summed lower ones; over all tiles the
-    others' summed lower posteriors O (``log_others_lower``) join the denominator, so
-    1 / g = 1 / u + O / b exactly.  A node holds the largest u and the largest b of its headings,
-    which bounds every heading's g from above; for one tile (O = 0) g is u.
-    """
-    lu = np.minimum(np.asarray(log_upper, dtype=np.float64), 0.0)
-    if log_others_lower == -math.inf:
-        return lu
-    lb = np.asarray(log_upper_unnormalised, dtype=np.float64)
-    return -np.logaddexp(-lu, log_others_lower - lb)
 
 
 
@@ -138,7 +121,7 @@ def _tile_cells(o: TileOutcome, is_best: bool, best_lower: float, others_lower: 
     """The tile's cells of the region: its sent nodes whose upper posterior over all tiles may reach
     the best's lower one (``others_lower``: the other tiles' summed lower posteriors), and the best
     tile's own region; and whether a node it did not send could reach it too."""
-    bound = global_log_upper_bound(o.top_log_upper, o.top_log_upper_unnormalised + o.log_cell_area, others_lower)
+    bound = log_upper_with_others(o.top_log_upper, o.top_log_upper_unnormalised + o.log_cell_area, others_lower)
     keep = bound >= best_lower
     nodes = set(int(v) for v in o.top_nodes[keep])
     lonlat = {int(v): (float(p[0]), float(p[1])) for v, p in zip(o.top_nodes[keep], o.top_lonlat[keep])}
@@ -148,7 +131,7 @@ def _tile_cells(o: TileOutcome, is_best: bool, best_lower: float, others_lower: 
         for v, p in zip(o.region_nodes, o.region_lonlat):
             lonlat.setdefault(int(v), (float(p[0]), float(p[1])))
         nodes |= set(int(v) for v in o.region_nodes)
-    left = global_log_upper_bound(np.array([o.left_max_log_upper]),
+    left = log_upper_with_others(np.array([o.left_max_log_upper]),
                                   np.array([o.left_max_log_upper_unnormalised + o.log_cell_area]), others_lower)[0]
     overflow = bool(o.left_max_log_upper > -math.inf and left >= best_lower)
     return [RegionCell(o.file, v, *lonlat[v], upper.get(v, -math.inf)) for v in sorted(nodes)], overflow

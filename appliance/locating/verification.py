@@ -31,7 +31,7 @@ from pyproj import Transformer
 
 from appliance.estimator.estimate import OCCLUSION_WEIGHT, measured_on_grid
 from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Model, Terrain, refine, render, screen
-from appliance.estimator.likelihood import occlusion_cap_deg2
+from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
 from appliance.terrain.horizon import local_aeqd
@@ -231,7 +231,7 @@ class PlaceSearch:
                                                  margin_m=MARGIN_NODES * node, outer_cell_m=outer,
                                                  near_reach_m=NEAR_NODES * node)
         self.centre = self.terrain.heights_m.shape[1] // 2
-        self.sig_ref = 0.5 * (settings.sigma_deg[0] + settings.sigma_deg[1])
+        self.sig_ref = sigma_midpoint(*settings.sigma_deg)
         self.model = Model(w, occlusion_cap_deg2(settings.occlusion_weight, self.sig_ref), settings.map_sigma_m)
         tol = settings.heading_tolerance_deg
         step = 360.0 / settings.n_azimuths

@@ -47,6 +47,7 @@ from typing import BinaryIO
 import numpy as np
 
 from appliance.atomic import atomic_output, scratch_file
+from appliance.bodies import body_named
 from appliance.errors import DatabaseError, InputError, NodataCandidatesError
 from appliance.estimator import COARSE_STRIDE, SkylineGrid, first_pass_ahead
 from appliance.terrain.dem import Dem
@@ -128,8 +129,6 @@ class SkylineDatabase:
 
     @property
     def r_eff_m(self) -> float:
-        from appliance.bodies import body_named
-
         return body_named(self.header["body"]).effective_radius_m(self.header["refraction"])
 
 
