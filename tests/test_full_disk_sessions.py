@@ -6,6 +6,7 @@ stderr (never stdout) and in STATUS=, and exit non-zero when nothing was written
 from __future__ import annotations
 
 import os
+import re
 import resource
 import socket
 import subprocess
@@ -13,11 +14,13 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
 from mcap.records import Chunk
 from mcap.stream_reader import StreamReader
 
 from appliance.logbook import LogReader
 from appliance.logbook import topics as t
+from tests.test_hardening_atomic import fill, mount_tmpfs
 
 REPO = Path(__file__).resolve().parents[1]
 # the hardware platform with no device at all: a session runs in a moment and logs its procedures' failures
@@ -130,3 +133,47 @@ def test_a_log_that_fills_the_disk_before_its_first_flush_is_removed(tmp_path):
     assert line.startswith("viper capture: error: logs/viper-") and "write failed (File too large)" in line
     assert line.endswith(".mcap removed") and "it held no message" in line
     assert files_in(tmp_path / "logs") == []
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 256 KiB tmpfs with a ``logs`` folder, filled to the last byte (skipped where mounting is not permitted)."""
+    where = tmp_path / "disk"
+    mount_tmpfs(where, size="256k")
+    try:
+        (where / "logs").mkdir()
+        (where / "logs" / ".session.lock").touch()
+        fill(where)
+        yield where
+    finally:
+        subprocess.run(["umount", str(where)], check=False)
+
+
+def test_on_a_full_disk_capture_and_the_daemon_leave_no_file_and_say_so(tmp_path, small_disk):
+    (tmp_path / "viper.toml").write_text(NO_DEVICES + "[session]\ninterval_s = 0.1\nmax_sessions = 3\n")
+    logs = small_disk / "logs"
+    r = viper(["capture", "--config", "viper.toml", "--log-dir", str(logs)], tmp_path)
+    assert r.returncode == 1 and r.stdout == ""
+    (line,) = r.stderr.splitlines()
+    assert "No space left on device" in line and line.endswith(".mcap removed")
+    r = viper(["daemon", "session", "--config", "viper.toml", "--log-dir", str(logs)], tmp_path)
+    assert r.returncode == 1 and r.stdout == ""
+    lines = r.stderr.splitlines()
+    assert [x.split(":")[0] for x in lines[:3]] == ["session 1 skipped", "session 2 skipped", "session 3 skipped"]
+    assert lines[3:] == ["no session was written: all 3 sessions failed to write their log"]
+    assert files_in(logs) == []
+
+
+def test_a_disk_that_fills_during_the_session_leaves_a_sealed_log_and_one_stderr_line(tmp_path, small_disk):
+    (tmp_path / "viper.toml").write_text(NO_DEVICES)
+    with open(small_disk / "filler", "r+b") as f:  # room for the reserve and one page of log
+        f.truncate(os.fstat(f.fileno()).st_size - 65536 - 4096)
+    r = viper(["capture", "--config", "viper.toml", "--log-dir", str(small_disk / "logs")], tmp_path)
+    (log,) = (small_disk / "logs").glob("viper-*.mcap")
+    assert r.returncode == 1 and files_in(small_disk / "logs") == [log.name]  # the reserve is gone
+    (line,) = r.stderr.splitlines()
+    assert re.fullmatch(rf"{re.escape(str(log))}: disk full; log sealed with \d+ durable messages", line), line
+    assert "disk full" not in r.stdout and "failed; frames 0" in r.stdout
+    reader = LogReader(log)
+    messages = list(reader.messages())
+    assert reader.complete and len(messages) == int(line.split()[-3]) > 0
