@@ -9,24 +9,39 @@ session checks between steps and between captures: the current log is closed wit
 captured, STOPPING=1 is sent and the daemon exits 0.  Sessions, from the daemon or from
 ``viper capture``, hold an exclusive lock in the log directory so two never drive the devices at
 once.
+
+Devices that do not answer when a session opens them (a PTU still powering up) put the daemon in a
+degraded state instead of ending it: it tries again after :data:`RETRY_FIRST_S`, doubling the wait
+up to :data:`RETRY_MAX_S`, says so in STATUS= at every attempt and on stderr (the journal) when the
+fault starts, changes and ends, and the first session that runs again writes the fault into its
+log.  A session that could not write its log is skipped with one line on stderr; a daemon whose
+``max_sessions`` sessions all wrote nothing exits 1.
 """
 
 from __future__ import annotations
 
 import fcntl
+import logging
 import os
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 
 from appliance.acquisition.notify import Notifier
-from appliance.acquisition.session import SessionResult
+from appliance.acquisition.session import SessionResult, earlier_faults
 from appliance.config import Config
-from appliance.errors import LogError
+from appliance.errors import DeviceError, LogError, ProtocolError
+
+LOG = logging.getLogger(__name__)
+#: the wait before the daemon opens devices that did not answer again (s); it doubles at every
+#: failed attempt, up to :data:`RETRY_MAX_S`
+RETRY_FIRST_S = 2.0
+RETRY_MAX_S = 60.0
 
 #: one session: (log folder, stop requested?, progress callback) -> its result; the command line
 #: chooses it (hardware or simulated, :func:`appliance.cli._platform.session_runner`)
@@ -62,16 +77,42 @@ def run_one_session(
         return run_session(log_dir, should_stop, on_status)
 
 
+@dataclass
+class DeviceOutage:
+    """Devices that did not answer when sessions opened them: since when (monotonic s), how many
+    attempts failed, the last error and the wait before the next attempt."""
+
+    since_s: float
+    error: str
+    wait_s: float
+    attempts: int = 1
+
+    def note(self, now_s: float) -> str:
+        """The warning the first session after the outage writes into its log."""
+        return (f"devices: did not answer for {now_s - self.since_s:.0f} s before this session "
+                f"({self.attempts_text}); last: {self.error}")
+
+    @property
+    def attempts_text(self) -> str:
+        return f"{self.attempts} failed attempt{'' if self.attempts == 1 else 's'}"
+
+
 class SessionDaemon:
+    """Runs ``run_session`` on the schedule of ``config.session`` (see the module's description);
+    ``retry_s`` is the first and the longest wait before opening devices that did not answer again."""
+
     def __init__(
         self, config: Config, log_dir: Path, notifier: Notifier, run_session: SessionRunner,
         clock: Callable[[], float] = time.monotonic,
+        retry_s: tuple[float, float] = (RETRY_FIRST_S, RETRY_MAX_S),
     ) -> None:
         self.config, self.log_dir, self.notifier = config, log_dir, notifier
         self.run_session = run_session
         self._stop = threading.Event()
         self._clock = clock
+        self.retry_first_s, self.retry_max_s = retry_s
         self.results: list[SessionResult] = []
+        self.outage: DeviceOutage | None = None
         self._progress_s = clock()
 
     def request_stop(self, signum: int | None = None, frame: FrameType | None = None) -> None:
@@ -89,7 +130,7 @@ class SessionDaemon:
 
     def _status(self, text: str) -> None:
         self._progress_s = self._clock()
-        self.notifier.notify(STATUS=text, WATCHDOG=1)
+        self.notifier.notify(STATUS=" ".join(text.splitlines()), WATCHDOG=1)
 
     def feed_watchdog(self) -> bool:
         """WATCHDOG=1 if the session reported progress within ``session.step_timeout_s``; whether
@@ -131,22 +172,63 @@ class SessionDaemon:
 
     def _loop(self) -> int:
         cfg = self.config.session
-        n = 0
+        n = written = 0
         while not self._stop.is_set():
+            outcome = self._session(n + 1)
+            if outcome is None:  # the devices did not answer: not a session, try again later
+                self._wait(self.outage.wait_s if self.outage is not None else self.retry_first_s)
+                continue
             n += 1
-            self._status(f"session {n} starting")
-            try:
-                result = run_one_session(self.run_session, self.log_dir, self._stop.is_set, self._status)
-            except LogError as exc:
-                self._status(f"session {n} skipped: {exc}")
-            else:
-                self.results.append(result)
-                err = "n/a" if result.error_m is None else f"{result.error_m:.0f} m"
-                self._status(
-                    f"session {n} {result.status.value} ({result.frames} frames, error {err}): {result.log_path.name}"
-                )
+            written += outcome
             if cfg.max_sessions and n >= cfg.max_sessions:
                 break
             self._wait(cfg.interval_s)
         self.notifier.stopping(status="stopping")
+        if cfg.max_sessions and n >= cfg.max_sessions and not written:
+            LOG.error("no session was written: all %d sessions failed to write their log", n)
+            return 1
         return 0
+
+    def _session(self, n: int) -> bool | None:
+        """Session ``n``: whether it wrote a log; None when the devices did not answer."""
+        self._status(f"session {n} starting")
+        notes = [] if self.outage is None else [self.outage.note(self._clock())]
+        try:
+            with earlier_faults(notes):
+                result = run_one_session(self.run_session, self.log_dir, self._stop.is_set, self._status)
+        except (DeviceError, ProtocolError) as exc:  # the procedures catch their own: opening the devices failed
+            self._devices_down(exc)
+            return None
+        except LogError as exc:
+            LOG.error("session %d skipped: %s", n, exc)
+            self._status(f"session {n} skipped: {exc}")
+            return False
+        if self.outage is not None:
+            LOG.info("devices answer again after %.0f s (%s); sessions resume",
+                     self._clock() - self.outage.since_s, self.outage.attempts_text)
+            self.outage = None
+        self.results.append(result)
+        if result.log_error is not None:
+            LOG.error("session %d: %s", n, result.log_error)
+        err = "n/a" if result.error_m is None else f"{result.error_m:.0f} m"
+        self._status(
+            f"session {n} {result.status.value} ({result.frames} frames, error {err}): {result.log_path.name}"
+        )
+        return True
+
+    def _devices_down(self, exc: DeviceError | ProtocolError) -> None:
+        """A failed attempt to open the devices: the degraded state's STATUS, a line on stderr when
+        the fault starts or changes, and the wait before the next attempt."""
+        error, o = str(exc), self.outage
+        if o is None:
+            o = self.outage = DeviceOutage(self._clock(), error, self.retry_first_s)
+            LOG.warning("devices do not answer: %s; degraded, trying again after %g s, then up to every %g s",
+                        error, o.wait_s, self.retry_max_s)
+        else:
+            o.attempts += 1
+            o.wait_s = min(2.0 * o.wait_s, self.retry_max_s)
+            if error != o.error:
+                LOG.warning("devices still do not answer, now: %s", error)
+            o.error = error
+        self._status(f"degraded: devices do not answer ({error}); attempt {o.attempts} failed, "
+                     f"next in {o.wait_s:g} s")

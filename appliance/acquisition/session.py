@@ -1,16 +1,21 @@
 """One field session: level, compass, ground truth, capture, onboard estimate, all into one MCAP log.
 
 A failing device degrades the session (the procedure is marked degraded or failed, the reason is
-logged on ``/log`` and ``/session/procedure``) instead of ending it; a full disk ends it cleanly
-with the log sealed; a stop request (SIGTERM in the daemon) is honoured between captures and the
-log is closed properly.  The simulated session of the demo is :mod:`appliance.sim.field_session`.
+logged on ``/log`` and ``/session/procedure``) instead of ending it; a full disk (or any failed
+write) ends it cleanly with the log sealed, and a log that cannot be opened, or holds nothing when
+the disk fails, is removed: :class:`LogError` then says so and no file is left; a stop request
+(SIGTERM in the daemon) is honoured between captures and the log is closed properly.  The session
+daemon hands faults it saw before a session (devices that did not answer) to the session's log with
+:func:`earlier_faults`.  The simulated session of the demo is :mod:`appliance.sim.field_session`.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,7 +28,7 @@ from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
 from appliance.config import Config
 from appliance.drivers.factory import Devices
-from appliance.errors import DeviceError, EstimationError, InputError, ViperError
+from appliance.errors import DeviceError, EstimationError, InputError, LogError, ViperError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook, LogbookFullError
@@ -40,6 +45,21 @@ class StopRequestedError(Exception):
     """Raised inside a session when a stop was requested; the session closes its log and returns."""
 
 
+#: warnings the next log written in this context starts with (:func:`earlier_faults`)
+_EARLIER_FAULTS: ContextVar[tuple[str, ...]] = ContextVar("earlier_faults", default=())
+
+
+@contextmanager
+def earlier_faults(lines: Sequence[str]) -> Iterator[None]:
+    """Sessions (and traverses) started inside write ``lines`` as warnings at the start of their
+    log: what went wrong before them that no log holds (the daemon's devices that did not answer)."""
+    token = _EARLIER_FAULTS.set(tuple(lines))
+    try:
+        yield
+    finally:
+        _EARLIER_FAULTS.reset(token)
+
+
 @dataclass
 class SessionResult:
     log_path: Path
@@ -53,6 +73,8 @@ class SessionResult:
     frames: int = 0
     stopped: bool = False
     disk_full: bool = False
+    # why the log ended early (a full disk, a failed write); the log keeps what was durable before
+    log_error: str | None = None
     panorama: Any = None
     skyline: Skyline | None = None
     # with a prior (a traverse's stop after the first): the estimate from this skyline alone, and its error;
@@ -129,10 +151,14 @@ class Session:
             self.run_procedures()
         except StopRequestedError:
             self.stopped()
-        except LogbookFullError as exc:
-            self.disk_full(exc)
+        except LogError as exc:
+            if self.log.is_open:
+                raise
+            self.log_failed(exc)
         finally:
-            self.log.close()
+            self.close_log()
+        if r.log_error is not None and self.log.messages_durable == 0:
+            raise LogError(f"{r.log_error}; it held no message: {remove_unwritten_log(r.log_path)}")
         return r
 
     def write_header(self) -> None:
@@ -142,6 +168,8 @@ class Session:
             intr = self.p.camera.intrinsics
             self.log.write_proto(t.CALIBRATION, m.camera_calibration(self.now(), intr), self.now())
             self.log.write_proto(t.TF, m.optical_transform(self.now()), self.now())
+        for text in _EARLIER_FAULTS.get():
+            self.say("warning", text)
 
     def run_procedures(self) -> None:
         """Level, compass, truth, capture, estimate into the log (left open: a traverse writes its
@@ -162,10 +190,18 @@ class Session:
         self.result.status = Status.DEGRADED
         self.say("warning", "session stopped on request; log closed with everything captured so far")
 
-    def disk_full(self, exc: LogbookFullError) -> None:
-        self.result.disk_full = True
+    def close_log(self) -> None:
+        """Close the log; a summary that cannot be written leaves it sealed at the end of its data."""
+        try:
+            self.log.close()
+        except LogError as exc:
+            self.log_failed(exc)
+
+    def log_failed(self, exc: LogError) -> None:
+        """The log took no more writes (a full disk, an I/O error): the session failed there."""
+        self.result.disk_full = isinstance(exc, LogbookFullError)
         self.result.status = Status.FAILED
-        self.result.problems.append(str(exc))
+        self.result.log_error = str(exc)
 
     def step(self, name: str, action: Callable[[], Any]) -> Any:
         self.check_stop()
@@ -178,6 +214,8 @@ class Session:
             self.outcome(name, Status.FAILED, str(exc))
             return None
         except ViperError as exc:
+            if isinstance(exc, LogError) and not self.log.is_open:
+                raise  # the log itself failed: the session ends there (run)
             self.outcome(name, Status.FAILED, f"{type(exc).__name__}: {exc}")
             return None
 
@@ -377,15 +415,32 @@ def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:
     return Path(log_dir) / f"viper-{stamp}-{session_id}.mcap"
 
 
+def remove_unwritten_log(path: Path) -> str:
+    """Remove the log a session could not write anything into; what became of it, for the message."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError as exc:
+        return f"{path.name} could not be removed ({exc.strerror})"
+    return f"{path.name} removed"
+
+
 def open_session_log(config: Config, log_dir: Path, now_ns: int,
                      publisher: Publisher | None = None) -> tuple[str, Path, Logbook]:
     """A new log in ``log_dir`` for a session (or a traverse) starting at ``now_ns``, written as
-    ``[logbook]`` says and also sent to ``publisher`` when given; returns its id, its path and the logbook."""
+    ``[logbook]`` says and also sent to ``publisher`` when given; returns its id, its path and the
+    logbook.  A log that cannot be opened (a full disk, a read-only folder) raises :class:`LogError`
+    and leaves no file behind."""
     session_id = uuid.uuid4().hex[:8]
     lc = config.logbook
     path = session_log_path(log_dir, now_ns, session_id)
-    logbook = Logbook.create(path, fsync_interval_s=lc.fsync_interval_s, chunk_size_bytes=lc.chunk_size_bytes,
-                             compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher)
+    existed = path.exists()  # never remove a file this session did not create
+    try:
+        logbook = Logbook.create(path, fsync_interval_s=lc.fsync_interval_s, chunk_size_bytes=lc.chunk_size_bytes,
+                                 compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher)
+    except LogError as exc:
+        if existed or not path.exists():
+            raise
+        raise LogError(f"{exc}; no log written: {remove_unwritten_log(path)}") from None
     return session_id, path, logbook
 
 

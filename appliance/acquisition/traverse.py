@@ -209,7 +209,7 @@ class Traverse:
             r.stopped = True
         except LogbookFullError as exc:
             r.disk_full = True
-            r.problems.append(str(exc))
+            r.log_error = str(exc)
         finally:
             self.log.close()
         self.summarise()

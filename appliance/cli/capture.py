@@ -1,4 +1,7 @@
-"""``viper capture``: one session now (level, compass, GPS truth, capture, onboard estimate)."""
+"""``viper capture``: one session now (level, compass, GPS truth, capture, onboard estimate).
+
+The session's result goes to stdout; what went wrong with the log (a full disk) to stderr, and the
+exit status is then non-zero."""
 
 from __future__ import annotations
 
@@ -40,6 +43,9 @@ def _capture(args: argparse.Namespace) -> int:
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
         area = e.result.region_area_m2 / 1e6
         print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
+    if result.log_error is not None:
+        LOG.error("%s", result.log_error)
+        return 1
     if result.frames == 0:
         LOG.error("no frame captured: the session measured nothing")
         return 1

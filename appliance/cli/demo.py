@@ -12,6 +12,7 @@ alone and fused, and the report shows the track.
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,6 +24,8 @@ from appliance.errors import InputError
 if TYPE_CHECKING:
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
+
+LOG = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -89,6 +92,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  session    {r.status.value}: " + ", ".join(f"{k} {v}" for k, v in r.outcomes.items()))
     for problem in r.problems:
         print(f"  problem    {problem}")
+    if r.log_error is not None:
+        LOG.error("%s", r.log_error)
     print(f"  true       {lat:.6f}, {lon:.6f}  (simulated; camera {sim_truth.mast_height_m} m above the ground)")
     if r.truth is not None and r.truth.lat_deg is not None and r.truth.lon_deg is not None:
         print(f"  GPS truth  {r.truth.lat_deg:.6f}, {r.truth.lon_deg:.6f}  ({r.truth.used} fixes, "
@@ -159,6 +164,8 @@ def run_traverse(args: argparse.Namespace) -> int:
     print(f"  traverse   {r.status.value}: {len(r.stops)} of {args.traverse} stops")
     for problem in r.problems:
         print(f"  problem    {problem}")
+    if r.log_error is not None:
+        LOG.error("%s", r.log_error)
     print("  stop  odometry E, N +- sigma (m)   alone: error (m)  status     fused: error (m)  status     "
           "true error fused (m)")
     for s, tr in zip(r.stops, truths, strict=True):
