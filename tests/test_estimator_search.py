@@ -31,7 +31,7 @@ def skyline_field(rows: np.ndarray, cols: np.ndarray, seed: int = 0) -> np.ndarr
 def make_grid(n_rows: int = 40, n_cols: int = 50, seed: int = 0, cell_m: float = 30.0) -> SkylineGrid:
     r, c = np.meshgrid(np.arange(n_rows), np.arange(n_cols), indexing="ij")
     codes, off, step = quantize(skyline_field(r.ravel().astype(float), c.ravel().astype(float), seed))
-    return SkylineGrid(codes, off, step, n_rows, n_cols, cell_m, cell_m)
+    return SkylineGrid(codes, off, step, n_rows=n_rows, n_cols=n_cols, dx_m=cell_m, dy_m=cell_m)
 
 
 def reading(true_el: np.ndarray, correction_deg: float, rng, noise=0.0, missing=0):
@@ -148,7 +148,7 @@ def test_fusion_resolves_what_one_panorama_cannot():
     codes = np.concatenate([half.codes.reshape(20, 20, N_AZ), half.codes.reshape(20, 20, N_AZ)], axis=1)
     off = np.concatenate([half.offset_deg.reshape(20, 20), half.offset_deg.reshape(20, 20)], axis=1)
     step = np.concatenate([half.step_deg.reshape(20, 20), half.step_deg.reshape(20, 20)], axis=1)
-    g = SkylineGrid(codes.reshape(-1, N_AZ), off.ravel(), step.ravel(), 20, 40, 30.0, 30.0)
+    g = SkylineGrid(codes.reshape(-1, N_AZ), off.ravel(), step.ravel(), n_rows=20, n_cols=40, dx_m=30.0, dy_m=30.0)
     rng = np.random.default_rng(9)
     first = 10 * 40 + 5  # left half; its twin is 10 * 40 + 25
     alone = estimate(g, *reading(g.skylines_deg(first), 0.0, rng, noise=0.2), (0.15, 0.4), 2.0)

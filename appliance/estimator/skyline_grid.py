@@ -9,7 +9,7 @@ azimuths and the parallax variance of each run; a database makes both once, at i
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from functools import cached_property
 
 import numpy as np
@@ -30,6 +30,7 @@ class SkylineGrid:
     codes: np.ndarray  # (n_nodes, n_az) uint8, 255 = no terrain
     offset_deg: np.ndarray  # (n_nodes,) float32, NaN = node on nodata
     step_deg: np.ndarray  # (n_nodes,) float32
+    _: KW_ONLY
     n_rows: int
     n_cols: int
     dx_m: float

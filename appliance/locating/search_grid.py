@@ -17,8 +17,9 @@ def skyline_grid(db: SkylineDatabase) -> SkylineGrid:
     terrain = Terrain(db.terrain_m, db.terrain_origin[0], db.terrain_origin[1], db.convergence_deg, db.height_m,
                       db.r_eff_m, float(db.header["max_range_m"]))
     dc = db.header["distance_code"]
-    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, g.n_rows, g.n_cols, g.dx_m, g.dy_m,
-                       db.distance_codes, db.ground_m, terrain, float(dc["min_m"]), float(dc["log_step"]),
+    return SkylineGrid(db.codes, db.offset_deg, db.step_deg, n_rows=g.n_rows, n_cols=g.n_cols, dx_m=g.dx_m,
+                       dy_m=g.dy_m, distance_codes=db.distance_codes, ground_m=db.ground_m, terrain=terrain,
+                       distance_min_m=float(dc["min_m"]), distance_log_step=float(dc["log_step"]),
                        first_pass=(db.coarse_codes, db.coarse_partial, db.coarse_tau2))
 
 

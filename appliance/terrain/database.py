@@ -330,8 +330,9 @@ def _write(fd: int, plan: _FilePlan, spill: int, gamma_deg: np.ndarray, step_az:
     shift = np.asarray(gamma_deg, dtype=np.float64) / step_az
     # the per-node inputs of the estimator's first pass (ground gradient, offset variance, range
     # table), as the estimator makes them, from a grid with no skylines
-    per_node = SkylineGrid(np.empty((n, 0), np.uint8), offs, steps, cand.n_rows, cand.n_cols, cand.dx_m, cand.dy_m,
-                           None, ground, distance_min_m=DISTANCE_MIN_M, distance_log_step=DISTANCE_LOG_STEP)
+    per_node = SkylineGrid(np.empty((n, 0), np.uint8), offs, steps, n_rows=cand.n_rows, n_cols=cand.n_cols,
+                           dx_m=cand.dx_m, dy_m=cand.dy_m, ground_m=ground, distance_min_m=DISTANCE_MIN_M,
+                           distance_log_step=DISTANCE_LOG_STEP)
 
     def write_chunk(lo: int, codes: np.ndarray, dist: np.ndarray, coarse: np.ndarray, partial: np.ndarray,
                     tau2: np.ndarray) -> None:
