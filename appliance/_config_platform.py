@@ -20,6 +20,10 @@ from appliance._config_checks import (
     _within,
     udp_address,
 )
+from appliance.inputs import MAX_IMAGE_PIXELS
+
+#: The longest side of a camera's frame (px); a frame's pixels are capped by the images' own cap.
+MAX_CAMERA_SIDE = 20_000
 
 
 class PlatformKind(str, enum.Enum):
@@ -173,8 +177,12 @@ class CameraDeviceConfig:
     intrinsics_file: Path | None = None  # camera calibration TOML
 
     def __post_init__(self) -> None:
-        _require(self.width >= 1, "devices.camera.width", "an integer >= 1", self.width)
-        _require(self.height >= 1, "devices.camera.height", "an integer >= 1", self.height)
+        _require(1 <= self.width <= MAX_CAMERA_SIDE, "devices.camera.width", f"an integer in [1, {MAX_CAMERA_SIDE}]",
+                 self.width)
+        _require(1 <= self.height <= MAX_CAMERA_SIDE, "devices.camera.height", f"an integer in [1, {MAX_CAMERA_SIDE}]",
+                 self.height)
+        _require(self.width * self.height <= MAX_IMAGE_PIXELS, "devices.camera.width x height",
+                 f"at most {MAX_IMAGE_PIXELS:,} pixels", f"{self.width} x {self.height}")
         _non_negative("devices.camera.exposure", self.exposure)
         _non_negative("devices.camera.gain", self.gain)
         _require(self.flush_frames >= 0, "devices.camera.flush_frames", "an integer >= 0", self.flush_frames)

@@ -1,7 +1,8 @@
 """Atomic file output: every file the appliance writes goes through here.
 
 A file is written to a temporary file in its own folder (``.NAME.XXXXXXXX.tmpSUFFIX``, so a
-library that picks the format from the suffix sees the right one), fsynced, given its mode and
+library that picks the format from the suffix sees the right one; a NAME over 200 bytes is cut to
+its start and a hash, so that every name a file system takes can be written), fsynced, given its mode and
 renamed over its final name, and the folder is fsynced; on any failure the temporary file is
 removed and the final name is untouched.  A new file gets ``0666 & ~umask`` like any other tool's
 output; a replaced file keeps its mode.  Every ``OSError`` (a missing folder, a file where the
@@ -20,6 +21,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import glob
+import hashlib
 import os
 import secrets
 import threading
@@ -50,6 +52,33 @@ _REASONS = {
 _umask_lock = threading.Lock()
 #: Folders :func:`check_output_folder` created in this process, for :func:`remove_created_folders`.
 _created_folders: list[Path] = []
+
+
+#: A final name longer than this (bytes) is shortened in its temporaries' names, which then fit in
+#: a file system's 255 bytes whatever the final name's length.
+_STEM_BYTES = 200
+_SUFFIX_BYTES = 16
+
+
+def _stem(name: str) -> str:
+    """The part of a temporary's name that comes from the final name: the name itself, or a long
+    one's first bytes and a hash of the whole (the same for the same name, for the cleanup)."""
+    raw = name.encode("utf-8", errors="surrogateescape")
+    if len(raw) <= _STEM_BYTES:
+        return name
+    digest = hashlib.sha256(raw).hexdigest()[:8]
+    head = raw[: _STEM_BYTES - 9].decode("utf-8", errors="ignore")
+    return f"{head}~{digest}"
+
+
+def temporary_name(name: str, suffix: str | None = None) -> str:
+    """A fresh temporary's name for the final name ``name``: ``.STEM.XXXXXXXX.tmpSUFFIX`` (the final
+    name's suffix unless given, left out when longer than 16 bytes), at most 231 bytes long."""
+    if suffix is None:
+        suffix = Path(name).suffix
+    if len(suffix.encode("utf-8", errors="surrogateescape")) > _SUFFIX_BYTES:
+        suffix = ""
+    return f".{_stem(name)}.{secrets.token_hex(4)}{TMP_MARK}{suffix}"
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -158,7 +187,7 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
     except OSError:
         mode = umask_mode()
     remove_stale_temporaries(folder, p.name)
-    tmp = folder / f".{p.name}.{secrets.token_hex(4)}{TMP_MARK}{p.suffix}"
+    tmp = folder / temporary_name(p.name)
     try:
         fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
     except OSError as exc:
@@ -233,7 +262,7 @@ def _unnamed_file(folder: Path, name: str) -> int:
             # no O_TMPFILE on this file system (EOPNOTSUPP) or kernel (EISDIR, EINVAL): a named file
             if exc.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
                 raise
-    tmp = folder / f".{name}.{secrets.token_hex(4)}{TMP_MARK}.scratch"
+    tmp = folder / temporary_name(name, ".scratch")
     fd = os.open(tmp, flags | os.O_CREAT | os.O_EXCL, 0o600)
     try:
         tmp.unlink()
@@ -397,7 +426,7 @@ def remove_if_unheld(lock_path: Path, remove: Callable[[], None]) -> bool:
 def remove_stale_temporaries(folder: str | Path, name: str) -> list[Path]:
     """Remove the temporary files of ``folder/name`` that no live writer holds (a killed one's)."""
     try:
-        candidates = sorted(Path(folder).glob(f".{glob.escape(name)}.*{TMP_MARK}*"))
+        candidates = sorted(Path(folder).glob(f".{glob.escape(_stem(name))}.*{TMP_MARK}*"))
     except OSError:
         return []
     return [q for q in candidates if remove_if_unheld(q, q.unlink)]

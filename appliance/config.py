@@ -45,13 +45,14 @@ from appliance._config_platform import (
     StageConfig,
 )
 from appliance.errors import ConfigError, InputError
+from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
 
 __all__ = [
     "CameraDeviceConfig", "CompassConfig", "CompassKind", "Compression", "Config", "DevicesConfig", "EstimatorConfig",
     "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LogbookConfig", "OdometryDeviceConfig",
     "PlatformConfig", "PlatformKind", "SIGMA_MAX_DEG", "SIGMA_MIN_DEG", "SessionConfig", "SimConfig",
     "SimFaultsConfig", "StageConfig", "TraverseConfig", "UDP_SCHEME", "from_mapping", "load_config", "override",
-    "udp_address",
+    "read_config_toml", "udp_address",
 ]
 
 if sys.version_info >= (3, 11):
@@ -125,9 +126,10 @@ class LogbookConfig:
 
     def __post_init__(self) -> None:
         _positive("logbook.fsync_interval_s", self.fsync_interval_s)
-        _require(self.chunk_size_bytes >= 1024, "logbook.chunk_size_bytes", "an integer >= 1024",
-                 self.chunk_size_bytes)
-        _require(self.reserve_bytes >= 0, "logbook.reserve_bytes", "an integer >= 0", self.reserve_bytes)
+        _require(1024 <= self.chunk_size_bytes <= 1 << 26, "logbook.chunk_size_bytes",
+                 "an integer in [1024, 67108864] (64 MiB)", self.chunk_size_bytes)
+        _require(0 <= self.reserve_bytes <= 1 << 30, "logbook.reserve_bytes", "an integer in [0, 1073741824] (1 GiB)",
+                 self.reserve_bytes)
         _require(isinstance(self.compression, Compression), "logbook.compression", _choices(Compression),
                  self.compression)
 
@@ -165,7 +167,7 @@ class SessionConfig:
         _within("session.level_tolerance_deg", self.level_tolerance_deg, 0.0, 90.0)
         _non_negative("session.level_timeout_s", self.level_timeout_s)
         _positive("session.level_poll_s", self.level_poll_s)
-        _require(self.compass_steps >= 3, "session.compass_steps", "an integer >= 3", self.compass_steps)
+        _require(3 <= self.compass_steps <= 360, "session.compass_steps", "an integer in [3, 360]", self.compass_steps)
         _positive("session.compass_max_residual", self.compass_max_residual)
         _non_negative("session.truth_duration_s", self.truth_duration_s)
         _require(self.truth_min_fixes >= 1, "session.truth_min_fixes", "an integer >= 1", self.truth_min_fixes)
@@ -297,19 +299,28 @@ def from_mapping(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
 
 
 def load_config(path: str | Path | None) -> Config:
-    """Read a TOML configuration file; ``None`` gives the defaults."""
+    """Read a TOML configuration file (a regular file of at most 1 MiB, nested at most 64 levels);
+    ``None`` gives the defaults."""
     if path is None:
         return Config()
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: configuration file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+    data = read_config_toml(p)
     try:
         return from_mapping(Config, data)
     except ConfigError as exc:
         raise ConfigError(f"{p}: {exc}") from None
+
+
+def read_config_toml(p: Path) -> dict[str, Any]:
+    """The parsed TOML of the configuration file ``p``; every failure a :class:`ConfigError` line."""
+    try:
+        text = read_text_bounded(p, MAX_CONFIG_BYTES, "configuration file", ConfigError)
+        check_nesting(text)
+        return tomllib.loads(text)
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except (tomllib.TOMLDecodeError, NestingError) as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read configuration: {exc}") from None
+

@@ -3,7 +3,8 @@
 CSV: header ``azimuth_deg,elevation_deg``; one row per azimuth (degrees clockwise from north, as
 the heading sensor reports it); an empty elevation means missing (masked, occluded, not detected).
 A UTF-8 byte order mark (a spreadsheet's export) is skipped; an azimuth given twice (360 is 0) is
-merged when both rows agree and refused when they do not.
+merged when both rows agree and refused when they do not.  A file is read only if it is a regular
+file of at most 32 MiB and 360,000 rows (:mod:`appliance.inputs`).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 
 from appliance.atomic import write_text_atomic
 from appliance.errors import InputError
+from appliance.inputs import MAX_SKYLINE_BYTES, MAX_SKYLINE_ROWS, read_text_bounded
 
 HEADER = ("azimuth_deg", "elevation_deg")
 #: The optional third column: the detector's confidence in each azimuth (0..1), a weight in the likelihood.
@@ -57,7 +59,7 @@ def read_skyline_csv(path: str | Path) -> Skyline:
     """Read a skyline CSV; malformed content raises :class:`InputError` naming the file and line."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8-sig")
+        text = read_text_bounded(p, MAX_SKYLINE_BYTES, "skyline file", encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError(f"{p}: skyline file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -67,11 +69,15 @@ def read_skyline_csv(path: str | Path) -> Skyline:
 
 def parse_skyline_csv(text: str, name: str = "<skyline>") -> Skyline:
     text = text.removeprefix("\ufeff")
+    rows: list[list[str]] = []
     try:
-        rows = list(csv.reader(io.StringIO(text)))
+        for r in csv.reader(io.StringIO(text)):
+            if any(c.strip() for c in r):
+                rows.append(r)
+                if len(rows) > MAX_SKYLINE_ROWS + 1:
+                    raise InputError(f"{name}: more than {MAX_SKYLINE_ROWS:,} rows (a skyline has one per azimuth)")
     except csv.Error as exc:
         raise InputError(f"{name}: not a CSV file: {exc}") from None
-    rows = [r for r in rows if any(c.strip() for c in r)]
     if not rows:
         raise InputError(f"{name}: empty skyline file")
     header = tuple(c.strip() for c in rows[0])

@@ -13,6 +13,7 @@ the pictures, a table of errors and the session's facts of each log, from
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +28,7 @@ from appliance.acquisition.session_facts import FactsCollector, SessionFacts, re
 from appliance.atomic import atomic_output, check_output_folder
 from appliance.config import EstimatorConfig
 from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError
+from appliance.inputs import check_image_pixels
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.reader import LogReader
@@ -99,13 +101,15 @@ def read_session(path: str | Path) -> SessionData:
         try:
             facts.take(msg)
             if msg.topic == t.IMAGE:
-                img = cv2.imdecode(np.frombuffer(msg.decode().data, np.uint8), cv2.IMREAD_COLOR)
+                jpeg = bytes(msg.decode().data)
+                check_image_pixels(jpeg, f"{msg.topic} at {msg.log_time_ns} ns")
+                img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
                 if img is None:
                     undecodable += 1
                     continue
                 images[msg.log_time_ns] = img
             elif msg.topic == t.CAPTURE:
-                tags[msg.log_time_ns] = msg.decode()
+                tags[msg.log_time_ns] = _capture_tag(msg.decode())
             elif msg.topic == t.CALIBRATION:
                 intr = intrinsics_from_calibration(msg.decode())
             elif msg.topic == t.GPS_TRUTH:
@@ -115,7 +119,9 @@ def read_session(path: str | Path) -> SessionData:
                 rec = msg.decode()
                 if isinstance(rec, dict) and rec.get("error_m") is not None:
                     onboard_error = float(rec["error_m"])
-        except (LogError, ValueError) as exc:
+        # a message of another encoding, schema or shape on its topic (no .data, no .latitude, a field
+        # of another type) counts as undecodable, like a damaged one
+        except (LogError, ValueError, TypeError, AttributeError, OverflowError) as exc:
             undecodable += 1
             if undecodable == 1:
                 reader.problem = reader.problem or f"undecodable message on {msg.topic}: {exc}"
@@ -124,9 +130,27 @@ def read_session(path: str | Path) -> SessionData:
     frames = []
     for ns in sorted(set(images) & set(tags)):
         tag = tags[ns]
-        frames.append(TaggedFrame(int(tag["index"]), Frame(ns, images[ns]), float(tag["stage_deg"]),
-                                  tag.get("heading_deg"), tag.get("roll_deg"), tag.get("pitch_deg")))
+        frames.append(TaggedFrame(tag["index"], Frame(ns, images[ns]), tag["stage_deg"],
+                                  tag["heading_deg"], tag["roll_deg"], tag["pitch_deg"]))
     return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem, facts.facts)
+
+
+def _capture_tag(payload: Any) -> dict[str, Any]:
+    """A frame's tag (index, stage angle; heading, roll and pitch if known) from its ``/camera/capture``
+    record; a record of another shape raises ``ValueError``."""
+    if not isinstance(payload, dict):
+        raise ValueError(f"a capture tag is a JSON object, got {type(payload).__name__}")
+    index = payload.get("index")
+    if isinstance(index, bool) or not isinstance(index, int):
+        raise ValueError(f"capture tag index {index!r} is not an integer")
+    tag: dict[str, Any] = {"index": index}
+    for key in ("stage_deg", "heading_deg", "roll_deg", "pitch_deg"):
+        v = payload.get(key)
+        ok = v is None or (not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v))
+        if not ok or (v is None and key == "stage_deg"):
+            raise ValueError(f"capture tag {key} {v!r} is not a finite number")
+        tag[key] = None if v is None else float(v)
+    return tag
 
 
 def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path, title: str) -> Path:

@@ -98,9 +98,17 @@ class FactsCollector:
             self._decoded(msg.topic, msg.decode())
 
     def _decoded(self, topic: str, payload: Any) -> None:
-        f = self.facts
+        """Takes the facts of one decoded record; a record of another shape (a field of another type)
+        says nothing and is left out."""
         if not isinstance(payload, dict):
             return
+        try:
+            self._facts_of(topic, payload)
+        except (TypeError, ValueError, OverflowError):
+            return
+
+    def _facts_of(self, topic: str, payload: dict[str, Any]) -> None:
+        f = self.facts
         if topic == t.SESSION:
             f.session_id = str(payload.get("session_id")) if payload.get("session_id") is not None else None
         elif topic == t.PROCEDURE and payload.get("procedure") is not None:
@@ -112,8 +120,10 @@ class FactsCollector:
                 f.truth_sigma_m = None if sigma is None else float(sigma)
         elif topic == t.SKYLINE_DETECTED:
             el = payload.get("elevation_deg") or []
-            f.azimuths = len(el)
-            f.valid_azimuths = sum(1 for v in el if v is not None and math.isfinite(float(v)))
+            if not isinstance(el, list):
+                return
+            valid = sum(1 for v in el if v is not None and math.isfinite(float(v)))
+            f.azimuths, f.valid_azimuths = len(el), valid
 
 
 def read_session_facts(path: str | Path) -> SessionFacts:

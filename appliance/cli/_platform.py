@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -15,7 +14,8 @@ from typing import TYPE_CHECKING
 
 from viper_calibration.device_file import load_device_calibration
 
-from appliance.config import Config, PlatformKind
+from appliance.config import Config, PlatformKind, read_config_toml
+from appliance.errors import ConfigError
 
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
@@ -24,19 +24,13 @@ if TYPE_CHECKING:
 
 LOG = logging.getLogger(__name__)
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
-
-
 def platform_given(config_path: str | Path | None) -> bool:
     """True when the configuration file has a ``[platform]`` table (the file was already read once)."""
     if config_path is None:
         return False
     try:
-        return "platform" in tomllib.loads(Path(config_path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return "platform" in read_config_toml(Path(config_path))
+    except ConfigError:
         return False
 
 

@@ -42,7 +42,7 @@ class OneLineParser(argparse.ArgumentParser):
     ``viper CMD --help`` shows the usage."""
 
     def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {' '.join(message.split())}\n")
+        self.exit(2, f"{self.prog}: error: {printable(message)}\n")
 
 
 #: Every subcommand: its module under appliance.cli (whose ``register`` adds its parser) and the one-line
@@ -122,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         error = missing_extra(exc)
         if error is None:
             raise
-        print(f"viper {command}: error: {error}", file=sys.stderr)
+        print(f"viper {command}: error: {printable(str(error))}", file=sys.stderr)
         return error.exit_code
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)
@@ -153,8 +153,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"viper {args.command}: interrupted", file=sys.stderr)
         return 130
     remove_created_folders()
-    print(f"viper {args.command}: error: {' '.join(message.split())}", file=sys.stderr)
+    print(f"viper {args.command}: error: {printable(message)}", file=sys.stderr)
     return code
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f]")
+
+
+def printable(message: str) -> str:
+    """``message`` as one line a terminal shows as it is: runs of white space made one space, and every
+    other control character (an ANSI escape from a file name or a TOML key) written as ``\\xNN``."""
+    return _CONTROL.sub(lambda m: f"\\x{ord(m.group()):02x}", " ".join(message.split()))
 
 
 if __name__ == "__main__":  # pragma: no cover

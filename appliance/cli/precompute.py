@@ -128,7 +128,9 @@ def run(args: argparse.Namespace) -> int:
         dem = load_dem(args.dem[0], crs=args.crs)
     else:
         with tempfile.TemporaryDirectory() as tmp:
-            dem = open_map(args.dem, Path(tmp) / MOSAIC_VRT, args.crs).load()
+            source = open_map(args.dem, Path(tmp) / MOSAIC_VRT, args.crs)
+            check_size(source.header(), args)  # from the mosaic's shape, before its heights are read
+            dem = source.load()
     check_size(dem, args)
     header = build_database(
         dem, args.out, args.search_bounds, args.spacing, args.height, args.azimuths,

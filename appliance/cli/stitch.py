@@ -8,12 +8,12 @@ in the order given), from a sidecar ``<image>.json`` (``{"stage_angle_deg": 15.0
 from __future__ import annotations
 
 import argparse
-import json
 import re
 from pathlib import Path
 
 from appliance.atomic import check_output_path
 from appliance.errors import InputError
+from appliance.inputs import read_json_bounded
 from appliance.logsetup import progress
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
 from appliance.vision.panorama import read_image, save_panorama, sidecar_path
@@ -40,9 +40,11 @@ def shot_pose(path: Path, given: float | None) -> tuple[float, float, float]:
     meta: dict[str, object] = {}
     if side.is_file():
         try:
-            meta = json.loads(side.read_text(encoding="utf-8"))
-        except ValueError as exc:
-            raise InputError(f"{side}: not valid JSON: {exc}") from None
+            meta = read_json_bounded(side, "pose sidecar")
+        except OSError as exc:
+            raise InputError(f"{side}: cannot read the pose sidecar: {exc.strerror or exc}") from None
+        if not isinstance(meta, dict):
+            raise InputError(f"{side}: not valid JSON: expected an object, got {type(meta).__name__}")
     try:
         pitch = float(meta.get("pitch_deg", 0.0))  # type: ignore[arg-type]
         roll = float(meta.get("roll_deg", 0.0))  # type: ignore[arg-type]

@@ -9,7 +9,6 @@ tiles (longitudes compared modulo 360).
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ from typing import Any
 
 from appliance.bodies import body_named
 from appliance.errors import DatabaseError, InputError
+from appliance.inputs import MAX_INDEX_BYTES, read_json_bounded
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import lon_overlap
 from appliance.terrain.mosaic import open_map
@@ -108,10 +108,12 @@ def open_tiled(folder: str | Path) -> TiledIndex:
     if not p.is_dir():
         raise DatabaseError(f"{p}: no such tiled database folder")
     try:
-        index = json.loads((p / INDEX_NAME).read_text(encoding="utf-8"))
+        index = read_json_bounded(p / INDEX_NAME, INDEX_NAME, MAX_INDEX_BYTES, DatabaseError)
     except FileNotFoundError:
         raise _bad(p, f"no {INDEX_NAME}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except DatabaseError:
+        raise
+    except OSError as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise _bad(p, f"unreadable {INDEX_NAME} ({first})") from None
     if not isinstance(index, dict) or index.get("format") != INDEX_FORMAT:

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import zstandard
+from google.protobuf.message import DecodeError
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -26,6 +27,7 @@ from mcap.well_known import MessageEncoding
 from mcap_protobuf.decoder import DecoderFactory
 
 from appliance.errors import ErrorPolicy, LogError
+from appliance.inputs import check_nesting, open_regular
 
 log = logging.getLogger(__name__)
 
@@ -50,13 +52,19 @@ class LogMessage:
         """The protobuf object (``foxglove.*``) or the parsed JSON value."""
         if self.message_encoding == MessageEncoding.JSON:
             try:
+                check_nesting(self.data)
                 return json.loads(self.data)
             except (ValueError, UnicodeDecodeError) as exc:
                 raise LogError(
                     f"{self.topic} at {self.log_time_ns} ns: invalid JSON message: {exc}"
                 ) from None
         if self.message_encoding == MessageEncoding.Protobuf and self.schema is not None:
-            return _proto_decoder(self.schema)(self.data)
+            decoder = _proto_decoder(self.schema)
+            try:
+                return decoder(self.data)
+            except DecodeError as exc:
+                raise LogError(f"{self.topic} at {self.log_time_ns} ns: invalid {self.schema.name} message: "
+                               f"{exc}") from None
         raise LogError(f"{self.topic}: cannot decode messages of encoding {self.message_encoding!r}")
 
 
@@ -95,9 +103,12 @@ class LogReader:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         try:
-            self._data = self.path.read_bytes()
+            with open_regular(self.path, "log", LogError) as fh:
+                self._data = fh.read()
         except FileNotFoundError:
             raise LogError(f"{self.path}: log file not found") from None
+        except LogError:
+            raise
         except OSError as exc:
             raise LogError(f"{self.path}: cannot read log: {exc.strerror}") from None
         self.size_bytes = len(self._data)

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import datetime as dt
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from appliance.bodies import geodesic_distance_m
-from appliance.errors import ErrorPolicy
+from appliance.errors import ErrorPolicy, LogError
 from appliance.logbook import topics
-from appliance.logbook.reader import LogReader
+from appliance.logbook.reader import LogMessage, LogReader
 
 
 @dataclass
@@ -92,6 +93,47 @@ def utc_text(time_ns: int) -> str:
     return f"{stamp}.{ns // 1_000_000:03d}Z"
 
 
+def _number(v: Any) -> float | None:
+    """``v`` as a finite number, or None when it is none (a bool, a string, a list...)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    try:
+        f = float(v)
+    except OverflowError:
+        return None
+    return f if math.isfinite(f) else None
+
+
+def _fix(msg: LogMessage) -> dict[str, Any] | None:
+    """{lat, lon} of a location fix message; None for a message that does not decode as one."""
+    try:
+        fix = msg.decode()
+        lat, lon = _number(fix.latitude), _number(fix.longitude)
+    except (LogError, AttributeError):  # another encoding or schema on this topic: not a fix
+        return None
+    return None if lat is None or lon is None else {"lat": lat, "lon": lon}
+
+
+def _estimate_record(msg: LogMessage) -> dict[str, Any] | None:
+    """The estimate record with the fields :meth:`LogSummary.lines` shows, each of its type (a field of
+    another type is left out); None for a record without a numeric lat and lon."""
+    try:
+        rec = msg.decode()
+    except LogError:
+        return None
+    if not isinstance(rec, dict) or _number(rec.get("lat")) is None or _number(rec.get("lon")) is None:
+        return None
+    out = {k: v for k, v in rec.items() if k not in ("lat", "lon", "error_m", "ambiguous", "region")}
+    out.update(lat=_number(rec["lat"]), lon=_number(rec["lon"]))
+    if _number(rec.get("error_m")) is not None:
+        out["error_m"] = _number(rec["error_m"])
+    if isinstance(rec.get("ambiguous"), bool):
+        out["ambiguous"] = rec["ambiguous"]
+    if isinstance(rec.get("region"), dict):
+        out["region"] = rec["region"]
+    return out
+
+
 def summarize_log(path: str | Path) -> LogSummary:
     reader = LogReader(path, ErrorPolicy.SKIP)
     stats: dict[str, TopicStats] = {}
@@ -103,15 +145,11 @@ def summarize_log(path: str | Path) -> LogSummary:
         st.first_ns = msg.log_time_ns if st.first_ns is None else min(st.first_ns, msg.log_time_ns)
         st.last_ns = msg.log_time_ns if st.last_ns is None else max(st.last_ns, msg.log_time_ns)
         if msg.topic == topics.ESTIMATE_RECORD:
-            rec = msg.decode()
-            if isinstance(rec, dict) and rec.get("lat") is not None and rec.get("lon") is not None:
-                estimate = rec
+            estimate = _estimate_record(msg) or estimate
         elif msg.topic == topics.ESTIMATE_FIX and estimate is None:
-            fix = msg.decode()
-            estimate = {"lat": fix.latitude, "lon": fix.longitude}
+            estimate = _fix(msg)
         elif msg.topic == topics.GPS_TRUTH:
-            fix = msg.decode()
-            truth = {"lat": fix.latitude, "lon": fix.longitude}
+            truth = _fix(msg) or truth
     return LogSummary(
         path=Path(path),
         size_bytes=reader.size_bytes,

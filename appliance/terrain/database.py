@@ -50,6 +50,7 @@ from appliance.atomic import atomic_output, scratch_file
 from appliance.bodies import body_named
 from appliance.errors import DatabaseError, InputError, NodataCandidatesError
 from appliance.estimator import COARSE_STRIDE, SkylineGrid, first_pass_ahead
+from appliance.inputs import check_nesting, open_regular
 from appliance.terrain.dem import Dem
 from appliance.terrain.grid import NodeGrid, grid_convergence_deg, lattice_of, plan_grids, terrain_on_grid
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M
@@ -386,7 +387,9 @@ def load_database(path: str | Path, dem: Dem | None = None, full_check: bool = F
     block even if this file was verified before and has not changed since)."""
     p = Path(path)
     try:
-        fh = p.open("rb")
+        fh = open_regular(p, "database", DatabaseError)
+    except DatabaseError:
+        raise
     except FileNotFoundError:
         raise DatabaseError(f"{p}: database not found") from None
     except IsADirectoryError:
@@ -409,6 +412,7 @@ def _load_open(p: Path, fh: BinaryIO, dem: Dem | None, full_check: bool) -> Skyl
         if hlen > 1 << 24:
             raise ValueError(f"header length {hlen}")
         raw = fh.read(hlen)
+        check_nesting(raw)
         header = json.loads(raw.decode())
         if not isinstance(header, dict):
             raise ValueError("the header is not a JSON object")

@@ -26,6 +26,7 @@ from pyproj import CRS
 
 from appliance.bodies import EARTH, MARS, MOON, Body
 from appliance.errors import DemError
+from appliance.inputs import check_regular
 from appliance.native import native_messages
 from appliance.terrain.elevation import Dem, affine_apply
 
@@ -73,6 +74,12 @@ def load_dem(path: str | Path | None = None, crs: str | None = None) -> Dem:
         raise DemError(f"{p}: DEM file not found")
     if p.is_dir():
         raise DemError(f"{p}: is a folder, not a DEM file")
+    try:
+        check_regular(p, "DEM", DemError)
+    except OSError as exc:
+        if isinstance(exc, DemError):
+            raise
+        raise DemError(f"{p}: cannot read DEM: {exc.strerror or exc}") from None
     suffix = p.suffix.lower()
     try:
         if suffix == ".npz":
@@ -191,6 +198,8 @@ def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, i
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.open(open_path) as ds:
                 _check_raw_size(p, ds)
+                if window is None and not shape_only:
+                    _check_pixels(p, int(ds.width), int(ds.height))
                 win = None if window is None else Window(window[1], window[0], window[3], window[2])
                 if shape_only:
                     band = np.ma.masked_all((1, 1))
@@ -235,6 +244,17 @@ def _load_gdal(p: Path, crs_override: str | None, window: tuple[int, int, int, i
         data *= 0.3048
     sha = sha256 or _sha256(p)
     return Dem(data, transform, crs, body, str(p), sha, meta)
+
+
+#: Pixels of a map read whole (800 MB of heights); a larger map is built tile by tile (precompute --tiles).
+MAX_DEM_PIXELS = 100_000_000
+
+
+def _check_pixels(p: Path, width: int, height: int) -> None:
+    """Refuse, before reading it, a map too large to hold whole."""
+    if width * height > MAX_DEM_PIXELS:
+        raise DemError(f"{p}: {width} x {height} pixels, more than the {MAX_DEM_PIXELS:,} a map read whole may have "
+                       "(build its database with precompute --tiles, which reads it tile by tile)")
 
 
 def _check_raw_size(p: Path, ds: Any) -> None:

@@ -66,6 +66,9 @@ def render_skyline(
         raise DemError(f"{dem.source}: viewpoint {lat:.6f}, {lon:.6f} is off the map or on nodata")
     reach = min(max_range, _farthest_corner_m(dem, lat, lon))
     dist = ray_distances(min(dem.resolution_m()), reach, step_m)
+    if dist.size == 0:
+        raise DemError(f"{dem.source}: a reach of {reach:.3g} m holds no sample of the map (its cells are "
+                       f"{min(dem.resolution_m()):.3g} m)")
     r_eff = dem.body.effective_radius_m(refraction)
     z_eye = ground + height_m
     to_dem = Transformer.from_crs(local_aeqd(dem, lat, lon), dem.crs, always_xy=True)

@@ -25,6 +25,7 @@ import numpy as np
 from appliance.atomic import write_text_atomic
 from appliance.config import from_mapping
 from appliance.errors import ConfigError
+from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -72,10 +73,12 @@ class CameraIntrinsics:
 def load_intrinsics(path: str | Path) -> CameraIntrinsics:
     p = Path(path)
     try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
+        text = read_text_bounded(p, MAX_CONFIG_BYTES, "calibration file", ConfigError)
+        check_nesting(text)
+        data = tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(f"{p}: calibration file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, NestingError) as exc:
         raise ConfigError(f"{p}: not a valid TOML calibration file: {exc}") from None
     if "camera" not in data:
         raise ConfigError(f"{p}: no [camera] table")

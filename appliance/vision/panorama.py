@@ -30,6 +30,7 @@ import numpy as np
 
 from appliance.atomic import atomic_output
 from appliance.errors import InputError
+from appliance.inputs import read_image_bytes, read_json_bounded
 from appliance.native import native_messages
 
 SIDECAR_SUFFIX = ".json"
@@ -158,9 +159,12 @@ def sidecar_path(image_path: str | Path) -> Path:
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file as HxWx3 uint8 BGR; an unreadable file raises :class:`InputError`."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: image file not found")
-    data = np.fromfile(str(p), dtype=np.uint8)
+    try:
+        data = np.frombuffer(read_image_bytes(p), dtype=np.uint8)
+    except FileNotFoundError:
+        raise InputError(f"{p}: image file not found") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read the image: {exc.strerror or exc}") from None
     with native_messages() as said:
         img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
@@ -207,7 +211,10 @@ def load_panorama(
 def _from_sidecar(img: np.ndarray, side: Path) -> Panorama:
     """The panorama ``img`` with the geometry its sidecar gives; any malformed field is an InputError."""
     try:
-        meta = json.loads(side.read_text(encoding="utf-8"))
+        meta = read_json_bounded(side, "panorama sidecar")
+    except OSError as exc:
+        raise InputError(f"{side}: cannot read the panorama sidecar: {exc.strerror or exc}") from None
+    try:
         if not isinstance(meta, dict):
             raise ValueError("not a JSON object")
         proj = Projection(meta["projection"])
@@ -222,8 +229,6 @@ def _from_sidecar(img: np.ndarray, side: Path) -> Panorama:
         size = [meta.get(key, n) for key, n in (("width", img.shape[1]), ("height", img.shape[0]))]
         if any(isinstance(v, bool) or not isinstance(v, int) for v in size):
             raise ValueError(f"width and height must be whole numbers, got {size}")
-    except OSError as exc:
-        raise InputError(f"{side}: cannot read the panorama sidecar: {exc.strerror or exc}") from None
     except (ValueError, KeyError) as exc:
         raise InputError(f"{side}: not a valid panorama sidecar: {exc}") from None
     if tuple(size) != (img.shape[1], img.shape[0]):

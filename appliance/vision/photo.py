@@ -17,7 +17,6 @@ through a masked rectangle is missing.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import cv2
 import numpy as np
 
 from appliance.errors import ConfigError, InputError
+from appliance.inputs import read_json_bounded
 from appliance.skyline import Skyline
 from appliance.vision.camera import CameraPose, directions_to_pixels, pixels_to_directions
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
@@ -114,11 +114,11 @@ def read_sidecar(photo_path: str | Path) -> tuple[CameraPose | None, Path | None
 def read_orientation_file(side: Path) -> tuple[CameraPose | None, Path | None]:
     """The orientation (``yaw_deg``, ``pitch_deg``, ``roll_deg``) and ``camera`` of a JSON file;
     (None, None) for a JSON object without ``yaw_deg`` (a panorama's geometry sidecar)."""
-    if not side.is_file():
+    if not side.exists():
         raise InputError(f"{side}: orientation file not found")
     try:
-        data = json.loads(side.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = read_json_bounded(side, "JSON sidecar")
+    except OSError as exc:
         raise InputError(f"{side}: not a readable JSON sidecar: {exc}") from None
     if not isinstance(data, dict) or "yaw_deg" not in data:
         return None, None

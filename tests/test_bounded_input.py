@@ -1,0 +1,103 @@
+"""Bounded input at the edge (issue 35): FIFOs and devices, files too large, image bombs, deeply nested
+JSON and TOML, log records of another shape, options out of range, escapes in names, long names.
+
+Every case of the catalogue in :mod:`bench.bounded_input` runs ``viper`` in a child process with a
+60 s timeout and a 2 GiB address-space limit; it must end with one stderr line of the expected shape,
+a non-zero exit and the folder as it was, or with the correct result; never a traceback, a hang or
+2 GiB of memory.  The benchmark records each case's peak memory in bench/results/bounded_input.md.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import re
+
+import pytest
+
+from appliance.atomic import TMP_MARK, atomic_output, remove_stale_temporaries, temporary_name
+from appliance.config import ConfigError, load_config
+from appliance.errors import InputError
+from appliance.inputs import MAX_NESTING, NestingError, check_image_pixels, check_nesting, nesting_depth
+from bench.bounded_input import CATALOGUE, MEMORY_BYTES, build_shared, png_bytes, run_case, verdict
+
+
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory):
+    return build_shared(tmp_path_factory.mktemp("bounded-shared"))
+
+
+@pytest.mark.parametrize("case", CATALOGUE, ids=[c.name for c in CATALOGUE])
+def test_catalogue_case(case, shared, tmp_path):
+    if any(n not in shared for n in case.needs):
+        pytest.skip("the SRTM tiles of ../shared/data are absent")
+    run, before, after = run_case(case, tmp_path, shared)
+    assert run.returncode is not None, "hung past the timeout"
+    assert run.peak_bytes < MEMORY_BYTES
+    assert "Traceback" not in run.stderr
+    if case.expect is None:
+        assert run.returncode == case.ok_status, run.stderr
+        assert re.search(case.expect_stdout, run.stdout), run.stdout
+    else:
+        assert run.returncode != 0
+        assert len(run.stderr_lines) == 1, run.stderr
+        assert re.match(r"viper [a-z]+: error: ", run.stderr_lines[0])
+        assert re.search(case.expect, run.stderr_lines[0]), run.stderr_lines[0]
+        assert after == before
+        assert "\x1b" not in run.stderr
+    assert verdict(case, run, before, after) == "ok"
+
+
+def test_the_long_output_name_is_written_and_no_temporary_is_left(shared, tmp_path):
+    case = next(c for c in CATALOGUE if c.name == "long-output-name")
+    run, _, after = run_case(case, tmp_path, shared)
+    assert run.returncode == 0
+    assert after == {"s" * 246 + ".csv"}
+    assert (tmp_path / ("s" * 246 + ".csv")).read_text().startswith("azimuth_deg,elevation_deg\n")
+
+
+def test_nesting_is_counted_outside_strings_and_comments():
+    assert nesting_depth('{"a": [1, {"b": "[[[[{{{{"}]}') == 3
+    assert nesting_depth("a = '[[[[' # [[[[[[\n[t]\nb = [[1], \"]]]\"]\n") == 2
+    assert nesting_depth('"\\"[[[" ') == 0
+    check_nesting("[" * MAX_NESTING + "]" * MAX_NESTING)
+    with pytest.raises(NestingError, match=f"nested {MAX_NESTING + 1} levels deep, more than {MAX_NESTING}"):
+        check_nesting("[" * (MAX_NESTING + 1))
+
+
+def test_a_config_nested_below_the_cap_still_parses(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sim]\nleg_length_m = [100.0, 200.0] # ]]]]\n[session]\nbody_mask_deg = [[10.0, 20.0]]\n")
+    assert load_config(cfg).session.body_mask_deg == ((10.0, 20.0),)
+    cfg.write_text("[session]\nbody_mask_deg = " + "[" * 70 + "]" * 70 + "\n")
+    with pytest.raises(ConfigError, match="not valid TOML: nested 70 levels deep"):
+        load_config(cfg)
+
+
+def test_the_image_header_is_checked_before_decoding():
+    check_image_pixels(png_bytes(4000, 3000, 1), "ok.png")
+    message = r"^big\.png: a 10000 x 6000 image has 60,000,000 pixels, more than 50,000,000$"
+    with pytest.raises(InputError, match=message):
+        check_image_pixels(png_bytes(10000, 6000, 1), "big.png")
+    check_image_pixels(b"not an image", "x.bin")  # no header: the decoder says what it finds
+
+
+def test_a_long_name_gets_a_short_temporary_and_its_stale_ones_are_still_removed(tmp_path):
+    name = "é" * 120 + ".tif"  # 244 bytes
+    tmp = temporary_name(name)
+    assert len(tmp.encode()) <= 231 and tmp.startswith(".") and tmp.endswith(f"{TMP_MARK}.tif")
+    assert temporary_name(name).split(".")[1] == tmp.split(".")[1]  # the same stem for the same name
+    stale = tmp_path / tmp
+    stale.write_bytes(b"killed writer")
+    held = tmp_path / temporary_name(name)
+    held.write_bytes(b"live writer")
+    fd = os.open(held, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        assert remove_stale_temporaries(tmp_path, name) == [stale]
+    finally:
+        os.close(fd)
+    held.unlink()
+    with atomic_output(tmp_path / name) as t:
+        t.write_bytes(b"data")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
