@@ -1,13 +1,15 @@
 """Atomic file output: every file the appliance writes goes through here.
 
-A file is written to a temporary file in its own folder (``.NAME.XXXXXXXX.tmpSUFFIX``, so a
-library that picks the format from the suffix sees the right one; a NAME over 200 bytes is cut to
-its start and a hash, so that every name a file system takes can be written), fsynced, given its mode and
-renamed over its final name, and the folder is fsynced; on any failure the temporary file is
-removed and the final name is untouched.  A new file gets ``0666 & ~umask`` like any other tool's
-output; a replaced file keeps its mode.  Every ``OSError`` (a missing folder, a file where the
-folder should be, a folder where the file should be, a read-only folder, a full disk) becomes one
-:class:`OutputError` line naming the path.
+A file is written to a temporary file in its own folder (``.NAME.PID-XXXXXXXX.tmpSUFFIX``: the
+writer's process id, so that a temporary whose writer is dead is known as stale whatever its name; a
+NAME over 200 bytes cut to its start and a hash, so that every name a file system takes can be
+written; the suffix, so that a library that picks the format from it sees the right one), fsynced,
+given its mode and renamed over its final name, and the folder is fsynced; on any failure the
+temporary file is removed and the final name is untouched.  Every write first removes the
+temporaries in its folder that dead writers left (:func:`remove_dead_writers_temporaries`).  A new
+file gets ``0666 & ~umask`` like any other tool's output; a replaced file keeps its mode.  Every
+``OSError`` (a missing folder, a file where the folder should be, a folder where the file should be,
+a read-only folder, a full disk) becomes one :class:`OutputError` line naming the path.
 
 :func:`scratch_file` gives a writer an unnamed file beside its output for intermediate data (the
 skyline database's build spills its skylines there), gone when it closes, even after a kill.
@@ -23,16 +25,21 @@ import fcntl
 import glob
 import hashlib
 import os
+import re
 import secrets
+import shutil
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 
 from appliance.errors import OutputError, ViperError
 
-#: Marker in every temporary name (``.report.png.1f2e3d4c.tmp.png``), for tests and cleanup.
+#: Marker in every temporary name (``.report.png.4242-1f2e3d4c.tmp.png``), for tests and cleanup.
 TMP_MARK = ".tmp"
+#: A temporary name with its writer's process id (group 1), as :func:`temporary_path` makes them.
+TEMPORARY_NAME = re.compile(r"\..*\.([0-9]+)-[0-9a-f]{8}" + re.escape(TMP_MARK) + r"(\.[^/]*)?", re.DOTALL)
 
 _REASONS = {
     errno.ENOENT: "no such file or folder",
@@ -72,13 +79,14 @@ def _stem(name: str) -> str:
 
 
 def temporary_name(name: str, suffix: str | None = None) -> str:
-    """A fresh temporary's name for the final name ``name``: ``.STEM.XXXXXXXX.tmpSUFFIX`` (the final
-    name's suffix unless given, left out when longer than 16 bytes), at most 231 bytes long."""
+    """A fresh temporary's name for the final name ``name``: ``.STEM.PID-XXXXXXXX.tmpSUFFIX`` (this
+    process's id; the final name's suffix unless given, left out when longer than 16 bytes), at most
+    239 bytes long."""
     if suffix is None:
         suffix = Path(name).suffix
     if len(suffix.encode("utf-8", errors="surrogateescape")) > _SUFFIX_BYTES:
         suffix = ""
-    return f".{_stem(name)}.{secrets.token_hex(4)}{TMP_MARK}{suffix}"
+    return f".{_stem(name)}.{os.getpid()}-{secrets.token_hex(4)}{TMP_MARK}{suffix}"
 
 
 def describe_os_error(exc: OSError) -> str:
@@ -187,7 +195,8 @@ def atomic_output(path: str | Path, *, preallocate: int = 0) -> Iterator[Path]:
     except OSError:
         mode = umask_mode()
     remove_stale_temporaries(folder, p.name)
-    tmp = folder / temporary_name(p.name)
+    remove_dead_writers_temporaries(folder)
+    tmp = temporary_path(p)
     try:
         fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
     except OSError as exc:
@@ -262,7 +271,7 @@ def _unnamed_file(folder: Path, name: str) -> int:
             # no O_TMPFILE on this file system (EOPNOTSUPP) or kernel (EISDIR, EINVAL): a named file
             if exc.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
                 raise
-    tmp = folder / temporary_name(name, ".scratch")
+    tmp = temporary_path(folder / name, ".scratch")
     fd = os.open(tmp, flags | os.O_CREAT | os.O_EXCL, 0o600)
     try:
         tmp.unlink()
@@ -430,3 +439,48 @@ def remove_stale_temporaries(folder: str | Path, name: str) -> list[Path]:
     except OSError:
         return []
     return [q for q in candidates if remove_if_unheld(q, q.unlink)]
+
+
+def temporary_path(path: Path, suffix: str | None = None) -> Path:
+    """A new temporary name beside ``path``: hidden, with this process's id and a random part, and
+    ``suffix`` (by default ``path``'s own)."""
+    folder = path.parent if str(path.parent) else Path(".")
+    return folder / temporary_name(path.name, suffix)
+
+
+def temporary_writer(name: str) -> int | None:
+    """The process id in a temporary's name (see :data:`TEMPORARY_NAME`), or None for another name."""
+    match = TEMPORARY_NAME.fullmatch(name)
+    return int(match.group(1)) if match else None
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: it exists, as another user's
+        return True
+    return True
+
+
+def remove_dead_writers_temporaries(folder: str | Path) -> list[Path]:
+    """Remove the temporaries in ``folder``, of any output, whose writer is dead: its process id no
+    longer runs here and nothing holds the file's lock (a live writer on another host of a shared
+    folder is known by its lock).  A live writer's temporaries are left alone; a temporary folder (a staging
+    folder named as a temporary) goes with its contents."""
+    try:
+        with os.scandir(folder) as entries:
+            found = [(e.name, temporary_writer(e.name)) for e in entries if e.name.startswith(".")]
+    except OSError:
+        return []
+    removed = []
+    for name, pid in sorted(found, key=lambda f: f[0]):
+        if pid is None or _process_alive(pid):
+            continue
+        q = Path(folder) / name
+        if remove_if_unheld(q, partial(shutil.rmtree, q) if q.is_dir() and not q.is_symlink() else q.unlink):
+            removed.append(q)
+    return removed

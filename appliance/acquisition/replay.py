@@ -9,11 +9,19 @@ onboard chain on them and writes a results log (MCAP, the same estimate topics a
 :func:`replay_logs` replays several and reports them (:func:`appliance.outputs.report.write_replay_report`:
 the pictures, a table of errors and the session's facts of each log, from
 :mod:`appliance.acquisition.session_facts`); :func:`session_report` reports a session that has just run.
+
+A replay is all or nothing in its output folder: its files are written in a hidden staging folder there
+and moved into place only once all of them are written; on any failure (a full disk) the folder is left
+as it was.  A killed replay's staging folder is removed by the next write into that folder.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,9 +33,9 @@ from appliance.acquisition import onboard
 from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
 from appliance.acquisition.session_facts import FactsCollector, SessionFacts, read_session_facts
-from appliance.atomic import atomic_output, check_output_folder
+from appliance.atomic import atomic_output, check_output_folder, fsync_folder, output_error, temporary_path
 from appliance.config import EstimatorConfig
-from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError
+from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError, OutputError
 from appliance.inputs import check_image_pixels
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
@@ -167,8 +175,10 @@ def session_report(session: SessionResult, db: SkylineDatabase, out_dir: Path, t
     return write_replay_report([res], db, out_dir, title)
 
 
-def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path) -> ReplayResult:
-    """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap``."""
+def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path,
+                   into: Path | None = None) -> ReplayResult:
+    """Stitch, detect, estimate; the results log goes to ``out_dir/<log name>.replay.mcap`` (written in
+    ``into`` instead, a staging folder that becomes ``out_dir``, where given)."""
     name = data.path.stem
     res = ReplayResult(name, data)
     if not data.complete:
@@ -186,22 +196,25 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
         res.failure = str(exc)
         return res
     res.position = pos
-    check_output_folder(out_dir)
     log_path = out_dir / f"{name}.replay.mcap"
     now = data.frames[-1].frame.time_ns
-    with atomic_output(log_path) as tmp:
-        tmp.unlink()  # the logbook creates its file itself and never opens an existing one
-        with Logbook.create(tmp) as log:
-            ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-            if ok:
-                log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
-            if data.truth is not None:
-                log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"),
-                                now)
-            log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
-            rec = write_estimate_records(log, now, db, pos, sky, data.truth)
-            for note in res.notes:
-                log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
+    try:
+        with atomic_output(check_output_folder(into or out_dir) / log_path.name) as tmp:
+            tmp.unlink()  # the logbook creates its file itself and never opens an existing one
+            with Logbook.create(tmp) as log:
+                ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+                if ok:
+                    log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
+                if data.truth is not None:
+                    log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"),
+                                    now)
+                log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
+                rec = write_estimate_records(log, now, db, pos, sky, data.truth)
+                for note in res.notes:
+                    log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
+    except LogError as exc:  # the log's own words name its temporary: say it of the results log
+        why = str(exc).rsplit(f"{tmp.name}: ", 1)[-1].split(";")[0]
+        raise OutputError(f"{log_path}: cannot write: {why}") from None
     res.error_m = rec.error_m
     res.results_log = log_path
     return res
@@ -209,18 +222,57 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
 
 def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path,
                 on_result: Any = None) -> tuple[list[ReplayResult], Path]:
-    """Replay every log (an unreadable one is a row with its reason) and write the report."""
+    """Replay every log (an unreadable one is a row with its reason) and write the report; the files
+    appear in ``out_dir`` all together once all are written, or none of them."""
     results = []
-    for p in paths:
+    with _staged(out_dir) as staging:
+        for p in paths:
+            try:
+                data = read_session(p)
+            except LogError as exc:
+                data = SessionData(path=Path(p), frames=[], intrinsics=None, truth=None, onboard_error_m=None,
+                                   complete=False, problem=str(exc))
+                r = ReplayResult(Path(p).stem, data, failure=str(exc))
+            else:
+                r = replay_session(data, db, cfg, out_dir, into=staging)
+            results.append(r)
+            if on_result is not None:
+                on_result(r)
+        page = write_replay_report(results, db, out_dir, into=staging)
+    return results, page
+
+
+@contextmanager
+def _staged(out_dir: Path) -> Iterator[Path]:
+    """A new hidden staging folder in ``out_dir`` (named as a temporary file, so that a dead writer's is
+    removed by the next write there); on a clean exit its files replace those of the same names in
+    ``out_dir`` (keeping their modes), and it is removed in any case."""
+    staging = temporary_path(check_output_folder(out_dir) / "replay", "")
+    try:
+        staging.mkdir()
+    except OSError as exc:
+        raise output_error(staging, exc, "cannot create the folder") from None
+    try:
+        yield staging
+        _publish(staging, out_dir)
+    except OutputError as exc:  # said of the file it was to become
+        named = OutputError(str(exc).replace(f"{staging}{os.sep}", f"{out_dir}{os.sep}"))
+        named.errno = exc.errno
+        raise named from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _publish(staging: Path, out_dir: Path) -> None:
+    """Move every file of ``staging`` into ``out_dir`` (a file already there keeps its mode)."""
+    for entry in sorted(staging.iterdir()):
+        final = out_dir / entry.name
         try:
-            data = read_session(p)
-        except LogError as exc:
-            data = SessionData(path=Path(p), frames=[], intrinsics=None, truth=None, onboard_error_m=None,
-                               complete=False, problem=str(exc))
-            r = ReplayResult(Path(p).stem, data, failure=str(exc))
-        else:
-            r = replay_session(data, db, cfg, out_dir)
-        results.append(r)
-        if on_result is not None:
-            on_result(r)
-    return results, write_replay_report(results, db, out_dir)
+            try:
+                os.chmod(entry, final.stat().st_mode & 0o7777)
+            except FileNotFoundError:
+                pass
+            os.replace(entry, final)
+        except OSError as exc:
+            raise output_error(final, exc) from None
+    fsync_folder(out_dir)

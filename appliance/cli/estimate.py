@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import sys
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -228,6 +229,9 @@ def _dask_client(scheduler: str | None, workers: int | None) -> Iterator[Any]:
         with client:
             yield client
         return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
-        yield client
+    config = require("dask.config", "--workers")
+    with tempfile.TemporaryDirectory(prefix="viper-dask-", ignore_cleanup_errors=True) as scratch, \
+            config.set({"temporary-directory": scratch}), \
+            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                         local_directory=scratch) as cluster, Client(cluster) as client:
+        yield client  # the workers' scratch folder and its locks go with the temporary folder

@@ -3,8 +3,10 @@
 Several DEM files (adjacent tiles) are read as one mosaic.  ``--tiles`` (or an ``--out`` that is an
 existing folder) builds a tiled database in that folder, one Dask task per tile, on a local cluster
 of ``--workers`` processes or on the cluster at ``--scheduler``; a rerun completes an interrupted
-build.  ``--tiles --whole-body`` builds a map of a whole body (the LOLA Moon) as facets, each on its
-own metric grid (:mod:`appliance.terrain.whole_body`); ``--search-bounds`` then chooses the facets.
+build; the local cluster's scratch folder is a temporary folder removed when the build ends.  The
+temporaries a killed build left in the output's folder are removed when the next one starts there,
+whatever their output's name.  ``--tiles --whole-body`` builds a map of a whole body (the LOLA Moon) as
+facets, each on its own metric grid (:mod:`appliance.terrain.whole_body`); ``--search-bounds`` then chooses the facets.
 """
 
 from __future__ import annotations
@@ -14,10 +16,12 @@ import logging
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from appliance.atomic import check_output_folder, check_output_path
+from appliance.atomic import check_output_folder, check_output_path, remove_dead_writers_temporaries
 from appliance.errors import InputError
 from appliance.estimator.estimate import COARSE_STRIDE
 from appliance.extras import require
@@ -122,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         args.max_range = DEFAULT_MAX_RANGE_M
     if args.tiles or Path(args.out).is_dir():
         return run_tiled(args)
-    check_output_path(args.out, args.dem, args.force)
+    out = check_output_path(args.out, args.dem, args.force)
+    remove_dead_writers_temporaries(out.parent if str(out.parent) else Path("."))
     t0 = time.perf_counter()
     if len(args.dem) == 1:
         dem = load_dem(args.dem[0], crs=args.crs)
@@ -151,30 +156,13 @@ def run_tiled(args: argparse.Namespace) -> int:
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: at least 1")
     out = check_output_folder(args.out, args.dem)
+    remove_dead_writers_temporaries(out)
     source = open_map(args.dem, out / MOSAIC_VRT if len(args.dem) > 1 else None, args.crs)
     if not args.whole_body:
         check_tile_size(plan_tiles(source.header(), args.search_bounds, args.spacing, args.max_range,
                                    args.tile_nodes), args)
     t0 = time.perf_counter()
-    terminal = sys.stderr.isatty()
-    cluster: Any = None
-    # deferred: dask.distributed is the [cluster] extra, needed only by a tiled build
-    distributed = require("distributed", "a tiled build (--tiles)")
-    Client, LocalCluster = distributed.Client, distributed.LocalCluster
-
-    if args.scheduler:
-        try:
-            client = Client(args.scheduler, timeout="20s")
-        except (OSError, TimeoutError) as exc:
-            raise InputError(f"--scheduler {args.scheduler}: cannot connect ({exc})") from None
-    else:
-        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
-                               dashboard_address=":0" if terminal else None,
-                               silence_logs=logging.WARNING if terminal else logging.CRITICAL)
-        client = Client(cluster)
-    try:
-        if terminal and client.dashboard_link:
-            print(f"dashboard: {client.dashboard_link}", file=sys.stderr)
+    with _dask_client(args, out) as client:
         if args.whole_body:
             result = build_whole_body(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
                                       args.refraction, args.max_range, client=client, force=args.force,
@@ -183,11 +171,6 @@ def run_tiled(args: argparse.Namespace) -> int:
             result = build_tiled(source, out, args.search_bounds, args.spacing, args.height, args.azimuths,
                                  args.refraction, args.max_range, args.tile_nodes, client, args.force,
                                  progress=ProgressCallback("tile"))
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-            remove_tile_temporaries(out)  # the local workers are gone: their unfinished tiles with them
     if args.whole_body:
         wb = result.index["whole_body"]
         print(f"{out}: {len(result.index['tiles'])} facets ({len(result.built)} built, {len(result.kept)} kept) at "
@@ -200,3 +183,33 @@ def run_tiled(args: argparse.Namespace) -> int:
           f"{lat['n_rows']} x {lat['n_cols']} nodes ({lat['dx_m']:.1f} x {lat['dy_m']:.1f} m) x "
           f"{result.index['n_azimuths']} azimuths in {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+@contextmanager
+def _dask_client(args: argparse.Namespace, out: Path) -> Iterator[Any]:
+    """A client of the scheduler at --scheduler, or of a local cluster of --workers single-threaded
+    processes whose scratch folder (the workers' files and locks) is a temporary folder, removed with it."""
+    terminal = sys.stderr.isatty()
+    # deferred: dask.distributed is the [cluster] extra, needed only by a tiled build
+    distributed = require("distributed", "a tiled build (--tiles)")
+    if args.scheduler:
+        try:
+            client = distributed.Client(args.scheduler, timeout="20s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"--scheduler {args.scheduler}: cannot connect ({exc})") from None
+        with client:
+            yield client
+        return
+    config = require("dask.config", "a tiled build (--tiles)")
+    with tempfile.TemporaryDirectory(prefix="viper-dask-", ignore_cleanup_errors=True) as scratch, \
+            config.set({"temporary-directory": scratch}):  # the scheduler's scratch folder too
+        try:
+            with distributed.LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                                          dashboard_address=":0" if terminal else None, local_directory=scratch,
+                                          silence_logs=logging.WARNING if terminal else logging.CRITICAL
+                                          ) as cluster, distributed.Client(cluster) as client:
+                if terminal and client.dashboard_link:
+                    print(f"dashboard: {client.dashboard_link}", file=sys.stderr)
+                yield client
+        finally:
+            remove_tile_temporaries(out)  # the local workers are gone: their unfinished tiles with them

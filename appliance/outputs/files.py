@@ -2,18 +2,30 @@
 :mod:`appliance.outputs.picture`), the posteriors as GeoTIFF (:func:`write_geotiff`: float32, NaN
 nodata), the region's polygons (:func:`write_region_geojson`) and the estimate and the truth
 (:func:`write_points_geojson`) as GeoJSON; :func:`save_png` saves any figure the reports show.
+
+GDAL does not always report a failed write (a full disk can leave a GeoTIFF cut short with no
+exception), and its TIFF library prints its errors on stderr itself: :func:`write_geotiff` reads the
+file back before it takes its final name, and turns what the library printed into the one error line.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import rasterio
+from rasterio.errors import RasterioError
 
-from appliance.atomic import atomic_output, write_text_atomic
+from appliance.atomic import atomic_output, describe_os_error, write_text_atomic
+from appliance.errors import OutputError
 from appliance.locating.position import Position
 from appliance.outputs.features import estimate_feature, region_feature, truth_feature
 from appliance.outputs.picture import estimate_figure
@@ -45,13 +57,66 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
     bands = np.where(np.isfinite(bands), bands, np.nan).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
-    with atomic_output(p) as tmp, rasterio.open(
-        tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
-        crs=g.crs.to_wkt(), transform=g.transform, nodata=float("nan"),
-    ) as ds:
-        ds.write(bands)
-        ds.set_band_description(1, "log10 lower posterior")
-        ds.set_band_description(2, "log10 upper posterior")
+    with atomic_output(p) as tmp:
+        with _stderr_captured() as printed:
+            try:
+                with rasterio.open(tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2,
+                                   dtype="float32", crs=g.crs.to_wkt(), transform=g.transform,
+                                   nodata=float("nan")) as ds:
+                    ds.write(bands)
+                    ds.set_band_description(1, "log10 lower posterior")
+                    ds.set_band_description(2, "log10 upper posterior")
+                ok = _reads_back(tmp, bands)
+            except (RasterioError, OSError):
+                ok = False
+        if not ok:
+            raise OutputError(f"{p}: cannot write: {_write_failure(printed, tmp, bands.nbytes)}")
+        sys.stderr.write(printed[0])  # what the library printed about a file that is whole
+
+
+def _reads_back(path: Path, bands: np.ndarray) -> bool:
+    """Whether the GeoTIFF at ``path`` holds ``bands`` exactly (NaN where NaN)."""
+    try:
+        with rasterio.open(path) as ds:
+            back = ds.read()
+    except Exception:  # noqa: BLE001 - whatever GDAL raises on reading it, the file is not whole
+        return False
+    return back.shape == bands.shape and bool(np.array_equal(back, bands, equal_nan=True))
+
+
+def _write_failure(printed: list[str], tmp: Path, expected: int) -> str:
+    """Why a GeoTIFF is not whole: the system's reason the TIFF library printed, and how much was written."""
+    try:
+        size = f"{os.path.getsize(tmp)} bytes written, at least {expected} expected"
+    except OSError:
+        size = "nothing written"
+    for code in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EIO, errno.EROFS):
+        if os.strerror(code) in printed[0]:
+            return f"{describe_os_error(OSError(code, os.strerror(code)))} ({size})"
+    return f"the GeoTIFF does not read back as written ({size})"
+
+
+@contextmanager
+def _stderr_captured() -> Iterator[list[str]]:
+    """Collect what is printed on file descriptor 2 in the block (C libraries' own messages) into the
+    one string of the list yielded, instead of the terminal."""
+    printed = [""]
+    sys.stderr.flush()
+    try:
+        sink = tempfile.TemporaryFile()
+    except OSError:  # nowhere to collect it: the messages stay on stderr
+        yield printed
+        return
+    saved = os.dup(2)
+    with sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield printed
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            printed[0] = sink.read(1 << 16).decode("utf-8", "replace")
 
 
 def save_png(fig: Figure, path: str | Path, dpi: int) -> None:

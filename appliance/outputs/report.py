@@ -48,11 +48,12 @@ PAGE = "report.html"
 ESTIMATE_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
 
 
-def _write_page(db: SkylineDatabase, folder: Path, title: str, parts: Sequence[str]) -> Path:
-    """``report.html`` in ``folder``: ``title``, the skyline database, then ``parts``; returns its path."""
+def _write_page(db: SkylineDatabase, folder: Path, title: str, parts: Sequence[str], into: Path | None = None) -> Path:
+    """``report.html`` in ``folder``: ``title``, the skyline database, then ``parts``; returns its path.
+    ``into``: the folder it is written in instead (a staging folder that becomes ``folder``)."""
     page = folder / PAGE
     db_line = rp.paragraph(rp.shown_path(db.path, folder), "Skyline database:")
-    write_text_atomic(page, rp.page(title, [db_line, *parts]))
+    write_text_atomic((into or folder) / PAGE, rp.page(title, [db_line, *parts]))
     return page
 
 
@@ -229,22 +230,23 @@ def _log_section(r: ReplayedLog, i: int, db: SkylineDatabase, out_dir: Path) -> 
 
 
 def write_replay_report(results: Sequence[ReplayedLog], db: SkylineDatabase, out_dir: Path,
-                        title: str | None = None) -> Path:
+                        title: str | None = None, into: Path | None = None) -> Path:
     """PNG pictures per log, ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay
-    of N logs"); returns the HTML page's path."""
-    check_output_folder(out_dir)
+    of N logs"); returns the HTML page's path.  ``into``: the folder the files are written in instead of
+    ``out_dir`` (a staging folder that becomes ``out_dir``); the page names them as in ``out_dir``."""
+    folder = check_output_folder(into or out_dir)
     for r in results:
         if r.position is None or r.skyline is None:
             continue
         map_png = out_dir / f"{r.name}.map.png"
-        write_png(db, r.position, r.skyline, map_png, truth=r.data.truth)
+        write_png(db, r.position, r.skyline, folder / map_png.name, truth=r.data.truth)
         pano_png = out_dir / f"{r.name}.panorama.png"
         assert r.panorama is not None
-        save_png(panorama_figure(db, r.position, r.panorama, r.skyline, r.name), pano_png, dpi=80)
+        save_png(panorama_figure(db, r.position, r.panorama, r.skyline, r.name), folder / pano_png.name, dpi=80)
         r.pictures = [map_png, pano_png]
     rows = summary_rows(results, db, out_dir)
     csv_path = out_dir / "summary.csv"
-    _write_summary_csv(rows, csv_path)
+    _write_summary_csv(rows, folder / csv_path.name)
     if title is None:
         title = f"Viper replay of {len(results)} log{'s' if len(results) != 1 else ''}"
     parts = []
@@ -258,7 +260,7 @@ def write_replay_report(results: Sequence[ReplayedLog], db: SkylineDatabase, out
     parts.append(rp.table(shown_rows, {i: f"#log-{i + 1}" for i in range(len(results))}))
     for i, r in enumerate(results):
         parts += _log_section(r, i, db, out_dir)
-    return _write_page(db, out_dir, title, parts)
+    return _write_page(db, out_dir, title, parts, into=folder)
 
 
 # ----------------------------------------------------------------------------- viper demo --traverse
