@@ -256,7 +256,7 @@ def test_bad_folders_fail_in_one_line(built, tmp_path, capsys):
     halved = tmp_path / "halved"
     shutil.copytree(folder, halved)
     (halved / "index.json").write_text(json.dumps({**idx, "n_azimuths": idx["n_azimuths"] + 0.5}))
-    cases = {empty: "index.json", missing: gone, garbled: "unreadable", future: "version 99", foreign: "format",
+    cases = {empty: "index.json", missing: gone, garbled: "not valid JSON", future: "version 99", foreign: "format",
              endless: "non-finite 'n_azimuths'", halved: "non-integral 'n_azimuths'"}
     for path, word in cases.items():
         with pytest.raises(DatabaseError):
