@@ -117,6 +117,16 @@ def _setup() -> None:
                   est=EstimatorConfig(), ses=SessionConfig(), cell_m=float(np.sqrt(db.grid.dx_m * db.grid.dy_m)))
 
 
+def _worker_setup(cache: Path | None, only: bool, threads: int) -> None:
+    """A spawned worker's state: the database the parent built (read from its cache), and its share
+    of the cores for numba's parallel kernels."""
+    import numba
+
+    numba.set_num_threads(threads)
+    _STATE.update(cache=cache, only=only)
+    _setup()
+
+
 def _run(seed: int) -> tuple:
     st = _STATE
     if st.get("only"):
@@ -155,7 +165,12 @@ def main() -> int:
     if args.jobs > 1:
         import multiprocessing
 
-        with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+        # spawned, not forked: the parent has run numba's OpenMP kernels (building the database), and
+        # GNU OpenMP kills a child forked after that; each worker loads the database the parent built
+        ctx = multiprocessing.get_context("spawn")
+        threads = max(1, (os.cpu_count() or 1) // args.jobs)
+        setup = (args.skylines, args.skylines_only, threads)
+        with ctx.Pool(args.jobs, initializer=_worker_setup, initargs=setup) as pool:
             rows = sorted(pool.map(_run, seeds, chunksize=1))
     else:
         rows = [_run(seed) for seed in seeds]

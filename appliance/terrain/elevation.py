@@ -113,10 +113,35 @@ class Dem:
         z = np.vstack(parts) if len(parts) > 1 else z
         return np.hstack([z, z[:, :1]])
 
+    @cached_property
+    def _lon_period(self) -> float:
+        """A full turn of longitude in the units of a lon/lat map's x axis (360 for degrees); 0 for
+        a projected map, whose x does not wrap."""
+        if not self.is_geographic or not self.crs.axis_info:
+            return 0.0
+        radians_per_unit = float(self.crs.axis_info[0].unit_conversion_factor)
+        return 2.0 * np.pi / radians_per_unit if radians_per_unit > 0 else 0.0
+
+    def wrap_x(self, x: np.ndarray) -> np.ndarray:
+        """On a lon/lat map, longitudes moved by whole turns to the turn that starts at the map's
+        west edge, so that -179.99, 180.01 and 540.01 all land on a map spanning 179.98..180.03 (or
+        0..360, or -180..180); x unchanged on a projected map."""
+        x = np.asarray(x, dtype=float)
+        period = self._lon_period
+        if not period:
+            return x
+        west = self._west_x
+        return west + np.mod(x - west, period)
+
+    @cached_property
+    def _west_x(self) -> float:
+        return self.bounds_xy()[0]
+
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height (m) at CRS coordinates; NaN off the map or next to nodata.  A map that
-        wraps around is read across its 0/360 seam, and a whole body's map across its poles."""
-        col, row = self.xy_to_pixel(x, y)
+        wraps around is read across its 0/360 seam, and a whole body's map across its poles; a
+        lon/lat map takes a longitude in any turn (-180..180 or 0..360 alike)."""
+        col, row = self.xy_to_pixel(self.wrap_x(x), y)
         if self.wraps_around:
             return bilinear(self._wrapped, np.mod(col, self.shape[1]), row + (1.0 if self._poles[0] else 0.0))
         return bilinear(self.elevation_m, col, row)
@@ -132,13 +157,18 @@ class Dem:
         return float(np.min(xs)), float(np.min(ys)), float(np.max(xs)), float(np.max(ys))
 
     def bounds_lonlat(self) -> tuple[float, float, float, float]:
-        """(west, south, east, north) of the map, densified along its edges."""
+        """(west, south, east, north) of the map, densified along its edges.  The edges are
+        followed around the map, so that a map across the antimeridian keeps one turn of longitude
+        (179.98..180.03, not -180..180), whatever range its CRS gives longitudes in."""
         rows, cols = self.shape
         t = np.linspace(0.0, 1.0, 41)
-        cs = np.concatenate([t * cols, np.full_like(t, cols), t * cols, np.zeros_like(t)])
-        rs = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), t * rows])
+        back = t[::-1]
+        cs = np.concatenate([t * cols, np.full_like(t, cols), back * cols, np.zeros_like(t)])
+        rs = np.concatenate([np.zeros_like(t), t * rows, np.full_like(t, rows), back * rows])
         x, y = affine_apply(self.transform, cs, rs)
         lon, lat = self.xy_to_lonlat(x, y)
+        if np.isfinite(lon).all():
+            lon = np.unwrap(lon, period=360.0)
         west, east = float(lon.min()), float(lon.max())
         if east - west > 350.0:  # a global map: its edges wrap around the antimeridian
             west, east = -180.0, 180.0

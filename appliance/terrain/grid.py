@@ -163,6 +163,9 @@ def _search_area(dem: Dem, search_bounds: Bounds | None) -> Bounds:
     sw, ss, se, sn = search_bounds
     if not (sw < se and ss < sn):
         raise InputError(f"search bounds {search_bounds}: expected W,S,E,N with W < E and S < N")
+    # longitudes given in another turn (-180..180 for a map in 0..360, or across the antimeridian)
+    turn = next((k * 360.0 for k in (0, -1, 1, -2, 2) if sw + k * 360.0 < east and se + k * 360.0 > west), 0.0)
+    sw, se = sw + turn, se + turn
     if se <= west or sw >= east or sn <= south or ss >= north:
         raise InputError(
             f"search bounds {search_bounds} lie outside the DEM {dem.source} "
