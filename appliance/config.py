@@ -210,6 +210,10 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 
+#: the largest integer a configuration value may hold (a TOML integer is 64-bit signed)
+_LARGEST_INT = 2**63 - 1
+
+
 def _convert(value: Any, tp: Any, key: str) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
@@ -255,10 +259,14 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        if not -_LARGEST_INT <= value <= _LARGEST_INT:
+            raise ConfigError(f"{key}: expected an integer within 64 bits, got one beyond")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if isinstance(value, int) and not -_LARGEST_INT <= value <= _LARGEST_INT:
+            raise ConfigError(f"{key}: expected a number within 64-bit integers, got an integer beyond")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -101,3 +101,31 @@ def test_a_long_name_gets_a_short_temporary_and_its_stale_ones_are_still_removed
     with atomic_output(tmp_path / name) as t:
         t.write_bytes(b"data")
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_integers_beyond_64_bits_are_refused_by_name(tmp_path):
+    # found by bench/edge_fuzz.py: a huge TOML integer reached math.isfinite and float() as OverflowError
+    for table, key, value in (("estimator", "occlusion_weight", 10**400), ("logbook", "chunk_size_bytes", -(2**64))):
+        path = tmp_path / "c.toml"
+        path.write_text(f"[{table}]\n{key} = {value}\n")
+        with pytest.raises(ConfigError, match=rf"{table}\.{key}: .*beyond"):
+            load_config(path)
+    path = tmp_path / "ok.toml"
+    path.write_text("[logbook]\nchunk_size_bytes = 1048576\n")
+    assert load_config(path).logbook.chunk_size_bytes == 1048576
+
+
+def test_a_sidecar_number_beyond_floats_is_one_error(tmp_path):
+    from appliance.vision.photo import read_orientation_file  # the photo reader loads OpenCV
+
+    side = tmp_path / "p.json"
+    side.write_text('{"yaw_deg": 1' + "0" * 400 + ', "pitch_deg": 0, "roll_deg": 0}')
+    with pytest.raises(InputError, match="must be numbers"):
+        read_orientation_file(side)
+
+
+def test_a_camera_file_name_too_long_is_one_config_error(tmp_path):
+    from appliance.vision.intrinsics import load_intrinsics
+
+    with pytest.raises(ConfigError, match="cannot read the calibration file"):
+        load_intrinsics(tmp_path / ("c" * 300 + ".toml"))

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from appliance.atomic import write_text_atomic
+from appliance.atomic import describe_os_error, write_text_atomic
 from appliance.config import from_mapping
 from appliance.errors import ConfigError
 from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
@@ -80,6 +80,8 @@ def load_intrinsics(path: str | Path) -> CameraIntrinsics:
         raise ConfigError(f"{p}: calibration file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError, NestingError) as exc:
         raise ConfigError(f"{p}: not a valid TOML calibration file: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read the calibration file: {describe_os_error(exc)}") from None
     if "camera" not in data:
         raise ConfigError(f"{p}: no [camera] table")
     try:

@@ -229,7 +229,7 @@ def _from_sidecar(img: np.ndarray, side: Path) -> Panorama:
         size = [meta.get(key, n) for key, n in (("width", img.shape[1]), ("height", img.shape[0]))]
         if any(isinstance(v, bool) or not isinstance(v, int) for v in size):
             raise ValueError(f"width and height must be whole numbers, got {size}")
-    except (ValueError, KeyError) as exc:
+    except (ValueError, KeyError, OverflowError) as exc:
         raise InputError(f"{side}: not a valid panorama sidecar: {exc}") from None
     if tuple(size) != (img.shape[1], img.shape[0]):
         raise InputError(f"{side}: geometry is for {size[0]}x{size[1]}, image is {img.shape[1]}x{img.shape[0]}")

@@ -126,7 +126,7 @@ def read_orientation_file(side: Path) -> tuple[CameraPose | None, Path | None]:
         pose = _checked_pose(
             float(data["yaw_deg"]), float(data.get("pitch_deg", 0.0)), float(data.get("roll_deg", 0.0)), str(side)
         )
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"{side}: yaw_deg, pitch_deg and roll_deg must be numbers") from None
