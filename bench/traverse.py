@@ -152,7 +152,9 @@ def main() -> int:
     if args.jobs > 1:
         import multiprocessing
 
-        with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+        # spawned, not forked: the parent has run numba's OpenMP kernels (building the database), and
+        # GNU OpenMP kills a child forked after that; each worker loads the database the parent built
+        with multiprocessing.get_context("spawn").Pool(args.jobs, initializer=_setup, initargs=(args.mode,)) as pool:
             results = sorted(pool.imap_unordered(_run, work))
     else:
         results = [_run(w) for w in work]
