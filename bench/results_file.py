@@ -8,6 +8,7 @@ calls :func:`appliance.atomic.write_text_atomic` directly.
 
 from __future__ import annotations
 
+import subprocess
 from pathlib import Path
 
 from appliance.atomic import output_error, write_bytes_atomic
@@ -23,3 +24,20 @@ def append_result(path: str | Path, header: str, text: str) -> None:
     except OSError as exc:
         raise output_error(p, exc, "cannot read") from None
     write_bytes_atomic(p, existing + text.encode("utf-8"))
+
+
+def checkout_commit(path: str | Path) -> str:
+    """The short commit of the git checkout holding ``path`` (a folder or a file in it), with
+    ``+dirty`` when tracked files differ from it; ``unknown`` outside a checkout."""
+    p = Path(path)
+    where = str(p if p.is_dir() else p.parent)
+    try:
+        head = subprocess.run(["git", "-C", where, "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              timeout=30)
+        if head.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "-C", where, "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")

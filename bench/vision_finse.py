@@ -132,6 +132,49 @@ def compare(photo: str, skyline_csv: Path, camera: Path, orientation: Path) -> d
     }
 
 
+def calibrate(work: Path) -> tuple[Path, dict[str, dict]]:
+    """Step 1: `viper calibrate pose` on the 2019 frame (focal length, k1, k2 fitted from the stated
+    intrinsics), then on the 2022 photo with the fitted camera.  Returns the fitted camera file and
+    each photo's fit (the JSON `viper calibrate pose --out` writes: yaw_deg, pitch_deg, roll_deg,
+    camera_lat_deg, camera_lon_deg, camera_height_m, ...), keyed by the photo's file name."""
+    write_text_atomic(work / "stated.toml", STATED_CAMERA)
+    camera = work / "camera.toml"
+    camera.unlink(missing_ok=True)
+    viper(
+        "calibrate",
+        "pose",
+        FINSE / PHOTOS[0],
+        "--camera",
+        work / "stated.toml",
+        "--points",
+        GCPS,
+        "--crs",
+        "EPSG:32632",
+        "--refine",
+        "f,k1,k2",
+        "--camera-out",
+        camera,
+        "--out",
+        work / "2019.json",
+        "--force",
+    )
+    viper(
+        "calibrate",
+        "pose",
+        FINSE / PHOTOS[1],
+        "--camera",
+        camera,
+        "--points",
+        gcps_for_2022(work),
+        "--crs",
+        "EPSG:32632",
+        "--out",
+        work / "2022.json",
+        "--force",
+    )
+    return camera, {p: json.loads((work / f"{p[:4]}.json").read_text()) for p in PHOTOS}
+
+
 SIGMA = "0.05,0.2"  # deg: the photo's angular precision, see the docstring
 
 
@@ -199,42 +242,7 @@ def main() -> int:
         return 0
     work = args.work or Path(tempfile.mkdtemp(prefix="viper-finse-"))
     work.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(work / "stated.toml", STATED_CAMERA)
-    camera = work / "camera.toml"
-    camera.unlink(missing_ok=True)
-    viper(
-        "calibrate",
-        "pose",
-        FINSE / PHOTOS[0],
-        "--camera",
-        work / "stated.toml",
-        "--points",
-        GCPS,
-        "--crs",
-        "EPSG:32632",
-        "--refine",
-        "f,k1,k2",
-        "--camera-out",
-        camera,
-        "--out",
-        work / "2019.json",
-        "--force",
-    )
-    viper(
-        "calibrate",
-        "pose",
-        FINSE / PHOTOS[1],
-        "--camera",
-        camera,
-        "--points",
-        gcps_for_2022(work),
-        "--crs",
-        "EPSG:32632",
-        "--out",
-        work / "2022.json",
-        "--force",
-    )
-    fits = {p: json.loads((work / f"{p[:4]}.json").read_text()) for p in PHOTOS}
+    camera, fits = calibrate(work)
     rows = []
     skylines = {}
     for photo in PHOTOS:

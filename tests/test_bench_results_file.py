@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import pytest
 
 from appliance.errors import OutputError
-from bench.results_file import append_result
+from bench.results_file import append_result, checkout_commit
 
 
 def test_a_new_file_gets_the_header_then_the_row(tmp_path):
@@ -33,3 +36,8 @@ def test_a_folder_in_place_of_the_file_is_one_output_error(tmp_path):
     (tmp_path / "bench.md").mkdir()
     with pytest.raises(OutputError, match="bench.md"):
         append_result(tmp_path / "bench.md", "", "| 1 |\n")
+
+
+def test_the_commit_of_a_checkout_and_of_a_folder_outside_one(tmp_path):
+    assert re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", checkout_commit(Path(__file__)))
+    assert checkout_commit(tmp_path) == "unknown"
