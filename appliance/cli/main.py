@@ -57,6 +57,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "devices": ("devices", "open the sensor platform (hardware or sim) and print a reading of each"),
     "estimate": ("estimate", "estimate the position from skyline CSVs and a skyline database"),
     "gps": ("gps", "print GPS fixes from a serial port, pyserial URL or recorded NMEA log"),
+    "locate": ("locate", "locate a photo or a panorama on a map: position and orientation, in one command"),
     "log": ("log", "inspect and repair session logs (MCAP)"),
     "precompute": ("precompute", "render the skyline of every candidate node into a database"),
     "render": ("render", "render the skyline seen from a point of a DEM"),

@@ -1,0 +1,393 @@
+"""Any photo: its position and its orientation found together, from its skyline and a skyline database.
+
+A photo's skyline is detected in its own pixels (:mod:`appliance.vision.photo`) and kept there, as
+camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond what the user knows:
+
+1. **Screening.**  The rays read through a level camera at yaw 0 give elevations at azimuths
+   relative to the optical axis; every node of the search area is scored at every yaw with the
+   camera's pitch and roll as a linear nuisance (:func:`appliance.estimator.orientation.screen`).
+   The best distinct (node, yaw, tilt) triples are the hypotheses.
+2. **Orientation on renders.**  At a hypothesis' node the skyline is rendered exactly (the ray march
+   of the refinement) and yaw, pitch, roll and the focal length's correction are fitted to the
+   detected pixels by robust least squares, the level's and the lens's tolerances as priors
+   (:func:`solve_orientation`).
+3. **Position.**  The photo's skyline, carried to true azimuths and elevations through the solved
+   orientation, is located as any skyline is (:func:`appliance.locating.position.locate`, with a
+   narrow heading tolerance: the yaw is known now, to a fraction of a degree), the orientation
+   solved again at the answer, and the skyline located once more.
+
+The answer is ambiguous when the estimate says so, or when another hypothesis, at a place away
+from the answer, fits the photo about as well with its own orientation: the estimate's region
+is conditional on the orientation it was given, so rival orientations are weighed here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from appliance.errors import InputError
+from appliance.estimator import COARSE_STRIDE, SkylineGrid
+from appliance.estimator.exact import Fit, Model
+from appliance.estimator.exact import refine as refine_exact
+from appliance.estimator.likelihood import kernel_cap, occlusion_cap_deg2
+from appliance.estimator.orientation import Hypothesis, distinct_hypotheses, relative_on_lattice, screen
+from appliance.estimator.parallax import tau2_tables
+from appliance.estimator.raycast import render
+from appliance.locating.position import Position, locate
+from appliance.locating.search_grid import skyline_grid
+from appliance.skyline import Skyline
+from appliance.terrain.database import SkylineDatabase
+from appliance.vision.camera import CameraPose, enu_to_directions, pixels_to_rays, world_from_camera
+from appliance.vision.intrinsics import CameraIntrinsics
+from appliance.vision.photo import PhotoSkyline, resample_photo
+
+#: How many distinct hypotheses of the screening are fitted on renders.
+HYPOTHESES = 20
+#: The screening's measurement noise (deg): the parallax model's weights are made against it.
+SCREEN_NOISE_DEG = 0.3
+#: The exact fits of the hypotheses: their noise (deg), yaw freedom (deg) and tilt prior (deg, 1 sigma).
+FIT_SIGMA_DEG = 0.3
+HYPOTHESIS_YAW_DEG = 3.0
+HYPOTHESIS_TILT_SIGMA_DEG = 2.5
+#: The least arc (deg) of the photo's skyline that is located.
+MIN_ARC_DEG = 15.0
+#: The rendered skyline's azimuth step (deg) for the orientation fit, and its margin beyond the view.
+RENDER_STEP_DEG = 0.05
+RENDER_MARGIN_DEG = 12.0
+#: The orientation fit's measurement scale (deg): residuals beyond a few of these weigh less (soft L1).
+FIT_SCALE_DEG = 0.1
+#: The photo's columns used by the orientation fit: about this many, evenly spread.
+FIT_COLUMNS = 600
+#: The heading tolerance (deg) of the estimates made with the solved yaw.
+SOLVED_HEADING_TOLERANCE_DEG = 2.0
+#: The orientation's bounds: the level's tolerance plus this margin (deg), the focal length's this many sigmas.
+BOUND_MARGIN_DEG = 1.0
+BOUND_SIGMAS = 2.5
+#: The output skyline's azimuth step (deg).
+SKYLINE_STEP_DEG = 0.25
+#: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous.
+RIVAL_NATS = math.log(20.0)
+#: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
+RIVAL_CLIP_DEG = 1.0
+
+
+@dataclass(frozen=True)
+class OrientationPrior:
+    """What is known of the camera's orientation and lens before the photo is located.
+
+    ``heading_deg``: the true azimuth of the optical axis (a compass, EXIF's GPSImgDirection), None
+    when unknown; ``heading_tolerance_deg`` its bound.  ``pitch_tolerance_deg`` and
+    ``roll_tolerance_deg``: how far from level the camera may be (the fits take half of each as a
+    1-sigma prior).  ``focal_sigma``: the focal length's 1-sigma error as a fraction (0: known)."""
+
+    heading_deg: float | None = None
+    heading_tolerance_deg: float = 180.0
+    pitch_tolerance_deg: float = 5.0
+    roll_tolerance_deg: float = 3.0
+    focal_sigma: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("heading_tolerance_deg", "pitch_tolerance_deg", "roll_tolerance_deg", "focal_sigma"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise InputError(f"{name} {value}: expected a finite value >= 0")
+        if self.focal_sigma > 0.2:
+            raise InputError(f"focal length uncertainty {self.focal_sigma:.0%} is above the 20 % this search handles")
+
+
+@dataclass(frozen=True)
+class PhotoView:
+    """A photo's skyline in its own camera: the detected pixel (column, row) of each column, its
+    confidence, and the lens."""
+
+    intrinsics: CameraIntrinsics
+    column_px: np.ndarray
+    row_px: np.ndarray
+    confidence: np.ndarray
+    name: str = "photo"
+
+    @classmethod
+    def from_detection(cls, sky: PhotoSkyline, intrinsics: CameraIntrinsics, name: str = "photo") -> PhotoView:
+        ok = np.isfinite(sky.row) & (sky.confidence > 0)
+        cols = np.arange(sky.row.size, dtype=np.float64)
+        return cls(intrinsics, cols[ok], np.asarray(sky.row, np.float64)[ok], np.asarray(sky.confidence)[ok], name)
+
+    def rays(self) -> np.ndarray:
+        """Camera-frame unit rays of the skyline's pixels (the lens's distortion removed)."""
+        return pixels_to_rays(self.intrinsics, self.column_px, self.row_px)
+
+
+def directions(rays: np.ndarray, pose: CameraPose, focal_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuth, elevation) in degrees of camera rays seen through ``pose``, the focal length
+    multiplied by ``focal_scale`` (a longer lens narrows every ray's angle from the axis)."""
+    r = np.array(rays, dtype=np.float64)
+    if focal_scale != 1.0:
+        r[..., :2] /= focal_scale * r[..., 2:3]
+        r[..., 2] = 1.0
+        r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    return enu_to_directions(r @ world_from_camera(pose).T)
+
+
+@dataclass(frozen=True)
+class OrientationFit:
+    """An orientation fitted at a place: the pose, the focal length's correction, the robust cost
+    (deg^2, each column's residual clipped at RIVAL_CLIP_DEG, on a 1-degree lattice) and its
+    sample count."""
+
+    pose: CameraPose
+    focal_scale: float
+    cost_deg2: float
+    n_samples: int
+    rms_deg: float
+
+
+@dataclass(frozen=True)
+class PhotoAnswer:
+    """The photo's position (the usual answer) with the orientation solved at it, the skyline as
+    located, and the hypotheses weighed."""
+
+    position: Position
+    pose: CameraPose
+    focal_px: float
+    skyline: Skyline
+    hypotheses: tuple[tuple[Hypothesis, Fit], ...]
+    rivals: int
+
+    def orientation_json(self) -> dict:
+        return {"yaw_deg": round(self.pose.yaw_deg, 3), "pitch_deg": round(self.pose.pitch_deg, 3),
+                "roll_deg": round(self.pose.roll_deg, 3), "focal_px": round(self.focal_px, 2)}
+
+
+class _Renderer:
+    """Exact skylines of a database's terrain at fractional nodes, over the photo's azimuths."""
+
+    def __init__(self, grid: SkylineGrid, height_m: float) -> None:
+        if grid.terrain is None:
+            raise InputError("the database holds no terrain for exact renders; rebuild it with 'viper precompute'")
+        self.grid, self.terrain, self.height_m = grid, grid.terrain, height_m
+        self.dist = self.terrain.distances(min(grid.dx_m, grid.dy_m))
+
+    def __call__(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0) -> np.ndarray:
+        node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
+            max(int(round(col)), 0), self.grid.n_cols - 1)
+        gamma = float(self.grid.convergence_deg[node])
+        el, _, _ = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, azimuth_deg - gamma, self.dist,
+                          self.height_m + eye_offset_m)
+        return el
+
+
+def _fit_rays(view: PhotoView) -> np.ndarray:
+    rays = view.rays()
+    if rays.shape[0] > FIT_COLUMNS:
+        rays = rays[np.linspace(0, rays.shape[0] - 1, FIT_COLUMNS).round().astype(int)]
+    return rays
+
+
+def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el_deg: np.ndarray,
+                      start: CameraPose, prior: OrientationPrior, start_scale: float = 1.0) -> OrientationFit:
+    """Yaw, pitch, roll and the focal length's correction that carry ``rays`` onto the rendered
+    skyline (true azimuths ``rendered_az_deg``, increasing, unwrapped; NaN where no terrain), from
+    ``start``; soft-L1 robust, with the prior's tolerances as Gaussian priors."""
+    az0 = float(rendered_az_deg[0])
+    ok_render = np.isfinite(rendered_el_deg)
+    fill = np.where(ok_render, rendered_el_deg, -90.0)
+    sig_p = max(prior.pitch_tolerance_deg / 2.0, 1e-3)
+    sig_r = max(prior.roll_tolerance_deg / 2.0, 1e-3)
+    use_scale = prior.focal_sigma > 0.0
+
+    def pose_of(p: np.ndarray) -> tuple[CameraPose, float]:
+        return CameraPose(float(p[0]), float(p[1]), float(p[2])), float(math.exp(p[3])) if use_scale else 1.0
+
+    def residual_deg(p: np.ndarray) -> np.ndarray:
+        pose, scale = pose_of(p)
+        az, el = directions(rays, pose, scale)
+        rel = np.mod(az - az0, 360.0) + az0
+        pred = np.interp(rel, rendered_az_deg, fill, left=-90.0, right=-90.0)
+        return np.asarray(el - pred)
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        res = np.clip(residual_deg(p), -30.0, 30.0) / FIT_SCALE_DEG
+        priors = [p[1] / sig_p, p[2] / sig_r]
+        if use_scale:
+            priors.append(p[3] / prior.focal_sigma)
+        if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+            d = (p[0] - prior.heading_deg + 180.0) % 360.0 - 180.0
+            priors.append(d / max(prior.heading_tolerance_deg / 2.0, 1e-3))
+        return np.concatenate([res, np.asarray(priors)])
+
+    p_hi = prior.pitch_tolerance_deg + BOUND_MARGIN_DEG
+    r_hi = prior.roll_tolerance_deg + BOUND_MARGIN_DEG
+    s_hi = max(BOUND_SIGMAS * prior.focal_sigma, 1e-6)
+    lower = np.array([start.yaw_deg - 180.0, -p_hi, -r_hi, -s_hi])
+    upper = np.array([start.yaw_deg + 180.0, p_hi, r_hi, s_hi])
+    p0 = np.clip(np.array([start.yaw_deg, start.pitch_deg, start.roll_deg, math.log(start_scale)]),
+                 lower + 1e-9, upper - 1e-9)
+    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=3.0, x_scale=np.array([0.5, 0.5, 0.5, 0.01]),
+                        bounds=(lower, upper), method="trf", max_nfev=200)
+    pose, scale = pose_of(fit.x)
+    pose = CameraPose(pose.yaw_deg % 360.0, pose.pitch_deg, pose.roll_deg)
+    e = residual_deg(fit.x)
+    az, _ = directions(rays, pose, scale)
+    cost, n = _lattice_cost(az, e)
+    inliers = np.abs(e) < RIVAL_CLIP_DEG
+    rms = float(np.sqrt(np.mean(e[inliers] ** 2))) if inliers.any() else math.inf
+    return OrientationFit(pose, scale, cost, n, rms)
+
+
+def _lattice_cost(az_deg: np.ndarray, e_deg: np.ndarray) -> tuple[float, int]:
+    """The clipped squared residuals averaged within each 1-degree bin of azimuth, summed over the bins:
+    a cost that counts the view's degrees, not its pixels."""
+    bins = np.floor(np.mod(az_deg - az_deg[0] + 0.5, 360.0)).astype(int)
+    clipped = np.minimum(e_deg**2, RIVAL_CLIP_DEG**2)
+    sums = np.bincount(bins, clipped)
+    counts = np.bincount(bins)
+    seen = counts > 0
+    return float(np.sum(sums[seen] / counts[seen])), int(seen.sum())
+
+
+def _rendered_view(render_at: _Renderer, row: float, col: float, rays: np.ndarray, pose: CameraPose,
+                   scale: float, eye_offset_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The rendered skyline over the photo's view at ``pose``, with a margin for the fit to move in."""
+    az, _ = directions(rays, pose, scale)
+    a0 = float(az[0])
+    rel = np.mod(az - a0 + 180.0, 360.0) - 180.0
+    lo, hi = float(rel.min()) - RENDER_MARGIN_DEG, float(rel.max()) + RENDER_MARGIN_DEG
+    grid_az = a0 + np.arange(lo, hi + RENDER_STEP_DEG, RENDER_STEP_DEG)
+    return grid_az, render_at(row, col, np.mod(grid_az, 360.0), eye_offset_m)
+
+
+def world_skyline(view: PhotoView, pose: CameraPose, scale: float, step_deg: float = SKYLINE_STEP_DEG) -> Skyline:
+    """The photo's skyline in true azimuths and elevations through ``pose``, on a regular azimuth grid."""
+    az, el = directions(view.rays(), pose, scale)
+    order = np.argsort(np.mod(az - az[0] + 180.0, 360.0) - 180.0, kind="stable")
+    sky = PhotoSkyline(view.row_px[order], az[order], el[order], view.confidence[order], ())
+    return resample_photo(sky, step_deg)
+
+
+def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, *,
+                 sigma_deg: tuple[float, float], log_prior: np.ndarray | None = None,
+                 height_m: float | None = None, occlusion_weight: float = 0.05, map_sigma_m: float = 0.0,
+                 sigma_floor_deg: float | None = None) -> PhotoAnswer:
+    """The photo's position and orientation on ``db``: screening, exact fits at the best hypotheses,
+    the orientation on renders, then the estimate with the solved orientation (module docstring).
+    ``log_prior``: per node, -inf outside the search area.  ``sigma_deg``, ``height_m``,
+    ``occlusion_weight``, ``map_sigma_m`` and ``sigma_floor_deg`` are the estimate's."""
+    grid = skyline_grid(db)
+    h_m = db.height_m if height_m is None else height_m
+    render_at = _Renderer(grid, h_m)
+    if view.column_px.size < 2:
+        raise InputError(f"{view.name}: no skyline found (no column shows sky above ground)")
+    rays = view.rays()
+    rel_az, rel_el = directions(rays, CameraPose(0.0, 0.0, 0.0))
+    rel_az = np.mod(rel_az + 180.0, 360.0) - 180.0
+    step = grid.az_step_deg
+    lattice, m, w = relative_on_lattice(rel_az, rel_el, view.confidence, step)
+    if lattice.size * step < MIN_ARC_DEG:
+        raise InputError(f"{view.name}: the skyline spans {lattice.size * step:.0f} deg of the view, less than the "
+                         f"{MIN_ARC_DEG:.0f} deg needed to locate a photo")
+    usable = np.isfinite(grid.offset_deg)
+    nodes = np.flatnonzero(usable if log_prior is None else usable & np.isfinite(log_prior))
+    if nodes.size == 0:
+        raise InputError("no node of the database lies inside the search area")
+    yaw_bounds = None
+    if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+        yaw_bounds = (prior.heading_deg, prior.heading_tolerance_deg + step)
+    tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
+    tau = None
+    if grid.has_parallax:
+        lut_w, lut_p = tau2_tables(SCREEN_NOISE_DEG)
+        tau = (grid.coarse_tau2(map_sigma_m), COARSE_STRIDE, lut_w, lut_p)
+    cost, yaw, tilt = screen(grid.codes, grid.offset_deg, grid.step_deg, nodes, lattice, m, w, tilt_bounds,
+                             noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds, parallax=tau)
+    hyps = distinct_hypotheses(nodes, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
+    if not hyps:
+        raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
+    fits = _exact_hypotheses(grid, hyps, lattice, m, w, h_m, occlusion_weight, map_sigma_m)
+    if not fits:
+        raise InputError(f"{view.name}: no place of the search area fits the photo's skyline")
+    best_h, best_fit = fits[0]
+    fit_rays = _fit_rays(view)
+    start = _pose_of_fit(best_h, best_fit)
+    eye = best_fit.eye_offset_m
+    az_grid, el_grid = _rendered_view(render_at, best_fit.row, best_fit.col, fit_rays, start, 1.0, eye)
+    solved = solve_orientation(fit_rays, az_grid, el_grid, start, prior)
+    pose, scale = solved.pose, solved.focal_scale
+    pos = None
+    for _ in range(2):
+        sky = world_skyline(view, pose, scale)
+        pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid,
+                     height_m=h_m, occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m,
+                     sigma_floor_deg=sigma_floor_deg, source=view.name)
+        res = pos.result
+        eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else 0.0
+        turned = CameraPose(pose.yaw_deg + res.heading_correction_deg, pose.pitch_deg, pose.roll_deg)
+        az_grid, el_grid = _rendered_view(render_at, res.row, res.col, fit_rays, turned, scale, eye)
+        solved = solve_orientation(fit_rays, az_grid, el_grid, turned, prior, scale)
+        pose, scale = solved.pose, solved.focal_scale
+    assert pos is not None
+    sky = world_skyline(view, pose, scale)
+    rivals = _rivals(pos, fits, grid)
+    if rivals:
+        note = (f"{rivals} other place(s) fit the photo about as well with another orientation "
+                f"(within {RIVAL_NATS:.1f} nats)")
+        pos = replace(pos, estimate=replace(pos.result, ambiguous=True, notes=[*pos.result.notes, note]))
+    return PhotoAnswer(pos, pose, view.intrinsics.fx * scale, sky, tuple(fits), rivals)
+
+
+def _exact_hypotheses(grid: SkylineGrid, hyps: list[Hypothesis], lattice: np.ndarray, m: np.ndarray,
+                      w: np.ndarray, height_m: float, occlusion_weight: float,
+                      map_sigma_m: float) -> list[tuple[Hypothesis, Fit]]:
+    """Each hypothesis fitted between nodes on exact renders (position, yaw, eye height and the
+    tilt), best first by the fit's cost per measured azimuth (the occluded ones at the cap)."""
+    assert grid.terrain is not None
+    n_az = grid.n_azimuths
+    cap = occlusion_cap_deg2(occlusion_weight, FIT_SIGMA_DEG)
+    out: list[tuple[Hypothesis, Fit]] = []
+    for h in hyps:
+        shift = int(round(h.yaw_deg / grid.az_step_deg))
+        measured = np.full(n_az, np.nan)
+        weights = np.zeros(n_az)
+        idx = np.mod(lattice + shift, n_az)
+        u = np.radians(lattice * grid.az_step_deg)
+        # the screening's tilt taken out: the exact fit starts level and fits what is left
+        measured[idx], weights[idx] = m - h.t1_deg * np.cos(u) - h.t2_deg * np.sin(u), w
+        r, c = divmod(h.node, grid.n_cols)
+        fit = refine_exact(grid.terrain, grid.dx_m, grid.dy_m, measured, r, c, grid.n_cols, 0.0, height_m,
+                           sigma_deg=FIT_SIGMA_DEG, heading_bounds_deg=(-HYPOTHESIS_YAW_DEG, HYPOTHESIS_YAW_DEG),
+                           model=Model(weights, cap, map_sigma_m), tilt_sigma_deg=HYPOTHESIS_TILT_SIGMA_DEG)
+        if fit is not None and fit.n > 0:
+            out.append((h, replace(fit, ssd=fit.ssd + fit.occluded * kernel_cap(cap))))
+    out.sort(key=lambda hf: hf[1].ssd / hf[1].n)
+    return out
+
+
+def _pose_of_fit(h: Hypothesis, fit: Fit) -> CameraPose:
+    """The camera's orientation a hypothesis' exact fit gives: the yaw turned by the fit's heading,
+    pitch and roll from its tilt (the tilt's terms turned into the camera's axes)."""
+    yaw = h.yaw_deg + fit.heading_deg
+    psi = math.radians(yaw)
+    t1, t2 = fit.tilt_deg
+    along = h.t1_deg + t1 * math.cos(psi) + t2 * math.sin(psi)
+    across = h.t2_deg - t1 * math.sin(psi) + t2 * math.cos(psi)
+    return CameraPose(yaw % 360.0, -along, across)
+
+
+def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGrid) -> int:
+    """How many hypotheses away from the answer (beyond two cells) fit within RIVAL_NATS of the best
+    one, the costs weighed at the noise the estimate learned and the skyline's independent share."""
+    res = pos.result
+    sigma = max(float(np.mean(res.sigma_deg)), 1e-3)
+    best = fitted[0][1].ssd / fitted[0][1].n
+    share = res.independent_azimuths / max(res.n_valid, 1) if math.isfinite(res.independent_azimuths) else 1.0
+    count = 0
+    for _, f in fitted[1:]:
+        if math.hypot(f.row - res.row, f.col - res.col) <= 2.0:
+            continue
+        nats = (f.ssd / f.n - best) * res.n_valid / (2.0 * sigma**2) * min(share, 1.0)
+        if nats < RIVAL_NATS:
+            count += 1
+    return count
