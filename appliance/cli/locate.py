@@ -15,7 +15,7 @@ from appliance.cli.skyline import check_azimuth_mask
 from appliance.config import load_config
 from appliance.errors import InputError
 from appliance.locating.map_source import OpenedMap, SearchArea, area_log_prior, open_map
-from appliance.locating.photo_pose import OrientationPrior, PhotoAnswer, PhotoView, locate_photo
+from appliance.locating.photo_pose import MIN_ARC_DEG, OrientationPrior, PhotoAnswer, PhotoView, locate_photo
 from appliance.locating.position import Position, answer_text, locate
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -32,6 +32,8 @@ LOG = logging.getLogger(__name__)
 EXIF_NEAR_RADIUS_M = 1000.0
 #: A compass heading's tolerance (deg) when none is given: a phone's or a rover's magnetometer.
 DEFAULT_HEADING_TOLERANCE_DEG = 15.0
+#: The least share of the photo's columns where a skyline must be found.
+MIN_SKY_COLUMNS = 0.1
 #: A calibrated lens's focal length error (1 sigma, fraction).
 CALIBRATED_FOCAL_SIGMA = 0.0
 
@@ -92,6 +94,15 @@ def run(args: argparse.Namespace) -> int:
         from appliance.outputs import report as pages  # the report writers (rasterio, figures) load only for --report
 
         check_output_folder(report, [args.photo, args.map], pages.estimate_report_names([args.photo]), args.force)
+    name = Path(args.photo).name
+    # everything about the photo is checked before a database is built for it
+    view: PhotoView | None = None
+    skyline: Skyline | None = None
+    if panorama:
+        skyline = _panorama_skyline(args)
+    else:
+        intrinsics, focal_sigma = _lens(args.camera, exif, name)
+        view = _photo_view(args, image, intrinsics, name)
     cache = Path(args.cache) if args.cache else None
     if height is None:
         opened = open_map(args.map, area=area, crs=args.crs, cache_dir=cache)
@@ -99,18 +110,15 @@ def run(args: argparse.Namespace) -> int:
         opened = open_map(args.map, area=area, crs=args.crs, cache_dir=cache, height_m=height)
     db = _single_database(opened, args.map)
     log_prior = area_log_prior(db, area)
-    name = Path(args.photo).name
     answer: PhotoAnswer | None = None
-    if panorama:
-        skyline = _panorama_skyline(args)
+    if view is None:
+        assert skyline is not None
         tolerance = None if args.heading is None else _tolerance(args)
         pos = locate(db, skyline, sigma, tolerance, log_prior=log_prior, source=name, height_m=height,
                      occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m,
                      sigma_floor_deg=cfg.sigma_floor_deg)
     else:
-        intrinsics, focal_sigma = _lens(args.camera, exif, name)
-        view = _photo_view(args, image, intrinsics, name)
-        prior = OrientationPrior(*_heading(args, exif, area, db), pitch_tolerance_deg=args.pitch_tolerance,
+        prior = OrientationPrior(*_heading(args, exif, area), pitch_tolerance_deg=args.pitch_tolerance,
                                  roll_tolerance_deg=args.roll_tolerance, focal_sigma=focal_sigma)
         answer = locate_photo(db, view, prior, sigma_deg=sigma, log_prior=log_prior, height_m=height,
                               occlusion_weight=cfg.occlusion_weight, map_sigma_m=cfg.map_vertical_sigma_m,
@@ -159,8 +167,8 @@ def _area(args: argparse.Namespace, exif: PhotoExif) -> SearchArea | None:
         west, south, east, north = _numbers(args.search_bounds, "--search-bounds", 4)
         return SearchArea(box=(west, south, east, north))
     if exif.lat is not None and exif.lon is not None:
-        LOG.info("searching within %.0f m of the photo's EXIF position %.6f, %.6f", EXIF_NEAR_RADIUS_M, exif.lat,
-                 exif.lon)
+        LOG.debug("searching within %.0f m of the photo's EXIF position %.6f, %.6f", EXIF_NEAR_RADIUS_M, exif.lat,
+                  exif.lon)
         return SearchArea(circle=(exif.lat, exif.lon, EXIF_NEAR_RADIUS_M))
     return None
 
@@ -189,8 +197,7 @@ def _tolerance(args: argparse.Namespace) -> float:
     return tol
 
 
-def _heading(args: argparse.Namespace, exif: PhotoExif, area: SearchArea | None,
-             db: SkylineDatabase) -> tuple[float | None, float]:
+def _heading(args: argparse.Namespace, exif: PhotoExif, area: SearchArea | None) -> tuple[float | None, float]:
     """The heading prior: --heading, else the EXIF image direction (true), else none."""
     if args.heading is not None:
         if not math.isfinite(args.heading):
@@ -204,7 +211,7 @@ def _heading(args: argparse.Namespace, exif: PhotoExif, area: SearchArea | None,
     heading = heading_true_deg(exif, lat, lon)
     if heading is None:
         return None, 180.0
-    LOG.info("heading from the photo's EXIF: %.1f deg true", heading)
+    LOG.debug("heading from the photo's EXIF: %.1f deg true", heading)
     return heading, DEFAULT_HEADING_TOLERANCE_DEG
 
 
@@ -222,10 +229,15 @@ def _photo_view(args: argparse.Namespace, image: object, intrinsics: CameraIntri
     sky = detect_photo(photo, DetectionConfig(min_elevation_deg=-30.0, max_elevation_deg=45.0),
                        [parse_rect(t) for t in args.mask], find_text=not args.keep_text)
     detected = float(np.isfinite(sky.row).mean())
-    if detected < 0.1:
-        raise InputError(f"{name}: no sky found above the terrain in {detected:.0%} of the photo's columns: "
-                         "a photo of the skyline is needed")
-    return PhotoView.from_detection(sky, intrinsics, name)
+    if detected < MIN_SKY_COLUMNS:
+        raise InputError(f"{name}: no sky above the terrain: a skyline was found in {detected:.0%} of the photo's "
+                         "columns (a photo of the skyline is needed)")
+    view = PhotoView.from_detection(sky, intrinsics, name)
+    arc = view.arc_deg()
+    if arc < MIN_ARC_DEG:
+        raise InputError(f"{name}: the skyline spans {arc:.1f} deg of the view, less than the {MIN_ARC_DEG:g} deg "
+                         "needed to locate a photo")
+    return view
 
 
 def _panorama_skyline(args: argparse.Namespace) -> Skyline:

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from appliance.estimator import parallax
+from appliance.estimator.likelihood import is_occluded, variance_log_normaliser, variance_weight
 from appliance.estimator.search import MISSING_CODE
 from appliance.numerics import FAST_FINITE
 
@@ -174,7 +176,7 @@ def screen(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, node
            lattice: np.ndarray, elevation_deg: np.ndarray, weights: np.ndarray, tilt_bound_deg: tuple[float, float],
            noise_deg: float = 0.3, yaw_deg: tuple[float, float] | None = None, clip_deg: float = CLIP_DEG,
            rounds: int = 3, parallax: tuple[np.ndarray, int, np.ndarray, np.ndarray] | None = None,
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           relative_deg: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every node of ``nodes`` scored at every yaw: the robust cost (deg^2), the yaw (deg, a multiple
     of the database's azimuth step) and the tilt terms (deg, (n, 2)) of its best fit.
 
@@ -186,10 +188,11 @@ def screen(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, node
     of the measurements costs inf.  ``parallax``: the nodes' tau^2 codes over runs of ``stride``
     azimuths and the tables of each code's weight sigma^2 / (sigma^2 + tau^2) and normaliser
     log(1 + tau^2 / sigma^2) (``parallax.tau2_tables`` at ``noise_deg``): each residual then counts
-    as the parallax model says a node's cell blurs it; None weighs all alike."""
+    as the parallax model says a node's cell blurs it; None weighs all alike.  ``relative_deg``: the
+    relative azimuth of each lattice sample for the tilt's terms (default: its lattice position)."""
     n_az = codes.shape[1]
     az_step = 360.0 / n_az
-    rel = lattice * az_step
+    rel = lattice * az_step if relative_deg is None else np.asarray(relative_deg, np.float64)
     uc, us = np.cos(np.radians(rel)), np.sin(np.radians(rel))
     if yaw_deg is None:
         shifts = np.arange(n_az, dtype=np.int64)
@@ -217,6 +220,42 @@ def screen(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, node
     return cost, shift * az_step, tilt
 
 
+def screen_in_two_stages(codes: np.ndarray, coarse_codes: np.ndarray, offset_deg: np.ndarray,
+                         step_deg: np.ndarray, nodes: np.ndarray, lattice: np.ndarray, elevation_deg: np.ndarray,
+                         weights: np.ndarray, tilt_bound_deg: tuple[float, float], noise_deg: float,
+                         yaw_deg: tuple[float, float] | None, parallax: tuple[np.ndarray, np.ndarray] | None,
+                         coarse_parallax: np.ndarray | None, keep: int,
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`screen` first on the database's skylines averaged over runs of azimuths
+    (``coarse_codes``, its yaws in steps of a run), then on the full skylines at every yaw for the
+    ``keep`` best nodes of the first stage.  Returns those nodes and their cost, yaw and tilt.
+    ``parallax``: the tau^2 tables (weight, normaliser) when ``coarse_parallax`` holds the nodes'
+    tau^2 codes per run."""
+    n_az = codes.shape[1]
+    stride = n_az // coarse_codes.shape[1]
+    # the measurement averaged over the same runs: relative run b covers lattice steps stride*b .. stride*b + stride-1
+    runs = np.floor_divide(lattice, stride)
+    w = np.asarray(weights, np.float64)
+    sums = np.bincount(runs - runs.min(), w * elevation_deg)
+    wsum = np.bincount(runs - runs.min(), w)
+    counts = np.bincount(runs - runs.min())
+    b = np.arange(sums.size) + runs.min()
+    full = (counts == stride) & (wsum > 0)
+    coarse_m = sums[full] / wsum[full]
+    coarse_w = wsum[full] / counts[full]
+    step = 360.0 / n_az
+    centre_deg = (b[full] * stride + 0.5 * (stride - 1)) * step
+    tau = None if parallax is None or coarse_parallax is None else (coarse_parallax, 1, parallax[0], parallax[1])
+    cost, _, _ = screen(coarse_codes, offset_deg, step_deg, nodes, b[full], coarse_m, coarse_w, tilt_bound_deg,
+                        noise_deg=noise_deg, yaw_deg=yaw_deg, parallax=tau, relative_deg=centre_deg)
+    order = np.argsort(cost, kind="stable")[:keep]
+    chosen = nodes[order[np.isfinite(cost[order])]]
+    tau_full = None if tau is None or coarse_parallax is None else (coarse_parallax, stride, tau[2], tau[3])
+    cost2, yaw2, tilt2 = screen(codes, offset_deg, step_deg, chosen, lattice, elevation_deg, weights, tilt_bound_deg,
+                                noise_deg=noise_deg, yaw_deg=yaw_deg, parallax=tau_full)
+    return chosen, cost2, yaw2, tilt2
+
+
 def distinct_hypotheses(nodes: np.ndarray, cost: np.ndarray, yaw_deg: np.ndarray, tilt_deg: np.ndarray,
                         n_cols: int, count: int, min_cells: float = 3.0, min_yaw_deg: float = 3.0) -> list[Hypothesis]:
     """The ``count`` best nodes of a screening that are distinct places or orientations: a node
@@ -241,3 +280,114 @@ def distinct_hypotheses(nodes: np.ndarray, cost: np.ndarray, yaw_deg: np.ndarray
             if len(chosen) == count:
                 break
     return chosen
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
+def _linearised_tilt_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray,
+                         ge: np.ndarray, gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, m: np.ndarray,
+                         wj: np.ndarray, uc: np.ndarray, us: np.ndarray, rows: np.ndarray, shifts: np.ndarray,
+                         tilt0: np.ndarray, rho2: float, inv_d2: np.ndarray, sig2: float, lin2: float,
+                         offset_prior_m2: float, heading_prior_deg2: float, tilt_prior_deg2: float, cap: float,
+                         map2: float, out: np.ndarray, delta: np.ndarray) -> None:
+    n_az = codes.shape[1]
+    az_step = 360.0 / n_az
+    sin_az = np.empty(n_az)
+    cos_az = np.empty(n_az)
+    for j in range(n_az):
+        sin_az[j] = math.sin(j * az_step / parallax.DEG)
+        cos_az[j] = math.cos(j * az_step / parallax.DEG)
+    n_t = jj.size
+    for r in numba.prange(rows.size):
+        i = rows[r]
+        o = offset[i]
+        st = step[i]
+        for q in range(6):
+            delta[r, q] = 0.0
+        if math.isnan(o):
+            out[r] = np.inf
+            continue
+        sg = math.sin(gamma_deg[i] / parallax.DEG)
+        cg = math.cos(gamma_deg[i] / parallax.DEG)
+        g2 = ge[i] * ge[i] + gn[i] * gn[i]
+        A = np.zeros((6, 6))
+        b = np.zeros(6)
+        row = np.zeros(6)
+        prow = np.zeros(4)
+        rr = 0.0
+        pen = 0.0
+        occ = 0.0
+        cnt = 0
+        sh = shifts[r] % n_az
+        for t in range(n_t):
+            idx = (jj[t] + sh) % n_az
+            c = codes[i, idx]
+            if c == MISSING_CODE or wj[t] == 0.0:
+                continue
+            cnt += 1
+            e_deg = o + st * c
+            res = m[t] - tilt0[r, 0] * uc[t] - tilt0[r, 1] * us[t] - e_deg
+            t2 = lin2 * parallax.tau2_at(codes, dist, i, idx, n_az, o, st, az_step, g2, rho2, inv_d2)
+            t2 += parallax.map_var_at(dist, i, idx, map2, inv_d2)
+            w = variance_weight(sig2, t2)
+            pen += wj[t] * sig2 * variance_log_normaliser(sig2, t2)
+            if is_occluded(res, w * res * res, cap):
+                occ += wj[t]
+                continue
+            w *= wj[t]
+            parallax.parallax_row(codes, dist, inv_d2, i, idx, st, e_deg, sin_az, cos_az, sg, cg, ge[i], gn[i], prow)
+            for u in range(4):
+                row[u] = prow[u]
+            row[4] = uc[t]
+            row[5] = us[t]
+            for u in range(6):
+                b[u] += w * row[u] * res
+                for v in range(6):
+                    A[u, v] += w * row[u] * row[v]
+            rr += w * res * res
+        if cnt < MIN_SEEN_SHARE * n_t or cnt == 0:
+            out[r] = np.inf
+            continue
+        height_prior_m2 = 0.25 * g2 * offset_prior_m2 + 0.25
+        A[0, 0] += sig2 / offset_prior_m2
+        A[1, 1] += sig2 / offset_prior_m2
+        A[2, 2] += sig2 / heading_prior_deg2
+        A[3, 3] += sig2 / height_prior_m2
+        A[4, 4] += sig2 / tilt_prior_deg2
+        A[5, 5] += sig2 / tilt_prior_deg2
+        x = np.linalg.solve(A, b)
+        for q in range(6):
+            delta[r, q] = x[q]
+        fit = 0.0
+        for q in range(6):
+            fit += b[q] * x[q]
+        out[r] = (max(rr - fit, 0.0) + pen + occ * cap) * n_t / cnt
+
+
+def linearised_screen(grid_codes: np.ndarray, distance_codes: np.ndarray, offset_deg: np.ndarray,
+                      step_deg: np.ndarray, ground_gradient: tuple[np.ndarray, np.ndarray], gamma_deg: np.ndarray,
+                      nodes: np.ndarray, yaw_deg: np.ndarray, tilt_deg: np.ndarray, lattice: np.ndarray,
+                      elevation_deg: np.ndarray, weights: np.ndarray, rho2_m2: float, inverse_range2: np.ndarray,
+                      cell_half_m: float, noise_deg: float, tilt_sigma_deg: float, cap_deg2: float,
+                      map_sigma_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Each screened node at its yaw moved within its cell by the first-order parallax model
+    (``parallax.linearised_fit``'s move: east, north, heading, eye height) with the tilt refined
+    from ``tilt_deg`` (two more linear terms): the cost (deg^2 at ``noise_deg``, with the wider
+    Gaussians' normaliser and the occluded azimuths at the cap) and the move (n, 6: east m,
+    north m, heading deg, eye m, t1 deg, t2 deg).  What the coarse screening misses between nodes,
+    where a camera near the ground sees the terrain beside it move by degrees, this recovers."""
+    n_az = grid_codes.shape[1]
+    az_step = 360.0 / n_az
+    rel = np.radians(lattice * az_step)
+    nodes = np.ascontiguousarray(nodes, dtype=np.int64)
+    shifts = np.round(np.asarray(yaw_deg) / az_step).astype(np.int64)
+    out = np.empty(nodes.size)
+    delta = np.empty((nodes.size, 6))
+    ge, gn = ground_gradient
+    _linearised_tilt_fit(grid_codes, distance_codes, np.asarray(offset_deg, np.float64),
+                         np.asarray(step_deg, np.float64), ge, gn, np.asarray(gamma_deg, np.float64),
+                         np.mod(lattice, n_az).astype(np.int64), np.asarray(elevation_deg, np.float64),
+                         np.asarray(weights, np.float64), np.cos(rel), np.sin(rel), nodes, shifts,
+                         np.ascontiguousarray(tilt_deg, np.float64), rho2_m2, inverse_range2, noise_deg**2,
+                         parallax.LINEARISED_SCALE**2, cell_half_m**2, az_step**2, tilt_sigma_deg**2, cap_deg2,
+                         map_sigma_m**2, out, delta)
+    return out, delta

@@ -176,7 +176,7 @@ def ground_gradient_at(ground_m: np.ndarray, n_rows: int, n_cols: int, dx_m: flo
 
 
 @numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
-def _parallax_row(codes: np.ndarray, dist: np.ndarray, inv_d2: np.ndarray, i: int, idx: int, st: float,
+def parallax_row(codes: np.ndarray, dist: np.ndarray, inv_d2: np.ndarray, i: int, idx: int, st: float,
                   e_deg: float, sin_az: np.ndarray, cos_az: np.ndarray, sg: float, cg: float, ge: float, gn: float,
                   row: np.ndarray) -> None:
     """d(elevation) of node i at grid azimuth ``idx`` per move (east m, north m, heading deg, eye
@@ -241,7 +241,7 @@ def _normal_equations(codes: np.ndarray, dist: np.ndarray, i: int, o: float, st:
             occ += wj[t]
             continue
         w *= wj[t]
-        _parallax_row(codes, dist, inv_d2, i, idx, st, e_deg, sin_az, cos_az, sg, cg, ge, gn, row)
+        parallax_row(codes, dist, inv_d2, i, idx, st, e_deg, sin_az, cos_az, sg, cg, ge, gn, row)
         for u in range(4):
             b[u] += w * row[u] * res
             for v in range(4):

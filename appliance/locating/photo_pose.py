@@ -30,11 +30,18 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from appliance.errors import InputError
-from appliance.estimator import COARSE_STRIDE, SkylineGrid
+from appliance.estimator import SkylineGrid
 from appliance.estimator.exact import Fit, Model
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.likelihood import kernel_cap, occlusion_cap_deg2
-from appliance.estimator.orientation import Hypothesis, distinct_hypotheses, relative_on_lattice, screen
+from appliance.estimator.orientation import (
+    Hypothesis,
+    distinct_hypotheses,
+    linearised_screen,
+    relative_on_lattice,
+    screen,
+    screen_in_two_stages,
+)
 from appliance.estimator.parallax import tau2_tables
 from appliance.estimator.raycast import render
 from appliance.locating.position import Position, locate
@@ -49,6 +56,12 @@ from appliance.vision.photo import PhotoSkyline, resample_photo
 HYPOTHESES = 20
 #: The screening's measurement noise (deg): the parallax model's weights are made against it.
 SCREEN_NOISE_DEG = 0.3
+#: The nodes the screening's first stage (runs of azimuths) passes to its second (every azimuth):
+#: this share of the search area's, at least this many.
+SCREEN_KEEP_SHARE = 0.05
+SCREEN_KEEP_MIN = 400
+#: The screening's best nodes moved within their cells by the parallax model before the exact fits.
+LINEARISED_NODES = 400
 #: The exact fits of the hypotheses: their noise (deg), yaw freedom (deg) and tilt prior (deg, 1 sigma).
 FIT_SIGMA_DEG = 0.3
 HYPOTHESIS_YAW_DEG = 3.0
@@ -69,6 +82,8 @@ BOUND_MARGIN_DEG = 1.0
 BOUND_SIGMAS = 2.5
 #: The output skyline's azimuth step (deg).
 SKYLINE_STEP_DEG = 0.25
+#: Nodes beyond this many cells of the answer are elsewhere (the screening's check of the answer).
+SCREEN_ELSEWHERE_CELLS = 2.5
 #: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous.
 RIVAL_NATS = math.log(20.0)
 #: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
@@ -115,6 +130,14 @@ class PhotoView:
         ok = np.isfinite(sky.row) & (sky.confidence > 0)
         cols = np.arange(sky.row.size, dtype=np.float64)
         return cls(intrinsics, cols[ok], np.asarray(sky.row, np.float64)[ok], np.asarray(sky.confidence)[ok], name)
+
+    def arc_deg(self) -> float:
+        """How wide an arc of azimuth (deg) the detected skyline spans, the camera held level."""
+        if self.column_px.size < 2:
+            return 0.0
+        az, _ = directions(self.rays(), CameraPose(0.0, 0.0, 0.0))
+        rel = np.mod(az + 180.0, 360.0) - 180.0
+        return float(rel.max() - rel.min())
 
     def rays(self) -> np.ndarray:
         """Camera-frame unit rays of the skyline's pixels (the lens's distortion removed)."""
@@ -297,12 +320,18 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
         yaw_bounds = (prior.heading_deg, prior.heading_tolerance_deg + step)
     tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
-    tau = None
+    tables = tau_codes = None
     if grid.has_parallax:
-        lut_w, lut_p = tau2_tables(SCREEN_NOISE_DEG)
-        tau = (grid.coarse_tau2(map_sigma_m), COARSE_STRIDE, lut_w, lut_p)
-    cost, yaw, tilt = screen(grid.codes, grid.offset_deg, grid.step_deg, nodes, lattice, m, w, tilt_bounds,
-                             noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds, parallax=tau)
+        tables, tau_codes = tau2_tables(SCREEN_NOISE_DEG), grid.coarse_tau2(map_sigma_m)
+    keep = max(SCREEN_KEEP_MIN, int(SCREEN_KEEP_SHARE * nodes.size))
+    nodes, cost, yaw, tilt = screen_in_two_stages(grid.codes, grid.coarse[0], grid.offset_deg, grid.step_deg, nodes,
+                                                  lattice, m, w, tilt_bounds, SCREEN_NOISE_DEG, yaw_bounds, tables,
+                                                  tau_codes, keep)
+    screened = (nodes, cost)
+    screen_args = (lattice, m, w, tilt_bounds, yaw_bounds, tables, tau_codes)
+    if grid.has_parallax:
+        nodes, cost, yaw, tilt = _moved_within_cells(grid, nodes, cost, yaw, tilt, lattice, m, w, prior,
+                                                     occlusion_weight, map_sigma_m)
     hyps = distinct_hypotheses(nodes, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
         raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
@@ -331,11 +360,38 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     assert pos is not None
     sky = world_skyline(view, pose, scale)
     rivals = _rivals(pos, fits, grid)
+    notes = []
     if rivals:
-        note = (f"{rivals} other place(s) fit the photo about as well with another orientation "
-                f"(within {RIVAL_NATS:.1f} nats)")
-        pos = replace(pos, estimate=replace(pos.result, ambiguous=True, notes=[*pos.result.notes, note]))
+        notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
+                     f"(within {RIVAL_NATS:.1f} nats)")
+    unseen = _screened_better(grid, pos, screened, screen_args)
+    if unseen:
+        notes.append(f"{unseen} node(s) elsewhere screen at least as well as the answer's; the photo's view "
+                     "does not rule them out")
+    if notes:
+        pos = replace(pos, estimate=replace(pos.result, ambiguous=True, notes=[*pos.result.notes, *notes]))
     return PhotoAnswer(pos, pose, view.intrinsics.fx * scale, sky, tuple(fits), rivals)
+
+
+def _moved_within_cells(grid: SkylineGrid, nodes: np.ndarray, cost: np.ndarray, yaw: np.ndarray, tilt: np.ndarray,
+                        lattice: np.ndarray, m: np.ndarray, w: np.ndarray, prior: OrientationPrior,
+                        occlusion_weight: float, map_sigma_m: float,
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The screening's best LINEARISED_NODES nodes scored again with each one's skyline moved
+    within its cell by the parallax model and the tilt refined (``orientation.linearised_screen``):
+    the nodes, their new costs, yaws and tilts."""
+    order = np.argsort(cost, kind="stable")[:LINEARISED_NODES]
+    order = order[np.isfinite(cost[order])]
+    nodes, yaw, tilt = nodes[order], yaw[order], tilt[order]
+    assert grid.distance_codes is not None
+    half = 0.5 * max(grid.dx_m, grid.dy_m)
+    sigma = max(prior.pitch_tolerance_deg, prior.roll_tolerance_deg) / 2.0
+    cap = kernel_cap(occlusion_cap_deg2(occlusion_weight, SCREEN_NOISE_DEG))
+    moved, delta = linearised_screen(grid.codes, grid.distance_codes, grid.offset_deg, grid.step_deg,
+                                     grid.ground_gradient_at(nodes), grid.convergence_deg, nodes, yaw, tilt, lattice,
+                                     m, w, grid.rho2_m2, grid.inverse_range2, half, SCREEN_NOISE_DEG, sigma, cap,
+                                     map_sigma_m)
+    return nodes, moved, np.mod(yaw + delta[:, 2], 360.0), tilt + delta[:, 4:6]
 
 
 def _exact_hypotheses(grid: SkylineGrid, hyps: list[Hypothesis], lattice: np.ndarray, m: np.ndarray,
@@ -374,6 +430,31 @@ def _pose_of_fit(h: Hypothesis, fit: Fit) -> CameraPose:
     along = h.t1_deg + t1 * math.cos(psi) + t2 * math.sin(psi)
     across = h.t2_deg - t1 * math.sin(psi) + t2 * math.cos(psi)
     return CameraPose(yaw % 360.0, -along, across)
+
+
+def _screened_better(grid: SkylineGrid, pos: Position, screened: tuple[np.ndarray, np.ndarray],
+                     screen_args: tuple) -> int:
+    """How many nodes farther than SCREEN_ELSEWHERE_CELLS from the answer screened at or below the
+    best screening cost near it (within 1.5 cells).  The screening is the only look most places get:
+    where it ranks places elsewhere above the answer's, the exact fits of a few hypotheses cannot
+    rule the others out, and on the development seeds every such answer but one was wrong."""
+    nodes, cost = screened
+    res = pos.result
+    rows, cols = np.divmod(nodes, grid.n_cols)
+    d = np.hypot(rows - res.row, cols - res.col)
+    near = d <= 1.5
+    if near.any():
+        here = float(cost[near].min())
+    else:
+        lattice, m, w, tilt_bounds, yaw_bounds, tables, tau_codes = screen_args
+        r0, c0 = int(round(res.row)), int(round(res.col))
+        around = [(r0 + dr) * grid.n_cols + c0 + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)
+                  if 0 <= r0 + dr < grid.n_rows and 0 <= c0 + dc < grid.n_cols]
+        tau = None if tables is None else (tau_codes, grid.n_azimuths // tau_codes.shape[1], *tables)
+        c, _, _ = screen(grid.codes, grid.offset_deg, grid.step_deg, np.array(around), lattice, m, w, tilt_bounds,
+                         noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds, parallax=tau)
+        here = float(np.min(c))
+    return int(np.sum(cost[d > SCREEN_ELSEWHERE_CELLS] <= here))
 
 
 def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGrid) -> int:

@@ -411,7 +411,7 @@ def intrinsics_from_exif(exif: PhotoExif, name: str) -> tuple[CameraIntrinsics, 
     f_px, sigma = chosen
     w, h = exif.width_px, exif.height_px
     camera = CameraIntrinsics(w, h, f_px, f_px, (w - 1) / 2.0, (h - 1) / 2.0)
-    log.info("%s: lens from EXIF: %.1f px (%.2f deg across), 1-sigma %.1f %%", name, f_px, camera.hfov_deg,
+    log.debug("%s: lens from EXIF: %.1f px (%.2f deg across), 1-sigma %.1f %%", name, f_px, camera.hfov_deg,
              100 * sigma)
     return camera, sigma
 
@@ -520,7 +520,7 @@ def heading_true_deg(exif: PhotoExif, lat: float | None = None, lon: float | Non
     declination = _declination_deg(lat, lon, exif.altitude_m or 0.0, when)
     if declination is None:
         return None
-    log.info("EXIF heading %.2f deg magnetic, declination %.3f deg at %.5f, %.5f on %s", exif.heading_deg,
+    log.debug("EXIF heading %.2f deg magnetic, declination %.3f deg at %.5f, %.5f on %s", exif.heading_deg,
              declination, lat, lon, when.date())
     return (exif.heading_deg + declination) % 360.0
 

@@ -1,0 +1,241 @@
+"""Any photo (`viper locate`): the orientation found with the position.
+
+The screening's kernel against skylines made here, the tilt terms' meaning against the camera model,
+the orientation fit against an analytic skyline seen through a known camera, and the command end to
+end on a photo rendered from jacksboro with only its EXIF for a lens; then the bad inputs, each a
+one-line error that leaves nothing in the cache.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import ExifTags, Image
+
+from appliance.estimator.exact import Fit
+from appliance.estimator.orientation import Hypothesis, relative_on_lattice, screen
+from appliance.locating import photo_pose as pp
+from appliance.terrain.dem import demo_dem_path, load_dem
+from appliance.vision.camera import CameraPose, directions_to_pixels, enu_to_directions, world_from_camera
+from appliance.vision.intrinsics import CameraIntrinsics
+from appliance.vision.synth import render_photo
+
+REPO = Path(__file__).resolve().parents[1]
+VIPER = [sys.executable, "-m", "appliance.cli.main"]
+
+
+def viper(*args: object) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*VIPER, *(str(a) for a in args)], capture_output=True, text=True, cwd=REPO)
+
+
+def one_line_error(out: subprocess.CompletedProcess[str], *words: str) -> str:
+    assert out.returncode != 0
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+    return lines[0]
+
+
+def jpeg_with_f35(image_bgr: np.ndarray, f35_mm: float | None) -> bytes:
+    exif = Image.Exif()
+    exif[ExifTags.Base.Make] = "viper test"
+    if f35_mm is not None:
+        exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = int(f35_mm)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image_bgr[..., ::-1])).save(buf, "JPEG", quality=92, exif=exif)
+    return buf.getvalue()
+
+
+def f35_of(intrinsics: CameraIntrinsics) -> float:
+    return intrinsics.fx * 43.2666 / math.hypot(intrinsics.width, intrinsics.height)
+
+
+# ----------------------------------------------------------------------------- the screening's kernel
+
+
+def smooth_skylines(n_nodes: int, rng: np.random.Generator) -> np.ndarray:
+    az = np.radians(np.arange(360.0))
+    out = np.empty((n_nodes, 360))
+    for i in range(n_nodes):
+        k = rng.integers(1, 9, 6)
+        out[i] = 4.0 + sum(rng.uniform(0.3, 2.0) * np.sin(kk * az + rng.uniform(0, 6.3)) for kk in k)
+    return out
+
+
+def test_screening_finds_the_node_its_yaw_and_its_tilt() -> None:
+    rng = np.random.default_rng(3)
+    sky = smooth_skylines(40, rng)
+    offset = sky.min(axis=1) - 0.01
+    step = (sky.max(axis=1) + 0.01 - offset) / 254.0
+    codes = np.round((sky - offset[:, None]) / step[:, None]).astype(np.uint8)
+    node, yaw, t1, t2 = 17, 123, 2.0, -1.0
+    rel = np.arange(-30.0, 30.5, 0.25)
+    u = np.radians(rel)
+    truth = np.interp(np.mod(rel + yaw, 360.0), np.arange(360.0), sky[node], period=360.0)
+    measured = truth + t1 * np.cos(u) + t2 * np.sin(u)
+    lattice, m, w = relative_on_lattice(rel, measured, np.ones_like(rel), 1.0)
+    assert lattice[0] == -30 and lattice[-1] == 30 and m.size == 61
+    cost, yaws, tilt = screen(codes, offset, step, np.arange(40), lattice, m, w, (5.0, 3.0))
+    best = int(np.argmin(cost))
+    assert best == node
+    assert yaws[best] == yaw
+    assert tilt[best] == pytest.approx([t1, t2], abs=0.03)
+    # a tilt beyond the level's tolerance is not fitted: the node then fits worse
+    cost_bound, _, tilt_bound = screen(codes, offset, step, np.array([node]), lattice, m, w, (1.0, 3.0))
+    assert abs(tilt_bound[0, 0]) <= 1.0 + 1e-9 and cost_bound[0] > 10 * cost[best]
+
+
+def test_the_tilt_terms_are_the_cameras_pitch_and_roll() -> None:
+    """Seen through a level camera, a camera pitched up by p and rolled right side down by r puts
+    the horizon at relative azimuth u at elevation -p cos u + r sin u (small angles)."""
+    pitch, roll = 1.5, -0.8
+    true = CameraPose(0.0, pitch, roll)
+    rel = np.linspace(-30.0, 30.0, 13)
+    world = np.stack([np.sin(np.radians(rel)), np.cos(np.radians(rel)), np.zeros_like(rel)], axis=1)
+    rays = world @ world_from_camera(true)  # the horizon's rays in the tilted camera
+    _, el = enu_to_directions(rays @ world_from_camera(CameraPose(0.0, 0.0, 0.0)).T)
+    u = np.radians(rel)
+    assert el == pytest.approx(-pitch * np.cos(u) + roll * np.sin(u), abs=0.02)
+    # and a hypothesis' tilt (plus an exact fit's, in world azimuths) turns back into that pose
+    fit = Fit(0.0, 0.0, 0.4, 0.0, 10, 1, tilt_deg=(0.0, 0.0))
+    pose = pp._pose_of_fit(Hypothesis(0, 80.0, -pitch, roll, 0.0), fit)
+    assert (pose.yaw_deg, pose.pitch_deg, pose.roll_deg) == pytest.approx((80.4, pitch, roll))
+
+
+def test_orientation_fit_recovers_yaw_pitch_roll_and_focal_length() -> None:
+    def skyline(az: np.ndarray) -> np.ndarray:
+        a = np.radians(az)
+        return 3.0 + 1.5 * np.sin(3 * a) + 0.8 * np.cos(7 * a + 1.0) + 0.3 * np.sin(19 * a)
+
+    true_k = CameraIntrinsics.from_fov(1280, 720, 60.0)
+    pose = CameraPose(40.0, 3.0, -2.0)
+    az = np.arange(0.0, 360.0, 0.02)
+    u, v = directions_to_pixels(true_k, pose, az, skyline(az))
+    inside = np.isfinite(u) & (u >= 0) & (u <= 1279) & (v >= 0) & (v <= 719)
+    order = np.argsort(u[inside])
+    nominal = CameraIntrinsics(1280, 720, true_k.fx / 1.02, true_k.fy / 1.02, true_k.cx, true_k.cy)
+    view = pp.PhotoView(nominal, u[inside][order], v[inside][order], np.ones(int(inside.sum())))
+    grid_az = np.arange(-60.0, 420.0, 0.05)
+    fit = pp.solve_orientation(pp._fit_rays(view), grid_az, skyline(grid_az), CameraPose(41.0, 0.0, 0.0),
+                               pp.OrientationPrior(pitch_tolerance_deg=5.0, roll_tolerance_deg=3.0, focal_sigma=0.03))
+    assert fit.pose.yaw_deg == pytest.approx(40.0, abs=0.02)
+    assert fit.pose.pitch_deg == pytest.approx(3.0, abs=0.02)
+    assert fit.pose.roll_deg == pytest.approx(-2.0, abs=0.02)
+    assert fit.focal_scale == pytest.approx(1.02, abs=0.002)
+    assert fit.rms_deg < 0.01
+
+
+# ----------------------------------------------------------------------------- the command
+
+
+#: a place of jacksboro whose view towards the south sees a ridge, and the camera's true orientation there
+LAT, LON = 36.50392834558151, -84.14421287272029
+YAW, PITCH, ROLL = 185.5, -2.1, -2.7
+CAMERA = CameraIntrinsics.from_fov(960, 540, 60.0)
+
+
+@pytest.fixture(scope="module")
+def jacksboro_photo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    dem = load_dem("jacksboro")
+    image = render_photo(dem, LAT, LON, 1.5, YAW, PITCH, ROLL, CAMERA, np.random.default_rng(5), weather="cloudy",
+                         scene_seed=5)
+    path = tmp_path_factory.mktemp("photo") / "ridge.jpg"
+    path.write_bytes(jpeg_with_f35(image, round(f35_of(CAMERA))))
+    return path
+
+
+def test_locate_finds_position_and_orientation_from_exif_alone(tmp_path: Path, jacksboro_photo: Path) -> None:
+    cache = tmp_path / "cache"
+    near = f"{LAT + 0.004},{LON - 0.005},1500"  # a circle whose centre is 700 m from the camera
+    out = viper("locate", jacksboro_photo, "--map", demo_dem_path(), "--near", near, "--cache", cache, "--json",
+                "--truth", f"{LAT},{LON}")
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    assert rec["truth"]["error_m"] <= 2 * cell_m
+    assert rec["status"] == "ok"
+    o = rec["orientation"]
+    assert abs((o["yaw_deg"] - YAW + 180.0) % 360.0 - 180.0) < 1.0
+    assert o["pitch_deg"] == pytest.approx(PITCH, abs=0.5)
+    assert o["roll_deg"] == pytest.approx(ROLL, abs=0.5)
+    assert o["focal_px"] == pytest.approx(CAMERA.fx, rel=0.03)
+    assert rec["timing"]["build_s"] > 0
+    built = sorted(cache.rglob("*.viperdb"))
+    assert len(built) == 1
+    # a second photo of the same area starts from the cached database
+    again = viper("locate", jacksboro_photo, "--map", demo_dem_path(), "--near", near, "--cache", cache, "--json")
+    assert again.returncode == 0, again.stderr
+    rec2 = json.loads(again.stdout)
+    assert rec2["timing"]["build_s"] is None
+    assert sorted(cache.rglob("*.viperdb")) == built
+    assert (rec2["lat"], rec2["lon"]) == (rec["lat"], rec["lon"])
+
+
+def _plain_photo(path: Path, f35_mm: float | None, sky_rows: int, width: int = 640, height: int = 360,
+                 sky_columns: int | None = None) -> Path:
+    """Terrain below a wavy skyline ``sky_rows`` rows from the top (0: no sky at all), over the first
+    ``sky_columns`` columns (all by default); terrain up to the top elsewhere."""
+    img = np.zeros((height, width, 3), np.uint8)
+    img[:] = (60, 120, 70)
+    cols = np.arange(width)
+    line = sky_rows + (12 * np.sin(cols / 37.0)).astype(int) if sky_rows > 0 else np.full(width, -1)
+    if sky_columns is not None:
+        line[sky_columns:] = -1
+    for x in range(width):
+        if line[x] > 0:
+            img[: line[x], x] = (235, 190, 140)
+    path.write_bytes(jpeg_with_f35(img, f35_mm))
+    return path
+
+
+def _cache_is_empty(cache: Path) -> bool:
+    return not cache.exists() or not any(p.is_file() for p in cache.rglob("*"))
+
+
+NEAR = f"{LAT},{LON},1500"
+
+
+def test_a_photo_with_no_sky_is_refused_before_any_build(tmp_path: Path) -> None:
+    photo = _plain_photo(tmp_path / "wall.jpg", 28, 0)
+    cache = tmp_path / "cache"
+    one_line_error(viper("locate", photo, "--map", demo_dem_path(), "--near", NEAR, "--cache", cache), "no sky")
+    assert _cache_is_empty(cache)
+
+
+@pytest.mark.parametrize("f35", [0, 1])
+def test_an_absurd_exif_focal_length_is_refused(tmp_path: Path, f35: int) -> None:
+    photo = _plain_photo(tmp_path / "p.jpg", f35, 150)
+    cache = tmp_path / "cache"
+    one_line_error(viper("locate", photo, "--map", demo_dem_path(), "--near", NEAR, "--cache", cache), "--camera")
+    assert _cache_is_empty(cache)
+
+
+def test_a_photo_without_exif_or_camera_is_refused(tmp_path: Path) -> None:
+    photo = _plain_photo(tmp_path / "p.jpg", None, 150)
+    line = one_line_error(viper("locate", photo, "--map", demo_dem_path(), "--near", NEAR, "--cache",
+                                tmp_path / "cache"), "--camera")
+    assert "no lens" in line
+
+
+def test_a_skyline_over_less_than_the_least_arc_is_refused(tmp_path: Path) -> None:
+    photo = _plain_photo(tmp_path / "edge.jpg", 28, 150, sky_columns=100)  # sky over 10 of the view's 68 degrees
+    cache = tmp_path / "cache"
+    one_line_error(viper("locate", photo, "--map", demo_dem_path(), "--near", NEAR, "--cache", cache),
+                   "spans", f"{pp.MIN_ARC_DEG:g} deg")
+    assert _cache_is_empty(cache)
+
+
+def test_a_map_that_does_not_cover_the_search_circle_is_refused(tmp_path: Path, jacksboro_photo: Path) -> None:
+    cache = tmp_path / "cache"
+    line = one_line_error(viper("locate", jacksboro_photo, "--map", demo_dem_path(), "--near", "46.2,-122.2,600",
+                                "--cache", cache), "cover")
+    assert "46.2" in line
+    assert _cache_is_empty(cache)
