@@ -66,11 +66,14 @@ def near_centre(bearing_deg: float, offset_m: float = NEAR_OFFSET_M) -> tuple[fl
     return float(lat2), float(lon2)
 
 
-def locate_command(viper: Path, photo: str, camera: Path, centre: tuple[float, float], cache: Path) -> list[str]:
+def locate_command(viper: Path, photo: str, camera: Path, centre: tuple[float, float], cache: Path,
+                   pitch_tolerance_deg: float = 10.0) -> list[str]:
+    """The webcam looks 7 degrees down: beyond the default 5-degree pitch tolerance, so it is given."""
     lat, lon = surveyed_lat_lon()
     return [str(viper), "locate", str(vision_finse.FINSE / photo), "--map", str(vision_finse.DSM),
             "--crs", "EPSG:32632", "--camera", str(camera),
             "--near", f"{centre[0]:.7f},{centre[1]:.7f},{NEAR_RADIUS_M:.0f}",
+            "--pitch-tolerance", f"{pitch_tolerance_deg:g}",
             "--json", "--truth", f"{lat:.7f},{lon:.7f}", "--cache", str(cache)]
 
 

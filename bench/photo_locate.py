@@ -381,6 +381,7 @@ class BenchWorld:
     world: Dem
     db: SkylineDatabase
     db_path: Path
+    map_path: Path  # the DEM file the locator is given: it builds each search area's database into its cache
     gap: world_gap.World | None = None  # the forest world's sites
 
     @property
@@ -391,11 +392,11 @@ class BenchWorld:
 def make_world(name: str) -> BenchWorld:
     if name == "jacksboro":
         _, db = map_database("jacksboro")
-        return BenchWorld(name, load_dem(JACKSBORO), db, Path(db.path))
+        return BenchWorld(name, load_dem(JACKSBORO), db, Path(db.path), JACKSBORO)
     if name == "forest":
         gap = world_gap.forest_world(FOREST_WORLD_SEED)
         db = world_gap.skyline_database(gap)
-        return BenchWorld(name, gap.world, db, Path(db.path), gap)
+        return BenchWorld(name, gap.world, db, Path(db.path), world_gap.TILE, gap)
     raise SystemExit(f"world {name!r} unknown; expected jacksboro or forest")
 
 
@@ -486,8 +487,10 @@ def cached_photo(work: Path, world: BenchWorld, spec: PhotoSpec) -> tuple[Path, 
 # ----------------------------------------------------------------------------- locating and scoring
 
 
-def locate_command(viper: Path, photo: Path, world: BenchWorld, spec: PhotoSpec) -> list[str]:
-    return [str(viper), "locate", str(photo), "--map", str(world.db_path),
+def locate_command(viper: Path, photo: Path, world: BenchWorld, spec: PhotoSpec, cache: Path) -> list[str]:
+    """The locator as a user runs it: the DEM as the map, its database for the search area built into
+    ``cache`` (a user's first photo of an area pays the build; ``build_s`` in the answer)."""
+    return [str(viper), "locate", str(photo), "--map", str(world.map_path), "--cache", str(cache),
             "--near", f"{spec.near_lat:.7f},{spec.near_lon:.7f},{spec.near_radius_m:.0f}",
             "--json", "--truth", f"{spec.lat:.7f},{spec.lon:.7f}"]
 
@@ -531,6 +534,7 @@ def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: in
     row.update({
         "lat": answer["lat"], "lon": answer["lon"], "error_m": round(float(d_m), 2),
         "error_cells": round(float(d_m) / world.cell_m, 3), "status": answer.get("status"),
+        "node_cell_m": _node_cell_m(answer),
         "ambiguous": answer.get("ambiguous"), "radius95_m": answer.get("radius95_m"),
         "region_cells": (answer.get("region") or {}).get("n_cells"),
         "truth_error_m": truth.get("error_m"), "in_region": truth.get("in_region"),
@@ -545,6 +549,12 @@ def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: in
             "focal_err": round(float(orient["focal_px"]) / true_f - 1.0, 4),
         })
     return row
+
+
+def _node_cell_m(answer: dict) -> float | None:
+    """The node spacing (m) of the database the locator searched (geometric mean), from its record."""
+    size = (answer.get("region") or {}).get("cell_size_m")
+    return round(math.sqrt(float(size[0]) * float(size[1])), 2) if size else None
 
 
 def said_ok(row: dict) -> bool:
@@ -683,7 +693,7 @@ def main() -> int:
                 spec = draw_spec(world, seed, fov)
                 photo, truth = cached_photo(args.work, world, spec)
                 check = truth["skyline_check"]
-                cmd = locate_command(args.viper, photo, world, spec)
+                cmd = locate_command(args.viper, photo, world, spec, args.work / "cache")
                 print(f"{spec.name}: {spec.site} {spec.lat:.5f},{spec.lon:.5f} yaw {spec.yaw_deg:6.1f} "
                       f"pitch {spec.pitch_deg:+.1f} roll {spec.roll_deg:+.1f} {spec.weather}, "
                       f"{len(spec.occluders)} objects, EXIF {spec.exif_f35_mm} mm (true {spec.f35_mm:.1f}); "

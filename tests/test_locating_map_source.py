@@ -22,7 +22,7 @@ from appliance.locating.map_source import (
     open_map,
 )
 from appliance.terrain.database import load_database
-from appliance.terrain.dem import load_dem
+from appliance.terrain.dem import demo_dem_path, load_dem
 from tests.conftest import data_file
 from tests.tiled_build import build_tiled
 
@@ -287,3 +287,19 @@ def test_the_area_prior_is_zero_on_the_nodes_inside_and_minus_infinity_elsewhere
     text = one_line(exc)
     assert "does not cover --search-bounds 8,46,8.1,46.1" in text
     assert "longitude 7.65090 to 7.69882, latitude 45.98215 to 46.01965" in text
+
+
+def test_a_coarse_dem_is_built_finer_than_its_posts_for_a_search_area(tmp_path):
+    """jacksboro's posts are about 75 x 92 m: a 1 km circle holds some 500 of them, fewer than a
+    search needs when the camera stands near the ground.  The nodes are set twice as fine (the
+    first multiple that reaches ``min_nodes``); with no minimum the DEM's own lattice is kept."""
+    area = SearchArea(circle=(36.55, -84.25, 1000.0))
+    native = open_map(demo_dem_path(), area=area, cache_dir=tmp_path / "a", min_nodes=0)
+    assert native.database is not None
+    n0 = native.database.grid.n_nodes
+    cell = math.sqrt(native.database.grid.dx_m * native.database.grid.dy_m)
+    assert 300 < n0 < 1500
+    finer = open_map(demo_dem_path(), area=area, cache_dir=tmp_path / "b", min_nodes=2 * n0)
+    assert finer.database is not None
+    assert finer.spacing_m == pytest.approx(cell / 2, rel=0.02)
+    assert 3.0 * n0 < finer.database.grid.n_nodes < 5.0 * n0

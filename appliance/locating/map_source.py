@@ -10,8 +10,10 @@ once.
 
 Spacing of a built database: the DEM's own cell (the side of a square of a pixel's ground area),
 times the smallest whole number that leaves at most ``max_nodes`` candidate nodes in the area's box
-(clipped to the DEM); at one cell the DEM's own pixel lattice is kept.  With no area the whole DEM
-is built if that takes at most four cells.
+(clipped to the DEM); at one cell the DEM's own pixel lattice is kept.  Where that lattice leaves
+fewer than ``min_nodes`` nodes in a search area (a coarse DEM), the nodes are set up to four times
+finer than the DEM's posts, no finer than 5 m: the skyline a camera near the ground sees changes by
+degrees within one coarse cell.  With no area the whole DEM is built if that takes at most four cells.
 
 Example: a 4 m DSM (whose file carries no CRS), a photo taken within 600 m of a known point::
 
@@ -61,6 +63,12 @@ Box = tuple[float, float, float, float]
 N_AZIMUTHS = 360
 #: Candidate nodes of a database built for a search area.
 DEFAULT_MAX_NODES = 40_000
+#: A search area's database holds at least this many nodes: where the DEM's own posts give fewer,
+#: the nodes are set finer than the posts (a camera near the ground sees the slopes beside it move by
+#: degrees within one coarse cell), down to MAX_DENSIFY nodes per cell and MIN_SPACING_M.
+DEFAULT_MIN_NODES = 12_000
+MAX_DENSIFY = 4
+MIN_SPACING_M = 5.0
 #: With no search area, the whole DEM is built only at a spacing of at most this many of its cells.
 WHOLE_MAP_MAX_CELLS = 4
 #: A cached database is reused for an area whose own spacing is at least its spacing over this.
@@ -153,7 +161,7 @@ def default_cache_dir() -> Path:
 
 def open_map(path: str | Path, *, area: SearchArea | None, crs: str | None = None, cache_dir: Path | None = None,
              height_m: float = DEFAULT_HEIGHT_M, max_nodes: int = DEFAULT_MAX_NODES,
-             progress: Callable[[int, int, str], None] | None = None) -> OpenedMap:
+             progress: Callable[[int, int, str], None] | None = None, min_nodes: int = DEFAULT_MIN_NODES) -> OpenedMap:
     """Open the map at ``path``: a skyline database file, a tiled database folder, or a DEM file.
 
     A database (file or folder) is opened as it is (``area`` is checked to meet it; ``crs``,
@@ -174,7 +182,7 @@ def open_map(path: str | Path, *, area: SearchArea | None, crs: str | None = Non
         return OpenedMap(db, None, None, None, _grid_spacing_m(db.grid))
     if not p.exists() and str(path) != DEMO_DEM:
         raise InputError(f"{p}: no such map (a skyline database file, a tiled database folder or a DEM file)")
-    return _open_dem(str(path), area, crs, cache_dir, height_m, max_nodes, progress)
+    return _open_dem(str(path), area, crs, cache_dir, height_m, max_nodes, progress, min_nodes)
 
 
 def area_log_prior(db: SkylineDatabase, area: SearchArea | None) -> np.ndarray | None:
@@ -244,7 +252,7 @@ class _Plan:
 
 
 def _open_dem(path: str, area: SearchArea | None, crs: str | None, cache_dir: Path | None, height_m: float,
-              max_nodes: int, progress: Callable[[int, int, str], None] | None) -> OpenedMap:
+              max_nodes: int, progress: Callable[[int, int, str], None] | None, min_nodes: int) -> OpenedMap:
     if max_nodes < 1:
         raise InputError(f"max_nodes {max_nodes}: at least 1")
     if not 0.0 <= height_m < 1000.0:
@@ -252,7 +260,7 @@ def _open_dem(path: str, area: SearchArea | None, crs: str | None, cache_dir: Pa
     source = open_dem_source([path], None, crs)
     header = source.header()  # georeferencing only: the heights are read only for a build
     box = _clipped_box(header, area, path)
-    plan = _plan(header, box, max_nodes, area, path)
+    plan = _plan(header, box, max_nodes, area, path, min_nodes)
     folder = cache_dir if cache_dir is not None else default_cache_dir()
     _make_folder(folder)
     for cached in _cached(folder, source, header, plan, height_m):
@@ -298,17 +306,35 @@ def _clipped_box(dem: Dem, area: SearchArea | None, path: str) -> Box:
     return max(w, west), max(s, south), min(e, east), min(n, north)
 
 
-def _plan(dem: Dem, box: Box, max_nodes: int, area: SearchArea | None, path: str) -> _Plan:
+def _densified(box: Box, cand: NodeGrid, grid_at: Callable[[float | None], NodeGrid], min_nodes: int,
+               max_nodes: int) -> _Plan:
+    """The DEM's own grid, or one k times finer (k = 2 .. MAX_DENSIFY, no finer than MIN_SPACING_M)
+    where the own grid holds fewer than ``min_nodes`` nodes: the first k that reaches it, or the
+    finest within ``max_nodes``."""
+    best = _Plan(box, None, cand)
+    cell_m = math.sqrt(cand.dx_m * cand.dy_m)
+    for k in range(2, MAX_DENSIFY + 1):
+        if best.cand.n_nodes >= min_nodes or cell_m / k < MIN_SPACING_M:
+            break
+        finer = grid_at(cell_m / k)
+        if finer.n_nodes > max_nodes:
+            break
+        best = _Plan(box, cell_m / k, finer)
+    return best
+
+
+def _plan(dem: Dem, box: Box, max_nodes: int, area: SearchArea | None, path: str,
+          min_nodes: int = DEFAULT_MIN_NODES) -> _Plan:
     """The coarsest spacing needed: the DEM's own pixels if they give at most ``max_nodes`` nodes in
-    ``box``, else k cells (k = 2, 3, ...) on a square grid; with no area, at most
-    :data:`WHOLE_MAP_MAX_CELLS` cells."""
+    ``box`` (for a search area, finer where they give fewer than ``min_nodes``: :func:`_densified`),
+    else k cells (k = 2, 3, ...) on a square grid; with no area, at most :data:`WHOLE_MAP_MAX_CELLS` cells."""
 
     def grid_at(spacing: float | None) -> NodeGrid:
         return plan_grids(dem, box, spacing, DEFAULT_MAX_RANGE_M)[0]
 
     cand = grid_at(None)
     if cand.n_nodes <= max_nodes:
-        return _Plan(box, None, cand)
+        return _densified(box, cand, grid_at, min_nodes, max_nodes) if area is not None else _Plan(box, None, cand)
     cell_m = math.sqrt(cand.dx_m * cand.dy_m)  # the DEM's pixel, as the grid planner measures it
     k = max(2, math.floor(math.sqrt(cand.n_nodes / max_nodes)))
     while True:
