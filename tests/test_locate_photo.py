@@ -25,7 +25,8 @@ from appliance.locating import photo_pose as pp
 from appliance.terrain.dem import demo_dem_path, load_dem
 from appliance.vision.camera import CameraPose, directions_to_pixels, enu_to_directions, world_from_camera
 from appliance.vision.intrinsics import CameraIntrinsics
-from appliance.vision.synth import render_photo
+from appliance.vision.panorama import Projection
+from appliance.vision.synth import dem_skyline_fn, render_panorama, render_photo
 
 REPO = Path(__file__).resolve().parents[1]
 VIPER = [sys.executable, "-m", "appliance.cli.main"]
@@ -239,3 +240,22 @@ def test_a_map_that_does_not_cover_the_search_circle_is_refused(tmp_path: Path, 
                                 "--cache", cache), "cover")
     assert "46.2" in line
     assert _cache_is_empty(cache)
+
+
+def test_a_panorama_goes_through_the_same_command(tmp_path: Path) -> None:
+    """A 2:1 equirectangular panorama (left edge north, horizon in the middle row) is located with its
+    heading searched: the same command, no lens, no orientation to solve."""
+    dem = load_dem("jacksboro")
+    px_per_rad = 1440 / (2 * math.pi)
+    pano = render_panorama(dem_skyline_fn(dem, LAT, LON, 1.5), np.random.default_rng(2), px_per_rad=px_per_rad,
+                           height_px=720, horizon_row=359.5, projection=Projection.EQUIRECTANGULAR)
+    path = tmp_path / "pano.png"
+    assert pano.panorama.image.shape[:2] == (720, 1440)
+    Image.fromarray(np.ascontiguousarray(pano.panorama.image[..., ::-1])).save(path)
+    out = viper("locate", path, "--map", demo_dem_path(), "--near", f"{LAT + 0.004},{LON - 0.005},1500", "--cache",
+                tmp_path / "cache", "--json", "--truth", f"{LAT},{LON}")
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    assert rec["truth"]["error_m"] <= 2 * cell_m
+    assert "orientation" not in rec

@@ -16,7 +16,7 @@ from appliance.config import load_config
 from appliance.errors import InputError
 from appliance.locating.map_source import OpenedMap, SearchArea, area_log_prior, open_map
 from appliance.locating.photo_pose import MIN_ARC_DEG, OrientationPrior, PhotoAnswer, PhotoView, locate_photo
-from appliance.locating.position import Position, answer_text, locate
+from appliance.locating.position import Position, answer_text, locate, truth_in_ellipse, truth_in_region
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 from appliance.vision.camera import CameraPose
@@ -125,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
                               sigma_floor_deg=cfg.sigma_floor_deg)
         pos, skyline = answer.position, answer.skyline
     record = pos.to_json(db, truth)
+    if truth is not None:
+        record["truth"].update(in_region=truth_in_region(db, pos, truth), in_ellipse=truth_in_ellipse(db, pos, truth))
     if answer is not None:
         record["orientation"] = answer.orientation_json()
     record["timing"] = {"build_s": None if opened.built_s is None else round(opened.built_s, 2),

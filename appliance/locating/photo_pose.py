@@ -30,7 +30,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from appliance.errors import InputError
-from appliance.estimator import SkylineGrid
+from appliance.estimator import SkylineGrid, confidence
 from appliance.estimator.exact import Fit, Model
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.likelihood import kernel_cap, occlusion_cap_deg2
@@ -39,7 +39,6 @@ from appliance.estimator.orientation import (
     distinct_hypotheses,
     linearised_screen,
     relative_on_lattice,
-    screen,
     screen_in_two_stages,
 )
 from appliance.estimator.parallax import tau2_tables
@@ -82,8 +81,8 @@ BOUND_MARGIN_DEG = 1.0
 BOUND_SIGMAS = 2.5
 #: The output skyline's azimuth step (deg).
 SKYLINE_STEP_DEG = 0.25
-#: Nodes beyond this many cells of the answer are elsewhere (the screening's check of the answer).
-SCREEN_ELSEWHERE_CELLS = 2.5
+#: Nodes within this many cells of the answer (or twice its 95 % radius) stand for the same place.
+SAME_PLACE_CELLS = 2.5
 #: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous.
 RIVAL_NATS = math.log(20.0)
 #: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
@@ -327,11 +326,10 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     nodes, cost, yaw, tilt = screen_in_two_stages(grid.codes, grid.coarse[0], grid.offset_deg, grid.step_deg, nodes,
                                                   lattice, m, w, tilt_bounds, SCREEN_NOISE_DEG, yaw_bounds, tables,
                                                   tau_codes, keep)
-    screened = (nodes, cost)
-    screen_args = (lattice, m, w, tilt_bounds, yaw_bounds, tables, tau_codes)
     if grid.has_parallax:
         nodes, cost, yaw, tilt = _moved_within_cells(grid, nodes, cost, yaw, tilt, lattice, m, w, prior,
                                                      occlusion_weight, map_sigma_m)
+    screened = (nodes, cost)
     hyps = distinct_hypotheses(nodes, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
         raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
@@ -359,12 +357,14 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         pose, scale = solved.pose, solved.focal_scale
     assert pos is not None
     sky = world_skyline(view, pose, scale)
-    rivals = _rivals(pos, fits, grid)
+    pos = _with_joint_covariance(pos, grid, render_at, fit_rays, pose, scale, prior, eye)
+    same = _same_place_cells(pos, grid)
+    rivals = _rivals(pos, fits, grid, same)
     notes = []
     if rivals:
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
-    unseen = _screened_better(grid, pos, screened, screen_args)
+    unseen = _screened_better(grid, pos, screened, same)
     if unseen:
         notes.append(f"{unseen} node(s) elsewhere screen at least as well as the answer's; the photo's view "
                      "does not rule them out")
@@ -432,33 +432,100 @@ def _pose_of_fit(h: Hypothesis, fit: Fit) -> CameraPose:
     return CameraPose(yaw % 360.0, -along, across)
 
 
+def joint_covariance_cells(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
+                           pose: CameraPose, scale: float, prior: OrientationPrior, sigma_deg: float,
+                           weight_per_ray: float) -> np.ndarray | None:
+    """The (row, col) covariance (cells^2) of the position with the orientation free: the
+    Gauss-Newton curvature of the rays' residuals on renders over (row, col, yaw, pitch, roll, focal
+    scale), each ray weighing ``weight_per_ray`` (the skyline's independent share spread over its
+    rays), the orientation's tolerances as priors, marginalised onto the position and scaled as the
+    estimator scales its own (``confidence.COVARIANCE_SCALE``).  The estimate's covariance holds the
+    orientation fixed and is too tight where the position trades against the yaw or the focal length.
+    None when the curvature is singular."""
+    steps = np.array([0.05, 0.05, 0.01, 0.01, 0.01, 1e-4])
+    base = np.array([row, col, pose.yaw_deg, pose.pitch_deg, pose.roll_deg, math.log(scale)])
+    az_grid, _ = _rendered_view(render_at, row, col, rays, pose, scale, eye_offset_m)
+    a0 = float(az_grid[0])
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        az, el = directions(rays, CameraPose(float(p[2]), float(p[3]), float(p[4])), float(math.exp(p[5])))
+        rel = np.mod(az - a0, 360.0) + a0
+        rendered = render_at(float(p[0]), float(p[1]), np.mod(az_grid, 360.0), eye_offset_m)
+        return np.asarray(el - np.interp(rel, az_grid, np.where(np.isfinite(rendered), rendered, np.nan)))
+
+    e0 = residual(base)
+    J = np.empty((e0.size, 6))
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = steps[i]
+        J[:, i] = (residual(base + d) - residual(base - d)) / (2.0 * steps[i])
+    ok = np.isfinite(e0) & np.all(np.isfinite(J), axis=1) & (np.abs(e0) < 3.0 * max(sigma_deg, FIT_SCALE_DEG))
+    if ok.sum() < 8:
+        return None
+    H = weight_per_ray * (J[ok].T @ J[ok]) / sigma_deg**2
+    info = np.zeros(6)
+    info[3] = 1.0 / max(prior.pitch_tolerance_deg / 2.0, 1e-3) ** 2
+    info[4] = 1.0 / max(prior.roll_tolerance_deg / 2.0, 1e-3) ** 2
+    info[5] = 1.0 / max(prior.focal_sigma, 1e-4) ** 2
+    if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+        info[2] = 1.0 / max(prior.heading_tolerance_deg / 2.0, 1e-3) ** 2
+    try:
+        cov = np.linalg.inv(H + np.diag(info))
+    except np.linalg.LinAlgError:
+        return None
+    out = confidence.COVARIANCE_SCALE * cov[:2, :2]
+    return out if np.all(np.isfinite(out)) and out[0, 0] > 0 and out[1, 1] > 0 else None
+
+
+def _with_joint_covariance(pos: Position, grid: SkylineGrid, render_at: _Renderer, rays: np.ndarray,
+                           pose: CameraPose, scale: float, prior: OrientationPrior, eye_offset_m: float) -> Position:
+    """The answer with its covariance widened to :func:`joint_covariance_cells`'s where that is wider
+    (the orientation free), in east/north metres."""
+    res = pos.result
+    sigma = float(np.mean(res.sigma_deg))
+    independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
+    cov_cells = joint_covariance_cells(render_at, rays, res.row, res.col, eye_offset_m, pose, scale, prior, sigma,
+                                       independent / max(rays.shape[0], 1))
+    if cov_cells is None:
+        return pos
+    node = min(max(int(round(res.row)), 0), grid.n_rows - 1) * grid.n_cols + min(max(int(round(res.col)), 0),
+                                                                                 grid.n_cols - 1)
+    joint = confidence.grid_to_east_north(cov_cells, grid.dx_m, grid.dy_m, float(grid.convergence_deg[node]))
+    current = res.covariance_m2
+    if current is not None and np.linalg.det(joint) <= np.linalg.det(current):
+        return pos
+    return replace(pos, estimate=replace(res, covariance_m2=joint))
+
+
+def _same_place_cells(pos: Position, grid: SkylineGrid) -> float:
+    """How far (cells) from the answer a node still stands for the same place: SAME_PLACE_CELLS, or
+    twice the answer's 95 % radius where that is wider."""
+    cov = pos.result.covariance_m2
+    if cov is None or not np.all(np.isfinite(cov)):
+        return SAME_PLACE_CELLS
+    return max(SAME_PLACE_CELLS, 2.0 * confidence.radius_m(cov) / math.sqrt(grid.dx_m * grid.dy_m))
+
+
 def _screened_better(grid: SkylineGrid, pos: Position, screened: tuple[np.ndarray, np.ndarray],
-                     screen_args: tuple) -> int:
-    """How many nodes farther than SCREEN_ELSEWHERE_CELLS from the answer screened at or below the
-    best screening cost near it (within 1.5 cells).  The screening is the only look most places get:
-    where it ranks places elsewhere above the answer's, the exact fits of a few hypotheses cannot
-    rule the others out, and on the development seeds every such answer but one was wrong."""
+                     same_place_cells: float) -> int:
+    """How many of the screening's best nodes (the ones moved within their cells) lie farther than
+    ``same_place_cells`` from the answer and scored at or below the best of those near it (all of
+    them when none near it made the list).  The screening is the only look most places get: where
+    it ranks places elsewhere above the answer's, the exact fits of a few hypotheses cannot rule the
+    others out."""
     nodes, cost = screened
     res = pos.result
     rows, cols = np.divmod(nodes, grid.n_cols)
     d = np.hypot(rows - res.row, cols - res.col)
-    near = d <= 1.5
-    if near.any():
-        here = float(cost[near].min())
-    else:
-        lattice, m, w, tilt_bounds, yaw_bounds, tables, tau_codes = screen_args
-        r0, c0 = int(round(res.row)), int(round(res.col))
-        around = [(r0 + dr) * grid.n_cols + c0 + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)
-                  if 0 <= r0 + dr < grid.n_rows and 0 <= c0 + dc < grid.n_cols]
-        tau = None if tables is None else (tau_codes, grid.n_azimuths // tau_codes.shape[1], *tables)
-        c, _, _ = screen(grid.codes, grid.offset_deg, grid.step_deg, np.array(around), lattice, m, w, tilt_bounds,
-                         noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds, parallax=tau)
-        here = float(np.min(c))
-    return int(np.sum(cost[d > SCREEN_ELSEWHERE_CELLS] <= here))
+    near = d <= max(1.5, 0.5 * same_place_cells)
+    far = cost[d > same_place_cells]
+    if not near.any():
+        return int(far.size)
+    return int(np.sum(far <= float(cost[near].min())))
 
 
-def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGrid) -> int:
-    """How many hypotheses away from the answer (beyond two cells) fit within RIVAL_NATS of the best
+def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGrid, same_place_cells: float) -> int:
+    """How many hypotheses away from the answer (beyond ``same_place_cells``) fit within RIVAL_NATS of the best
     one, the costs weighed at the noise the estimate learned and the skyline's independent share."""
     res = pos.result
     sigma = max(float(np.mean(res.sigma_deg)), 1e-3)
@@ -466,7 +533,7 @@ def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGr
     share = res.independent_azimuths / max(res.n_valid, 1) if math.isfinite(res.independent_azimuths) else 1.0
     count = 0
     for _, f in fitted[1:]:
-        if math.hypot(f.row - res.row, f.col - res.col) <= 2.0:
+        if math.hypot(f.row - res.row, f.col - res.col) <= same_place_cells:
             continue
         nats = (f.ssd / f.n - best) * res.n_valid / (2.0 * sigma**2) * min(share, 1.0)
         if nats < RIVAL_NATS:
