@@ -153,4 +153,4 @@ def test_the_command_server_takes_its_socket_from_socket_activation(tmp_path):
         activator.send_signal(signal.SIGTERM)
         _, err = activator.communicate(timeout=30)
     log = err.decode()
-    assert "serving estimate, render, skyline" in log and "worker " in log and "viper render jacksboro" in log
+    assert "serving estimate, locate, render, skyline" in log and "worker " in log and "viper render jacksboro" in log

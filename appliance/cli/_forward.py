@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 #: Commands that a server runs: one-shot commands whose start-up is most of their time.
-FORWARDED = frozenset({"estimate", "render", "skyline"})
+FORWARDED = frozenset({"estimate", "locate", "render", "skyline"})
 #: Environment variables whose values a server fixed at start and a worker cannot change: numba's
 #: and the BLAS's settings, read once at import, PROJ's and GDAL's (which may cache them once
 #: loaded), and where Python finds modules and how it hashes.

@@ -62,7 +62,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "precompute": ("precompute", "render the skyline of every candidate node into a database"),
     "render": ("render", "render the skyline seen from a point of a DEM"),
     "replay": ("replay", "rerun stitch, skyline and estimate from session logs; report"),
-    "serve": ("serve", "run estimate, render and skyline in a warm process, so that they start at once"),
+    "serve": ("serve", "run estimate, locate, render and skyline in a warm process, so that they start at once"),
     "skyline": ("skyline", "detect the skyline in a panorama or a photo and write the azimuth/elevation CSV"),
     "stitch": ("stitch", "stitch images taken at known stage angles into a panorama"),
 }

@@ -52,7 +52,8 @@ REQUEST_TIMEOUT_S = 10.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("serve", help="run estimate, render and skyline in a warm process, so that they start at once")
+    p = sub.add_parser("serve", help="run estimate, locate, render and skyline in a warm process, so that they "
+                                     "start at once")
     p.add_argument("--socket", help="Unix socket to listen on (default: $VIPER_SOCKET, else "
                                     "$XDG_RUNTIME_DIR/viper/commands.sock; a socket passed by systemd comes first)")
     p.set_defaults(func=run)

@@ -70,15 +70,27 @@ MIN_ARC_DEG = 15.0
 #: The rendered skyline's azimuth step (deg) for the orientation fit, and its margin beyond the view.
 RENDER_STEP_DEG = 0.05
 RENDER_MARGIN_DEG = 12.0
-#: The orientation fit's measurement scale (deg): residuals beyond a few of these weigh less (soft L1).
+#: The orientation fits' robust loss: Cauchy, whose pull fades with the residual, so that a tree or a
+#: cloud taken for terrain over a few degrees does not drag the fit (soft-L1's pull stays constant).
+ROBUST_LOSS = "cauchy"
+#: The orientation fit's measurement scale (deg): residuals beyond a few of these weigh less.
 FIT_SCALE_DEG = 0.1
 #: The photo's columns used by the orientation fit: about this many, evenly spread.
 FIT_COLUMNS = 600
+#: The joint fit of position and orientation and its covariance use this many of them (a render each).
+JOINT_COLUMNS = 240
 #: The heading tolerance (deg) of the estimates made with the solved yaw.
 SOLVED_HEADING_TOLERANCE_DEG = 2.0
+#: How far (cells) the joint fit of position and orientation may move the estimate's answer.
+JOINT_REACH_CELLS = 3.0
+#: The joint fit's finite-difference steps (relative, on parameters near 0 and near 1: absolute).
+JOINT_STEP = 1e-2
 #: The orientation's bounds: the level's tolerance plus this margin (deg), the focal length's this many sigmas.
 BOUND_MARGIN_DEG = 1.0
 BOUND_SIGMAS = 2.5
+#: An orientation within this of its bound (deg; share of the focal length's bound) is at the bound.
+AT_BOUND_DEG = 0.05
+AT_BOUND_SHARE = 0.02
 #: The output skyline's azimuth step (deg).
 SKYLINE_STEP_DEG = 0.25
 #: Nodes within this many cells of the answer (or twice its 95 % radius) stand for the same place.
@@ -202,10 +214,11 @@ class _Renderer:
         return el
 
 
-def _fit_rays(view: PhotoView) -> np.ndarray:
+def _fit_rays(view: PhotoView, count: int = FIT_COLUMNS) -> np.ndarray:
+    """About ``count`` of the skyline's rays, evenly spread over its columns."""
     rays = view.rays()
-    if rays.shape[0] > FIT_COLUMNS:
-        rays = rays[np.linspace(0, rays.shape[0] - 1, FIT_COLUMNS).round().astype(int)]
+    if rays.shape[0] > count:
+        rays = rays[np.linspace(0, rays.shape[0] - 1, count).round().astype(int)]
     return rays
 
 
@@ -213,7 +226,7 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
                       start: CameraPose, prior: OrientationPrior, start_scale: float = 1.0) -> OrientationFit:
     """Yaw, pitch, roll and the focal length's correction that carry ``rays`` onto the rendered
     skyline (true azimuths ``rendered_az_deg``, increasing, unwrapped; NaN where no terrain), from
-    ``start``; soft-L1 robust, with the prior's tolerances as Gaussian priors."""
+    ``start``; robust (Cauchy), with the prior's tolerances as Gaussian priors."""
     az0 = float(rendered_az_deg[0])
     ok_render = np.isfinite(rendered_el_deg)
     fill = np.where(ok_render, rendered_el_deg, -90.0)
@@ -248,7 +261,7 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
     upper = np.array([start.yaw_deg + 180.0, p_hi, r_hi, s_hi])
     p0 = np.clip(np.array([start.yaw_deg, start.pitch_deg, start.roll_deg, math.log(start_scale)]),
                  lower + 1e-9, upper - 1e-9)
-    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=3.0, x_scale=np.array([0.5, 0.5, 0.5, 0.01]),
+    fit = least_squares(residuals, p0, loss=ROBUST_LOSS, f_scale=3.0, x_scale=np.array([0.5, 0.5, 0.5, 0.01]),
                         bounds=(lower, upper), method="trf", max_nfev=200)
     pose, scale = pose_of(fit.x)
     pose = CameraPose(pose.yaw_deg % 360.0, pose.pitch_deg, pose.roll_deg)
@@ -280,6 +293,49 @@ def _rendered_view(render_at: _Renderer, row: float, col: float, rays: np.ndarra
     lo, hi = float(rel.min()) - RENDER_MARGIN_DEG, float(rel.max()) + RENDER_MARGIN_DEG
     grid_az = a0 + np.arange(lo, hi + RENDER_STEP_DEG, RENDER_STEP_DEG)
     return grid_az, render_at(row, col, np.mod(grid_az, 360.0), eye_offset_m)
+
+
+def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
+                   pose: CameraPose, scale: float, prior: OrientationPrior) -> tuple[CameraPose, float]:
+    """Position (fractional node) and orientation fitted together on exact renders at the rays'
+    own azimuths, from the estimate's answer: alternating the two crawls along the valley where a
+    yaw, a focal length and a move trade against each other.  Robust (Cauchy), the tolerances as
+    bounds and priors; the move is bounded to JOINT_REACH_CELLS.  Returns the orientation (the
+    estimate then places the camera with it)."""
+    sig_p = max(prior.pitch_tolerance_deg / 2.0, 1e-3)
+    sig_r = max(prior.roll_tolerance_deg / 2.0, 1e-3)
+    use_scale = prior.focal_sigma > 0.0
+
+    # parameters: moves from the start (rows, columns, yaw in deg), then pitch, roll and log focal scale
+    def unpack(p: np.ndarray) -> tuple[CameraPose, float]:
+        trial = CameraPose(pose.yaw_deg + float(p[2]), float(p[3]), float(p[4]))
+        return trial, float(math.exp(p[5])) if use_scale else 1.0
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        trial, s = unpack(p)
+        az, el = directions(rays, trial, s)
+        rendered = render_at(row + float(p[0]), col + float(p[1]), az, eye_offset_m)
+        res = np.where(np.isfinite(rendered), np.clip(el - rendered, -30.0, 30.0), 30.0) / FIT_SCALE_DEG
+        priors = [p[3] / sig_p, p[4] / sig_r]
+        if use_scale:
+            priors.append(p[5] / prior.focal_sigma)
+        if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+            priors.append(((pose.yaw_deg + p[2] - prior.heading_deg + 180.0) % 360.0 - 180.0)
+                          / max(prior.heading_tolerance_deg / 2.0, 1e-3))
+        return np.concatenate([res, np.asarray(priors)])
+
+    p_hi = prior.pitch_tolerance_deg + BOUND_MARGIN_DEG
+    r_hi = prior.roll_tolerance_deg + BOUND_MARGIN_DEG
+    s_hi = max(BOUND_SIGMAS * prior.focal_sigma, 1e-6)
+    reach = JOINT_REACH_CELLS
+    lower = np.array([-reach, -reach, -10.0, -p_hi, -r_hi, -s_hi])
+    upper = np.array([reach, reach, 10.0, p_hi, r_hi, s_hi])
+    p0 = np.clip(np.array([0.0, 0.0, 0.0, pose.pitch_deg, pose.roll_deg, math.log(scale)]), lower + 1e-9,
+                 upper - 1e-9)
+    fit = least_squares(residuals, p0, loss=ROBUST_LOSS, f_scale=3.0, bounds=(lower, upper), method="trf",
+                        x_scale=np.array([0.2, 0.2, 0.1, 0.1, 0.1, 0.005]), diff_step=JOINT_STEP, max_nfev=60)
+    solved, s = unpack(fit.x)
+    return CameraPose(solved.yaw_deg % 360.0, solved.pitch_deg, solved.roll_deg), s
 
 
 def world_skyline(view: PhotoView, pose: CameraPose, scale: float, step_deg: float = SKYLINE_STEP_DEG) -> Skyline:
@@ -343,27 +399,32 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     az_grid, el_grid = _rendered_view(render_at, best_fit.row, best_fit.col, fit_rays, start, 1.0, eye)
     solved = solve_orientation(fit_rays, az_grid, el_grid, start, prior)
     pose, scale = solved.pose, solved.focal_scale
-    pos = None
-    for _ in range(2):
-        sky = world_skyline(view, pose, scale)
-        pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid,
-                     height_m=h_m, occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m,
-                     sigma_floor_deg=sigma_floor_deg, source=view.name)
-        res = pos.result
-        eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else 0.0
-        turned = CameraPose(pose.yaw_deg + res.heading_correction_deg, pose.pitch_deg, pose.roll_deg)
-        az_grid, el_grid = _rendered_view(render_at, res.row, res.col, fit_rays, turned, scale, eye)
-        solved = solve_orientation(fit_rays, az_grid, el_grid, turned, prior, scale)
-        pose, scale = solved.pose, solved.focal_scale
-    assert pos is not None
     sky = world_skyline(view, pose, scale)
-    pos = _with_joint_covariance(pos, grid, render_at, fit_rays, pose, scale, prior, eye)
+    pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid, height_m=h_m,
+                 occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m, sigma_floor_deg=sigma_floor_deg,
+                 source=view.name)
+    res = pos.result
+    eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else 0.0
+    turned = CameraPose(pose.yaw_deg + res.heading_correction_deg, pose.pitch_deg, pose.roll_deg)
+    joint_rays = _fit_rays(view, JOINT_COLUMNS)
+    pose, scale = refine_jointly(render_at, joint_rays, res.row, res.col, eye, turned, scale, prior)
+    sky = world_skyline(view, pose, scale)
+    pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid, height_m=h_m,
+                 occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m, sigma_floor_deg=sigma_floor_deg,
+                 source=view.name)
+    res = pos.result
+    eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else eye
+    pose = CameraPose((pose.yaw_deg + res.heading_correction_deg) % 360.0, pose.pitch_deg, pose.roll_deg)
+    pos = _with_joint_covariance(pos, grid, render_at, joint_rays, pose, scale, prior, eye)
     same = _same_place_cells(pos, grid)
     rivals = _rivals(pos, fits, grid, same)
     notes = []
     if rivals:
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
+    limit = _at_tolerance(pose, scale, prior)
+    if limit:
+        notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
     unseen = _screened_better(grid, pos, screened, same)
     if unseen:
         notes.append(f"{unseen} node(s) elsewhere screen at least as well as the answer's; the photo's view "
@@ -495,6 +556,17 @@ def _with_joint_covariance(pos: Position, grid: SkylineGrid, render_at: _Rendere
     if current is not None and np.linalg.det(joint) <= np.linalg.det(current):
         return pos
     return replace(pos, estimate=replace(res, covariance_m2=joint))
+
+
+def _at_tolerance(pose: CameraPose, scale: float, prior: OrientationPrior) -> str:
+    """What of the orientation lies at its bound (pitch, roll, focal length), '' when nothing does."""
+    if abs(pose.pitch_deg) >= prior.pitch_tolerance_deg + BOUND_MARGIN_DEG - AT_BOUND_DEG:
+        return "pitch"
+    if abs(pose.roll_deg) >= prior.roll_tolerance_deg + BOUND_MARGIN_DEG - AT_BOUND_DEG:
+        return "roll"
+    if prior.focal_sigma > 0.0 and abs(math.log(scale)) >= BOUND_SIGMAS * prior.focal_sigma * (1.0 - AT_BOUND_SHARE):
+        return "focal length"
+    return ""
 
 
 def _same_place_cells(pos: Position, grid: SkylineGrid) -> float:
