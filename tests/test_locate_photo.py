@@ -259,3 +259,15 @@ def test_a_panorama_goes_through_the_same_command(tmp_path: Path) -> None:
     cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
     assert rec["truth"]["error_m"] <= 2 * cell_m
     assert "orientation" not in rec
+
+
+def test_an_orientation_forced_to_its_bound_is_not_vouched_for(tmp_path: Path, jacksboro_photo: Path) -> None:
+    """The camera is pitched 2.1 deg down and rolled 2.7 deg; told that it is level within half a degree,
+    the fit ends on its bounds, and the answer says so instead of ok."""
+    out = viper("locate", jacksboro_photo, "--map", demo_dem_path(), "--near", f"{LAT},{LON},1500", "--cache",
+                tmp_path / "cache", "--pitch-tolerance", "0.5", "--roll-tolerance", "0.5", "--json")
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    assert rec["ambiguous"] is True and rec["status"] == "ambiguous"
+    assert any("reached the tolerance" in note for note in rec["notes"])
+    assert abs(rec["orientation"]["pitch_deg"]) <= 1.5 + 1e-6 and abs(rec["orientation"]["roll_deg"]) <= 1.5 + 1e-6

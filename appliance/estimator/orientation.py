@@ -347,11 +347,7 @@ def _linearised_tilt_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray
         if cnt < MIN_SEEN_SHARE * n_t or cnt == 0:
             out[r] = np.inf
             continue
-        height_prior_m2 = 0.25 * g2 * offset_prior_m2 + 0.25
-        A[0, 0] += sig2 / offset_prior_m2
-        A[1, 1] += sig2 / offset_prior_m2
-        A[2, 2] += sig2 / heading_prior_deg2
-        A[3, 3] += sig2 / height_prior_m2
+        parallax.add_move_prior(A, sig2, g2, offset_prior_m2, heading_prior_deg2)
         A[4, 4] += sig2 / tilt_prior_deg2
         A[5, 5] += sig2 / tilt_prior_deg2
         x = np.linalg.solve(A, b)

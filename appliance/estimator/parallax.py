@@ -250,6 +250,19 @@ def _normal_equations(codes: np.ndarray, dist: np.ndarray, i: int, o: float, st:
     return rr, p, occ, cnt
 
 
+@numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
+def add_move_prior(A: np.ndarray, sig2: float, g2: float, offset_prior_m2: float, heading_prior_deg2: float) -> None:
+    """The move's Gaussian prior added to normal equations ``A`` over (east m, north m, heading deg,
+    eye height m), in the residuals' units (deg^2 per sigma^2 of weight): ``offset_prior_m2`` per
+    axis, ``heading_prior_deg2``, and for the eye the ground's rise over the offset (``g2`` the
+    gradient's square) plus a quarter of a square metre."""
+    height_prior_m2 = 0.25 * g2 * offset_prior_m2 + 0.25
+    A[0, 0] += sig2 / offset_prior_m2
+    A[1, 1] += sig2 / offset_prior_m2
+    A[2, 2] += sig2 / heading_prior_deg2
+    A[3, 3] += sig2 / height_prior_m2
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step: np.ndarray, ge: np.ndarray,
                    gn: np.ndarray, gamma_deg: np.ndarray, jj: np.ndarray, mj: np.ndarray, rows: np.ndarray,
@@ -298,12 +311,7 @@ def linearised_fit(codes: np.ndarray, dist: np.ndarray, offset: np.ndarray, step
             out[r] = np.inf
             continue
         scale = n_t / cnt
-        # the prior, in the residuals' units (deg^2 per sigma^2 of weight)
-        height_prior_m2 = 0.25 * g2 * offset_prior_m2 + 0.25
-        A[0, 0] += sig2 / offset_prior_m2
-        A[1, 1] += sig2 / offset_prior_m2
-        A[2, 2] += sig2 / heading_prior_deg2
-        A[3, 3] += sig2 / height_prior_m2
+        add_move_prior(A, sig2, g2, offset_prior_m2, heading_prior_deg2)
         x = np.linalg.solve(A, b)
         for q in range(4):
             delta[r, q] = x[q]
