@@ -31,6 +31,7 @@ from scipy.optimize import least_squares
 
 from appliance.errors import InputError
 from appliance.estimator import SkylineGrid, confidence
+from appliance.estimator.estimate import MIN_FIELD_OF_VIEW_DEG
 from appliance.estimator.exact import Fit, Model
 from appliance.estimator.exact import refine as refine_exact
 from appliance.estimator.likelihood import kernel_cap, occlusion_cap_deg2
@@ -65,8 +66,9 @@ LINEARISED_NODES = 400
 FIT_SIGMA_DEG = 0.3
 HYPOTHESIS_YAW_DEG = 3.0
 HYPOTHESIS_TILT_SIGMA_DEG = 2.5
-#: The least arc (deg) of the photo's skyline that is located.
-MIN_ARC_DEG = 15.0
+#: The least arc (deg) of the photo's skyline that is located: the estimate's least field of view, and
+#: one degree for the arc's ends, which the orientation moves by a fraction of a degree.
+MIN_ARC_DEG = MIN_FIELD_OF_VIEW_DEG + 1.0
 #: The rendered skyline's azimuth step (deg) for the orientation fit, and its margin beyond the view.
 RENDER_STEP_DEG = 0.05
 RENDER_MARGIN_DEG = 12.0
@@ -142,13 +144,14 @@ class PhotoView:
         cols = np.arange(sky.row.size, dtype=np.float64)
         return cls(intrinsics, cols[ok], np.asarray(sky.row, np.float64)[ok], np.asarray(sky.confidence)[ok], name)
 
-    def arc_deg(self) -> float:
-        """How wide an arc of azimuth (deg) the detected skyline spans, the camera held level."""
+    def arc_deg(self, step_deg: float = 1.0) -> float:
+        """How wide an arc of azimuth (deg) the detected skyline covers, the camera held level: its
+        samples on the lattice of ``step_deg`` (gaps left out), as the estimate counts them."""
         if self.column_px.size < 2:
             return 0.0
-        az, _ = directions(self.rays(), CameraPose(0.0, 0.0, 0.0))
-        rel = np.mod(az + 180.0, 360.0) - 180.0
-        return float(rel.max() - rel.min())
+        az, el = directions(self.rays(), CameraPose(0.0, 0.0, 0.0))
+        lattice, _, _ = relative_on_lattice(np.mod(az + 180.0, 360.0) - 180.0, el, self.confidence, step_deg)
+        return float(lattice.size * step_deg)
 
     def rays(self) -> np.ndarray:
         """Camera-frame unit rays of the skyline's pixels (the lens's distortion removed)."""
