@@ -78,3 +78,14 @@ def client():
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                                   silence_logs=50) as cluster, distributed.Client(cluster) as c:
         yield c
+
+
+def one_line_error(out, *words: str) -> str:
+    """A finished command (``subprocess.CompletedProcess``) that failed with exactly one line on stderr
+    holding every one of ``words``: that line."""
+    assert out.returncode != 0
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+    return lines[0]

@@ -27,6 +27,7 @@ from appliance.vision.camera import CameraPose, directions_to_pixels, enu_to_dir
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Projection
 from appliance.vision.synth import dem_skyline_fn, render_panorama, render_photo
+from tests.conftest import one_line_error
 
 REPO = Path(__file__).resolve().parents[1]
 VIPER = [sys.executable, "-m", "appliance.cli.main"]
@@ -34,15 +35,6 @@ VIPER = [sys.executable, "-m", "appliance.cli.main"]
 
 def viper(*args: object) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*VIPER, *(str(a) for a in args)], capture_output=True, text=True, cwd=REPO)
-
-
-def one_line_error(out: subprocess.CompletedProcess[str], *words: str) -> str:
-    assert out.returncode != 0
-    lines = out.stderr.strip().splitlines()
-    assert len(lines) == 1, out.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
-    return lines[0]
 
 
 def jpeg_with_f35(image_bgr: np.ndarray, f35_mm: float | None) -> bytes:

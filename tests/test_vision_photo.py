@@ -25,7 +25,7 @@ from appliance.vision.camera import (
 )
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics, save_intrinsics
 from appliance.vision.photo import Photo, check_geometry, detect_photo, find_text_boxes, resample_photo
-from tests.conftest import REPO, data_file
+from tests.conftest import REPO, data_file, one_line_error
 
 VIPER = [sys.executable, "-m", "appliance.cli.main"]
 BARREL = CameraIntrinsics(1920, 1080, 1443.0, 1443.0, 960.0, 540.0, (-0.35, 0.116, 0.0, 0.0, 0.0))
@@ -238,26 +238,18 @@ def small_photo(tmp_path: Path) -> tuple[Path, Path]:
     return path, cam
 
 
-def _one_line_error(out: subprocess.CompletedProcess[str], *words: str) -> None:
-    assert out.returncode != 0
-    lines = out.stderr.strip().splitlines()
-    assert len(lines) == 1, out.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
-
-
 def test_photo_without_orientation(tmp_path: Path, small_photo: tuple[Path, Path]) -> None:
     photo, cam = small_photo
-    _one_line_error(viper("skyline", photo, "--camera", cam, "--out", tmp_path / "s.csv"), "no orientation")
+    one_line_error(viper("skyline", photo, "--camera", cam, "--out", tmp_path / "s.csv"), "no orientation")
 
 
 def test_photo_without_intrinsics(tmp_path: Path, small_photo: tuple[Path, Path]) -> None:
     photo, _ = small_photo
-    _one_line_error(
+    one_line_error(
         viper("skyline", photo, "--orientation", "10,0,0", "--out", tmp_path / "s.csv"), "no camera calibration"
     )
     # and with neither, the photo is not taken for a panorama silently
-    _one_line_error(viper("skyline", photo, "--out", tmp_path / "s.csv"), "not a 360-degree panorama", "--camera")
+    one_line_error(viper("skyline", photo, "--out", tmp_path / "s.csv"), "not a 360-degree panorama", "--camera")
 
 
 def test_calibration_for_another_image_size(tmp_path: Path, small_photo: tuple[Path, Path]) -> None:
@@ -265,16 +257,16 @@ def test_calibration_for_another_image_size(tmp_path: Path, small_photo: tuple[P
     other = tmp_path / "other.toml"
     save_intrinsics(CameraIntrinsics(1920, 1080, 1443.0, 1443.0, 960.0, 540.0), other)
     out = viper("skyline", photo, "--camera", other, "--orientation", "10,0,0", "--out", tmp_path / "s.csv")
-    _one_line_error(out, "480x270", "1920x1080")
+    one_line_error(out, "480x270", "1920x1080")
 
 
 def test_orientation_puts_the_horizon_outside_the_frame(tmp_path: Path, small_photo: tuple[Path, Path]) -> None:
     photo, cam = small_photo
     out = viper("skyline", photo, "--camera", cam, "--orientation", "10,70,0", "--out", tmp_path / "s.csv")
-    _one_line_error(out, "horizon is outside the frame")
+    one_line_error(out, "horizon is outside the frame")
     (tmp_path / "photo.png.json").write_text(json.dumps({"yaw_deg": 10.0, "pitch_deg": 95.0, "roll_deg": 0.0}))
     out = viper("skyline", photo, "--camera", cam, "--out", tmp_path / "s.csv")
-    _one_line_error(out, "pitch 95")
+    one_line_error(out, "pitch 95")
 
 
 def test_field_of_view_too_narrow(tmp_path: Path) -> None:
@@ -285,7 +277,7 @@ def test_field_of_view_too_narrow(tmp_path: Path) -> None:
     cam = tmp_path / "tele.toml"
     save_intrinsics(intr, cam)
     out = viper("skyline", photo, "--camera", cam, "--orientation", "0,0,0", "--out", tmp_path / "s.csv")
-    _one_line_error(out, "field of view", "narrower")
+    one_line_error(out, "field of view", "narrower")
     with pytest.raises(InputError, match="narrower"):
         check_geometry(Photo(img, intr, CameraPose()))
 

@@ -9,6 +9,8 @@ import math
 import time
 from pathlib import Path
 
+import numpy as np
+
 from appliance.atomic import check_output_folder
 from appliance.cli.estimate import _checked_height, _lat_lon, _numbers, _pair
 from appliance.cli.skyline import check_azimuth_mask
@@ -223,10 +225,7 @@ def _lens(camera: str | None, exif: PhotoExif, name: str) -> tuple[CameraIntrins
     return intrinsics_from_exif(exif, name)
 
 
-def _photo_view(args: argparse.Namespace, image: object, intrinsics: CameraIntrinsics, name: str) -> PhotoView:
-    import numpy as np  # numpy is loaded already by the image read; imported here for the type only
-
-    assert isinstance(image, np.ndarray)
+def _photo_view(args: argparse.Namespace, image: np.ndarray, intrinsics: CameraIntrinsics, name: str) -> PhotoView:
     photo = Photo(image, intrinsics, CameraPose(0.0, 0.0, 0.0), name)
     sky = detect_photo(photo, DetectionConfig(min_elevation_deg=-30.0, max_elevation_deg=45.0),
                        [parse_rect(t) for t in args.mask], find_text=not args.keep_text)

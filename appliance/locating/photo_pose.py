@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -149,10 +150,11 @@ class PhotoView:
         samples on the lattice of ``step_deg`` (gaps left out), as the estimate counts them."""
         if self.column_px.size < 2:
             return 0.0
-        az, el = directions(self.rays(), CameraPose(0.0, 0.0, 0.0))
+        az, el = directions(self.rays, CameraPose(0.0, 0.0, 0.0))
         lattice, _, _ = relative_on_lattice(np.mod(az + 180.0, 360.0) - 180.0, el, self.confidence, step_deg)
         return float(lattice.size * step_deg)
 
+    @cached_property
     def rays(self) -> np.ndarray:
         """Camera-frame unit rays of the skyline's pixels (the lens's distortion removed)."""
         return pixels_to_rays(self.intrinsics, self.column_px, self.row_px)
@@ -171,14 +173,11 @@ def directions(rays: np.ndarray, pose: CameraPose, focal_scale: float = 1.0) -> 
 
 @dataclass(frozen=True)
 class OrientationFit:
-    """An orientation fitted at a place: the pose, the focal length's correction, the robust cost
-    (deg^2, each column's residual clipped at RIVAL_CLIP_DEG, on a 1-degree lattice) and its
-    sample count."""
+    """An orientation fitted at a place: the pose, the focal length's correction and the rms of the
+    residuals within RIVAL_CLIP_DEG (deg)."""
 
     pose: CameraPose
     focal_scale: float
-    cost_deg2: float
-    n_samples: int
     rms_deg: float
 
 
@@ -219,7 +218,7 @@ class _Renderer:
 
 def _fit_rays(view: PhotoView, count: int = FIT_COLUMNS) -> np.ndarray:
     """About ``count`` of the skyline's rays, evenly spread over its columns."""
-    rays = view.rays()
+    rays = view.rays
     if rays.shape[0] > count:
         rays = rays[np.linspace(0, rays.shape[0] - 1, count).round().astype(int)]
     return rays
@@ -233,8 +232,6 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
     az0 = float(rendered_az_deg[0])
     ok_render = np.isfinite(rendered_el_deg)
     fill = np.where(ok_render, rendered_el_deg, -90.0)
-    sig_p = max(prior.pitch_tolerance_deg / 2.0, 1e-3)
-    sig_r = max(prior.roll_tolerance_deg / 2.0, 1e-3)
     use_scale = prior.focal_sigma > 0.0
 
     def pose_of(p: np.ndarray) -> tuple[CameraPose, float]:
@@ -249,17 +246,9 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
 
     def residuals(p: np.ndarray) -> np.ndarray:
         res = np.clip(residual_deg(p), -30.0, 30.0) / FIT_SCALE_DEG
-        priors = [p[1] / sig_p, p[2] / sig_r]
-        if use_scale:
-            priors.append(p[3] / prior.focal_sigma)
-        if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
-            d = (p[0] - prior.heading_deg + 180.0) % 360.0 - 180.0
-            priors.append(d / max(prior.heading_tolerance_deg / 2.0, 1e-3))
-        return np.concatenate([res, np.asarray(priors)])
+        return np.concatenate([res, _prior_terms(prior, p[0], p[1], p[2], p[3])])
 
-    p_hi = prior.pitch_tolerance_deg + BOUND_MARGIN_DEG
-    r_hi = prior.roll_tolerance_deg + BOUND_MARGIN_DEG
-    s_hi = max(BOUND_SIGMAS * prior.focal_sigma, 1e-6)
+    p_hi, r_hi, s_hi = _bounds(prior)
     lower = np.array([start.yaw_deg - 180.0, -p_hi, -r_hi, -s_hi])
     upper = np.array([start.yaw_deg + 180.0, p_hi, r_hi, s_hi])
     p0 = np.clip(np.array([start.yaw_deg, start.pitch_deg, start.roll_deg, math.log(start_scale)]),
@@ -269,22 +258,29 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
     pose, scale = pose_of(fit.x)
     pose = CameraPose(pose.yaw_deg % 360.0, pose.pitch_deg, pose.roll_deg)
     e = residual_deg(fit.x)
-    az, _ = directions(rays, pose, scale)
-    cost, n = _lattice_cost(az, e)
     inliers = np.abs(e) < RIVAL_CLIP_DEG
     rms = float(np.sqrt(np.mean(e[inliers] ** 2))) if inliers.any() else math.inf
-    return OrientationFit(pose, scale, cost, n, rms)
+    return OrientationFit(pose, scale, rms)
 
 
-def _lattice_cost(az_deg: np.ndarray, e_deg: np.ndarray) -> tuple[float, int]:
-    """The clipped squared residuals averaged within each 1-degree bin of azimuth, summed over the bins:
-    a cost that counts the view's degrees, not its pixels."""
-    bins = np.floor(np.mod(az_deg - az_deg[0] + 0.5, 360.0)).astype(int)
-    clipped = np.minimum(e_deg**2, RIVAL_CLIP_DEG**2)
-    sums = np.bincount(bins, clipped)
-    counts = np.bincount(bins)
-    seen = counts > 0
-    return float(np.sum(sums[seen] / counts[seen])), int(seen.sum())
+def _prior_terms(prior: OrientationPrior, yaw_deg: float, pitch_deg: float, roll_deg: float,
+                 log_scale: float) -> np.ndarray:
+    """The orientation's priors as residuals in sigmas: half of each tolerance is one sigma (the focal
+    length's only when it is free, the heading's only when there is one)."""
+    terms = [pitch_deg / max(prior.pitch_tolerance_deg / 2.0, 1e-3),
+             roll_deg / max(prior.roll_tolerance_deg / 2.0, 1e-3)]
+    if prior.focal_sigma > 0.0:
+        terms.append(log_scale / prior.focal_sigma)
+    if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+        turn = (yaw_deg - prior.heading_deg + 180.0) % 360.0 - 180.0
+        terms.append(turn / max(prior.heading_tolerance_deg / 2.0, 1e-3))
+    return np.asarray(terms)
+
+
+def _bounds(prior: OrientationPrior) -> tuple[float, float, float]:
+    """The bounds of |pitch|, |roll| (deg) and |log focal scale| of the fits."""
+    return (prior.pitch_tolerance_deg + BOUND_MARGIN_DEG, prior.roll_tolerance_deg + BOUND_MARGIN_DEG,
+            max(BOUND_SIGMAS * prior.focal_sigma, 1e-6))
 
 
 def _rendered_view(render_at: _Renderer, row: float, col: float, rays: np.ndarray, pose: CameraPose,
@@ -305,31 +301,15 @@ def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: floa
     yaw, a focal length and a move trade against each other.  Robust (Cauchy), the tolerances as
     bounds and priors; the move is bounded to JOINT_REACH_CELLS.  Returns the orientation (the
     estimate then places the camera with it)."""
-    sig_p = max(prior.pitch_tolerance_deg / 2.0, 1e-3)
-    sig_r = max(prior.roll_tolerance_deg / 2.0, 1e-3)
     use_scale = prior.focal_sigma > 0.0
 
     # parameters: moves from the start (rows, columns, yaw in deg), then pitch, roll and log focal scale
-    def unpack(p: np.ndarray) -> tuple[CameraPose, float]:
-        trial = CameraPose(pose.yaw_deg + float(p[2]), float(p[3]), float(p[4]))
-        return trial, float(math.exp(p[5])) if use_scale else 1.0
-
     def residuals(p: np.ndarray) -> np.ndarray:
-        trial, s = unpack(p)
-        az, el = directions(rays, trial, s)
-        rendered = render_at(row + float(p[0]), col + float(p[1]), az, eye_offset_m)
-        res = np.where(np.isfinite(rendered), np.clip(el - rendered, -30.0, 30.0), 30.0) / FIT_SCALE_DEG
-        priors = [p[3] / sig_p, p[4] / sig_r]
-        if use_scale:
-            priors.append(p[5] / prior.focal_sigma)
-        if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
-            priors.append(((pose.yaw_deg + p[2] - prior.heading_deg + 180.0) % 360.0 - 180.0)
-                          / max(prior.heading_tolerance_deg / 2.0, 1e-3))
-        return np.concatenate([res, np.asarray(priors)])
+        moved = np.array([row + p[0], col + p[1], pose.yaw_deg + p[2], p[3], p[4], p[5] if use_scale else 0.0])
+        res = np.clip(np.nan_to_num(_joint_residual_deg(render_at, rays, moved, eye_offset_m), nan=30.0), -30.0, 30.0)
+        return np.concatenate([res / FIT_SCALE_DEG, _prior_terms(prior, pose.yaw_deg + p[2], p[3], p[4], p[5])])
 
-    p_hi = prior.pitch_tolerance_deg + BOUND_MARGIN_DEG
-    r_hi = prior.roll_tolerance_deg + BOUND_MARGIN_DEG
-    s_hi = max(BOUND_SIGMAS * prior.focal_sigma, 1e-6)
+    p_hi, r_hi, s_hi = _bounds(prior)
     reach = JOINT_REACH_CELLS
     lower = np.array([-reach, -reach, -10.0, -p_hi, -r_hi, -s_hi])
     upper = np.array([reach, reach, 10.0, p_hi, r_hi, s_hi])
@@ -337,13 +317,21 @@ def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: floa
                  upper - 1e-9)
     fit = least_squares(residuals, p0, loss=ROBUST_LOSS, f_scale=3.0, bounds=(lower, upper), method="trf",
                         x_scale=np.array([0.2, 0.2, 0.1, 0.1, 0.1, 0.005]), diff_step=JOINT_STEP, max_nfev=60)
-    solved, s = unpack(fit.x)
-    return CameraPose(solved.yaw_deg % 360.0, solved.pitch_deg, solved.roll_deg), s
+    x = fit.x
+    return CameraPose((pose.yaw_deg + float(x[2])) % 360.0, float(x[3]), float(x[4])), (
+        float(math.exp(x[5])) if use_scale else 1.0)
+
+
+def _joint_residual_deg(render_at: _Renderer, rays: np.ndarray, p: np.ndarray, eye_offset_m: float) -> np.ndarray:
+    """Each ray's elevation through the orientation of ``p`` (row, col, yaw, pitch, roll, log focal
+    scale) minus the skyline rendered from (row, col) at the ray's own azimuth; NaN where no terrain."""
+    az, el = directions(rays, CameraPose(float(p[2]), float(p[3]), float(p[4])), float(math.exp(p[5])))
+    return np.asarray(el - render_at(float(p[0]), float(p[1]), az, eye_offset_m))
 
 
 def world_skyline(view: PhotoView, pose: CameraPose, scale: float, step_deg: float = SKYLINE_STEP_DEG) -> Skyline:
     """The photo's skyline in true azimuths and elevations through ``pose``, on a regular azimuth grid."""
-    az, el = directions(view.rays(), pose, scale)
+    az, el = directions(view.rays, pose, scale)
     order = np.argsort(np.mod(az - az[0] + 180.0, 360.0) - 180.0, kind="stable")
     sky = PhotoSkyline(view.row_px[order], az[order], el[order], view.confidence[order], ())
     return resample_photo(sky, step_deg)
@@ -362,7 +350,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     render_at = _Renderer(grid, h_m)
     if view.column_px.size < 2:
         raise InputError(f"{view.name}: no skyline found (no column shows sky above ground)")
-    rays = view.rays()
+    rays = view.rays
     rel_az, rel_el = directions(rays, CameraPose(0.0, 0.0, 0.0))
     rel_az = np.mod(rel_az + 180.0, 360.0) - 180.0
     step = grid.az_step_deg
@@ -508,14 +496,9 @@ def joint_covariance_cells(render_at: _Renderer, rays: np.ndarray, row: float, c
     None when the curvature is singular."""
     steps = np.array([0.05, 0.05, 0.01, 0.01, 0.01, 1e-4])
     base = np.array([row, col, pose.yaw_deg, pose.pitch_deg, pose.roll_deg, math.log(scale)])
-    az_grid, _ = _rendered_view(render_at, row, col, rays, pose, scale, eye_offset_m)
-    a0 = float(az_grid[0])
 
     def residual(p: np.ndarray) -> np.ndarray:
-        az, el = directions(rays, CameraPose(float(p[2]), float(p[3]), float(p[4])), float(math.exp(p[5])))
-        rel = np.mod(az - a0, 360.0) + a0
-        rendered = render_at(float(p[0]), float(p[1]), np.mod(az_grid, 360.0), eye_offset_m)
-        return np.asarray(el - np.interp(rel, az_grid, np.where(np.isfinite(rendered), rendered, np.nan)))
+        return _joint_residual_deg(render_at, rays, p, eye_offset_m)
 
     e0 = residual(base)
     J = np.empty((e0.size, 6))
