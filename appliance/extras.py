@@ -10,7 +10,9 @@ vision     OpenCV            stitch, skyline, capture, daemon, devices, replay, 
                              ``--skyline-only``), ``calibrate camera``, serve
 live       foxglove-sdk      ``capture --live``, ``daemon session --live``
 cluster    dask.distributed  ``precompute --tiles``, ``estimate --workers/--scheduler``
-all        all three
+rover      pymavlink, pyulog MAVLink odometry and position output, PX4 ULog records, ROS 2-encoded logs
+           mcap-ros2-support
+all        all four
 =========  ================  ======================================================================
 
 :func:`require` imports an optional module where it is used, or raises :class:`MissingExtraError`;
@@ -43,6 +45,9 @@ OPTIONAL_MODULES: dict[str, Extra] = {
     "foxglove": Extra("live", "foxglove-sdk"),
     "distributed": Extra("cluster", "dask.distributed"),
     "dask": Extra("cluster", "dask.distributed"),
+    "pymavlink": Extra("rover", "pymavlink"),
+    "pyulog": Extra("rover", "pyulog"),
+    "mcap_ros2": Extra("rover", "mcap-ros2-support"),
 }
 
 
