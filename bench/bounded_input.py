@@ -177,6 +177,46 @@ def _ten_million_rows(d: Path, shared: dict[str, Path]) -> list[str]:
     return ["estimate", "map.viperdb", "big.csv"]
 
 
+def _npz_bomb(d: Path, rows: int, cols: int) -> str:
+    """A compressed .npz DEM of a few MB whose rows x cols float64 heights (all zero) inflate to
+    8 rows cols bytes."""
+    import io
+    import zipfile
+
+    import numpy as np
+
+    with zipfile.ZipFile(d / "bomb.npz", "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        with zf.open("elevation.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (rows, cols)})
+            row = bytes(8 * cols)
+            for _ in range(rows):
+                fh.write(row)
+        for key in ("dx", "dy", "xmin", "xmax", "ymin", "ymax"):
+            one = io.BytesIO()
+            np.save(one, np.float64(1.0))
+            zf.writestr(f"{key}.npy", one.getvalue())
+    return "bomb.npz"
+
+
+def _e00_declaring(d: Path, rows: int, cols: int) -> str:
+    """An ArcInfo .e00 grid whose GRD header declares rows x cols cells and holds one line of them."""
+    (d / "huge.e00").write_text(
+        "EXP  0 /huge.e00\nGRD  2\n"
+        f"{cols:10d}{rows:10d}         2-0.21474836470000000E+10\n"
+        " 0.10000000000000000E+01 0.10000000000000000E+01\n"
+        " 0.00000000000000000E+00 0.00000000000000000E+00\n"
+        f" {float(cols):.17E} {float(rows):.17E}\n"
+        " 0.1000000E+01 0.1000000E+01 0.1000000E+01 0.1000000E+01 0.1000000E+01\nEOG\n")
+    return "huge.e00"
+
+
+def _theodolite_config_zero(d: Path, shared: dict[str, Path]) -> list[str]:
+    (d / "points.csv").write_text("point,camera_elevation_deg,theodolite_elevation_deg\n"
+                                  + "".join(f"p{i},{i * 0.5:.2f},{i * 0.5 + 0.1 * (i % 3 - 1):.2f}\n"
+                                            for i in range(12)))
+    return ["calibrate", "theodolite", "points.csv", "--config", "/dev/zero"]
+
+
 def _png(d: Path, name: str, width: int, height: int, rows: int | None = None) -> str:
     (d / name).write_bytes(png_bytes(width, height, rows))
     return name
@@ -303,6 +343,16 @@ CATALOGUE: list[Case] = [
          r"session\.compass_steps: expected an integer in \[3, 360\], got 1000000"),
     Case("reserve-bytes-1e12", _estimate_config("[logbook]\nreserve_bytes = 1000000000000\n"),
          r"logbook\.reserve_bytes: expected an integer in \[0, 1073741824\] \(1 GiB\), got 1000000000000"),
+    # readers and options of the last round
+    Case("npz-bomb-144-mp", lambda d, s: ["dem", "info", _npz_bomb(d, 12000, 12000)],
+         r"bomb\.npz: 12000 x 12000 pixels, more than the 100,000,000 a map read whole may have"),
+    Case("e00-declaring-10-gp", lambda d, s: ["dem", "info", _e00_declaring(d, 100000, 100000)],
+         r"huge\.e00: 100000 x 100000 pixels, more than the 100,000,000 a map read whole may have"),
+    Case("render-height-1e300", lambda d, s: ["render", "jacksboro", "--lat", "36.555", "--lon=-84.29",
+                                              "--height", "1e300"],
+         r"--height 1e\+300 m: more than 100000 m above the ground"),
+    Case("calibrate-config-dev-zero", _theodolite_config_zero, r"/dev/zero: the configuration is a character "
+         r"device, not a regular file"),
 ]
 
 

@@ -19,13 +19,18 @@ from tomlkit.items import Table
 
 from appliance.atomic import write_text_atomic
 from appliance.errors import ConfigError
+from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
 
 
 def read_toml_text(path: str | Path, *, must_exist: bool = True) -> str:
     """The file's text (UTF-8); ``""`` for a missing file when ``must_exist`` is false."""
     p = Path(path)
     try:
-        return p.read_bytes().decode("utf-8")
+        text = read_text_bounded(p, MAX_CONFIG_BYTES, "configuration", ConfigError)
+        check_nesting(text)
+        return text
+    except NestingError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
     except FileNotFoundError:
         if must_exist:
             raise ConfigError(f"{p}: file not found") from None

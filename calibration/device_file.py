@@ -9,7 +9,6 @@ tesla, ``soft_iron_matrix``) and its ``[inclinometer]`` table (``pitch_offset_de
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import tomlkit
@@ -22,6 +21,7 @@ from appliance.drivers.factory import DeviceCalibration
 from appliance.drivers.magnetometer import CALIBRATION_TABLE as MAGNETOMETER_TABLE
 from appliance.drivers.magnetometer import HardSoftIron
 from appliance.errors import ConfigError
+from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
 
 
 def _calibration_table(devices: DevicesConfig, name: str) -> tuple[dict[str, Any] | None, str]:
@@ -30,9 +30,13 @@ def _calibration_table(devices: DevicesConfig, name: str) -> tuple[dict[str, Any
     if path is None:
         return None, ""
     try:
-        doc = tomlkit.parse(Path(path).read_text(encoding="utf-8")).unwrap()
+        text = read_text_bounded(path, MAX_CONFIG_BYTES, "calibration file", ConfigError)
+        check_nesting(text)
+        doc = tomlkit.parse(text).unwrap()
     except FileNotFoundError:
         raise ConfigError(f"devices.calibration_file: {path}: file not found") from None
+    except NestingError as exc:
+        raise ConfigError(f"devices.calibration_file: {path}: {exc}") from None
     except tomlkit.exceptions.ParseError as exc:
         raise ConfigError(f"devices.calibration_file: {path}: not valid TOML: {exc}") from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -14,6 +14,9 @@ from appliance.skyline import format_skyline_csv, write_skyline_csv
 from appliance.terrain.dem import load_dem
 from appliance.terrain.horizon import DEFAULT_HEIGHT_M, DEFAULT_MAX_RANGE_M, render_skyline
 
+#: The highest camera a render is made for (m above the ground): a mast, a balloon, a high aircraft.
+MAX_HEIGHT_M = 100_000.0
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("render", help="render the skyline seen from a point of a DEM")
@@ -41,6 +44,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--lat {args.lat} outside [-90, 90]")
     if not math.isfinite(args.height):
         raise InputError(f"--height {args.height}: not a number of metres")
+    if args.height > MAX_HEIGHT_M:
+        raise InputError(f"--height {args.height:g} m: more than {MAX_HEIGHT_M:g} m above the ground "
+                         "(a render is of a camera on or over the terrain)")
     if not (math.isfinite(args.max_range) and args.max_range > 0):
         raise InputError(f"--max-range {args.max_range}: must be a positive number of metres")
     if args.refraction is not None and not -1.0 < args.refraction < 1.0:

@@ -26,7 +26,7 @@ from pyproj import CRS
 
 from appliance.bodies import EARTH, MARS, MOON, Body
 from appliance.errors import DemError
-from appliance.inputs import check_regular
+from appliance.inputs import check_regular, read_text_bounded
 from appliance.native import native_messages
 from appliance.terrain.elevation import Dem, affine_apply
 
@@ -287,7 +287,32 @@ def _load_npz(p: Path) -> Dem:
         raise DemError(f"{p}: not a readable .npz grid ({first}): the file is damaged or truncated") from None
 
 
+def _npz_shapes(p: Path) -> dict[str, tuple[int, ...]]:
+    """Each array's shape in the .npz archive, from its .npy header, without reading the data."""
+    shapes: dict[str, tuple[int, ...]] = {}
+    with zipfile.ZipFile(p) as zf:
+        for name in zf.namelist():
+            if not name.endswith(".npy"):
+                continue
+            with zf.open(name) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, _ = np.lib.format.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, _, _ = np.lib.format.read_array_header_2_0(fh)
+                else:
+                    raise DemError(f"{p}: {name} is a .npy of format version {version}, not 1.0 or 2.0")
+            shapes[name[:-4]] = tuple(int(v) for v in shape)
+    return shapes
+
+
 def _read_npz(p: Path) -> Dem:
+    for name, shape in _npz_shapes(p).items():
+        if len(shape) == 2:
+            _check_pixels(p, shape[1], shape[0])
+        elif int(np.prod(shape, dtype=np.float64)) > MAX_DEM_PIXELS:
+            raise DemError(f"{p}: array {name} holds {int(np.prod(shape, dtype=np.float64)):,} values, more than "
+                           f"the {MAX_DEM_PIXELS:,} a map read whole may have")
     with np.load(p) as z:
         keys = set(z.files)
         if {"elevation", "dx", "dy", "xmin", "xmax", "ymin", "ymax"} <= keys:
@@ -325,18 +350,24 @@ def _regularise(topo: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> tuple[np.
     return elev, transform
 
 
+#: The largest .e00 text read (about 16 million heights at 16 characters each).
+MAX_E00_BYTES = 256 << 20
+
 _E00_FLOAT = re.compile(r"[-+]?\d*\.\d+E[-+]\d+")
 
 
 def _load_e00(p: Path) -> Dem:
     """ArcInfo uncompressed export grid (``GRD`` section, ``PRJ`` block for the CRS)."""
-    lines = p.read_text(encoding="latin-1").splitlines()
+    lines = read_text_bounded(p, MAX_E00_BYTES, "DEM", DemError, encoding="latin-1").splitlines()
     try:
         start = next(i for i, ln in enumerate(lines) if ln.startswith("GRD "))
     except StopIteration:
         raise DemError(f"{p}: no GRD section (compressed or non-grid .e00 files are not supported)") from None
     head = lines[start + 1].split()
     ncols, nrows = int(head[0]), int(head[1])
+    if ncols < 1 or nrows < 1:
+        raise DemError(f"{p}: the GRD header gives {ncols} x {nrows} cells")
+    _check_pixels(p, ncols, nrows)
     nodata_match = _E00_FLOAT.findall(lines[start + 1])
     nodata = float(nodata_match[-1]) if nodata_match else -3.4028234663853e38
     cell = [float(v) for v in _E00_FLOAT.findall(lines[start + 2])]
