@@ -74,9 +74,11 @@ class LogSummary:
         if span is not None:
             out.append(f"time span: {utc_text(span[0])} .. {utc_text(span[1])} ({(span[1] - span[0]) / 1e9:.3f} s)")
         software = self.metadata.get("viper.software")
-        if software is not None or self.profile is not None:
-            by = f"{software.get('name', '?')} {software.get('version', '?')}" if software is not None else "?"
-            out.append(f"written by {by}, profile {self.profile or '?'}, metadata: {', '.join(sorted(self.metadata))}")
+        if software is not None:
+            out.append(f"written by {software.get('name', '?')} {software.get('version', '?')}, profile "
+                       f"{self.profile or '?'}, metadata: {', '.join(sorted(self.metadata))}")
+        elif self.profile is not None:
+            out.append(f"profile {self.profile}, metadata: {', '.join(sorted(self.metadata)) or 'none'}")
         the_map = self.metadata.get("viper.map")
         if the_map is not None:
             out.append(f"map: {the_map.get('path', '?')} sha256 {the_map.get('sha256', '?')}")
