@@ -99,7 +99,8 @@ def test_rosbags_decodes_every_message_and_counts_as_log_info(ros2_log, capsys):
     for i, fix in fixes.items():
         cov = np.asarray(records[i]["covariance_m2"], float)
         assert fix.position_covariance_type == 3  # COVARIANCE_TYPE_KNOWN
-        np.testing.assert_allclose(np.asarray(fix.position_covariance).reshape(3, 3)[:2, :2], cov, rtol=1e-12)
+        # the record keeps the covariance to 4 decimals (m^2)
+        np.testing.assert_allclose(np.asarray(fix.position_covariance).reshape(3, 3)[:2, :2], cov, atol=5e-5)
         assert math.isclose(fix.latitude, records[i]["lat"], abs_tol=1e-12)
 
 
@@ -285,3 +286,10 @@ def test_the_foxglove_layout_shows_the_logs_topics():
     assert {"error_m", "radius95_m"} <= set(t.JSON_SCHEMAS["viper.Estimate"]["properties"])
     pyproject = (REPO / "pyproject.toml").read_text()
     assert '"appliance.examples" = ["*.toml", "*.conf", "*.json"]' in pyproject
+
+
+def test_the_skyline_only_demo_refuses_a_log_encoding_it_would_not_use(tmp_path, capsys):
+    code = main(["demo", "--skyline-only", "--log-encoding", "ros2", "--out", str(tmp_path / "demo")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and "--log-encoding ros2" in err[0] and "writes no log" in err[0]
+    assert not (tmp_path / "demo").exists()
