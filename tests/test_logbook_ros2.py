@@ -94,6 +94,9 @@ def test_rosbags_decodes_every_message_and_counts_as_log_info(ros2_log, capsys):
     assert types[t.TF] == "tf2_msgs/msg/TFMessage"
     assert types[t.ESTIMATE_POSE] == "geometry_msgs/msg/PoseWithCovarianceStamped"
     assert types[t.ESTIMATE_RECORD] == types[t.PROCEDURE] == "std_msgs/msg/String"
+    assert info["topics"][t.ESTIMATE_RECORD]["json_schema"] == "viper.Estimate"
+    assert info["topics"][t.TRAVERSE_STOP]["json_schema"] == "viper.TraverseStop"
+    assert info["topics"][t.ESTIMATE_FIX]["json_schema"] is None
     # each stop's fix carries its estimate's covariance (east, north) as a known covariance
     assert len(fixes) == len(records) == 2
     for i, fix in fixes.items():

@@ -18,6 +18,7 @@ from appliance.logbook.reader import LogMessage, LogReader
 class TopicStats:
     schema_name: str
     message_encoding: str = ""
+    json_schema: str = ""  # the JSON schema a ROS 2 String channel carries
     count: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
@@ -84,7 +85,8 @@ class LogSummary:
             out.append(f"map: {the_map.get('path', '?')} sha256 {the_map.get('sha256', '?')}")
         width = max((len(t) for t in self.topics), default=5)
         for name, st in sorted(self.topics.items()):
-            out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}")
+            carried = f" ({st.json_schema})" if st.json_schema else ""
+            out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}{carried}")
         if self.truth is not None:
             out.append(f"GPS truth: lat {self.truth['lat']:.6f} lon {self.truth['lon']:.6f}")
         if self.estimate is not None:
@@ -109,7 +111,8 @@ class LogSummary:
             "profile": self.profile,
             "span": None if span is None else {"start_ns": span[0], "end_ns": span[1], "start": utc_text(span[0]),
                                                "end": utc_text(span[1]), "duration_s": (span[1] - span[0]) / 1e9},
-            "topics": {name: {"schema": st.schema_name, "message_encoding": st.message_encoding, "count": st.count,
+            "topics": {name: {"schema": st.schema_name, "message_encoding": st.message_encoding,
+                              "json_schema": st.json_schema or None, "count": st.count,
                               "first_ns": st.first_ns, "last_ns": st.last_ns}
                        for name, st in sorted(self.topics.items())},
             "metadata": self.metadata,
@@ -174,7 +177,7 @@ def summarize_log(path: str | Path) -> LogSummary:
     estimate: dict[str, Any] | None = None
     truth: dict[str, Any] | None = None
     for msg in reader.messages():
-        st = stats.setdefault(msg.topic, TopicStats(msg.schema_name, msg.message_encoding))
+        st = stats.setdefault(msg.topic, TopicStats(msg.schema_name, msg.message_encoding, msg.json_schema))
         st.count += 1
         st.first_ns = msg.log_time_ns if st.first_ns is None else min(st.first_ns, msg.log_time_ns)
         st.last_ns = msg.log_time_ns if st.last_ns is None else max(st.last_ns, msg.log_time_ns)
