@@ -49,7 +49,7 @@ from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read
 
 __all__ = [
     "CameraDeviceConfig", "CompassConfig", "CompassKind", "Compression", "Config", "DevicesConfig", "EstimatorConfig",
-    "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LogbookConfig", "OdometryDeviceConfig",
+    "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LogEncoding", "LogbookConfig", "OdometryDeviceConfig",
     "PlatformConfig", "PlatformKind", "SIGMA_MAX_DEG", "SIGMA_MIN_DEG", "SessionConfig", "SimConfig",
     "SimFaultsConfig", "StageConfig", "TraverseConfig", "UDP_SCHEME", "from_mapping", "load_config", "override",
     "read_config_toml", "udp_address",
@@ -69,6 +69,13 @@ class Compression(str, enum.Enum):
     ZSTD = "zstd"
     LZ4 = "lz4"
     NONE = "none"
+
+
+class LogEncoding(str, enum.Enum):
+    """The messages of the session logs: Foxglove's protobuf schemas, or standard ROS 2 messages (CDR)."""
+
+    PROTOBUF = "protobuf"
+    ROS2 = "ros2"
 
 
 #: The physical range of a skyline's sigma (deg): a thousandth of a degree (far below any sensor's
@@ -123,6 +130,7 @@ class LogbookConfig:
     chunk_size_bytes: int = 262_144
     compression: Compression = Compression.ZSTD
     reserve_bytes: int = 65_536  # freed on a full disk so the log can still be sealed
+    encoding: LogEncoding = LogEncoding.PROTOBUF
 
     def __post_init__(self) -> None:
         _positive("logbook.fsync_interval_s", self.fsync_interval_s)
@@ -132,6 +140,7 @@ class LogbookConfig:
                  self.reserve_bytes)
         _require(isinstance(self.compression, Compression), "logbook.compression", _choices(Compression),
                  self.compression)
+        _require(isinstance(self.encoding, LogEncoding), "logbook.encoding", _choices(LogEncoding), self.encoding)
 
 
 @dataclass(frozen=True)

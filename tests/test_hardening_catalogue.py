@@ -90,6 +90,7 @@ BAD_CONFIGS = {
     "mask-one-angle": "[session]\nbody_mask_deg = [[1.0]]\n",
     "fsync-zero": "[logbook]\nfsync_interval_s = 0\n",
     "compression-unknown": "[logbook]\ncompression = \"bz2\"\n",
+    "encoding-unknown": "[logbook]\nencoding = \"ros3\"\n",
     "platform-unknown": "[platform]\nkind = \"rover9000\"\n",
     "baud-zero": "[devices.gps]\nbaudrate = 0\n",
     "i2c-address-big": "[devices.compass]\ni2c_address = 300\n",

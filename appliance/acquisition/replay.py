@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from appliance.acquisition import onboard
+from appliance.acquisition.log_metadata import write_log_metadata
 from appliance.acquisition.platform import Frame
 from appliance.acquisition.procedures import TaggedFrame
 from appliance.acquisition.session_facts import FactsCollector, SessionFacts, read_session_facts
@@ -88,8 +89,10 @@ class ReplayResult:
 
 
 def intrinsics_from_calibration(cal: Any) -> CameraIntrinsics:
-    k = list(cal.K)
-    d = (list(cal.D) + [0.0] * 5)[:5]
+    """The intrinsics of a foxglove.CameraCalibration (``K``, ``D``) or a ROS 2 sensor_msgs/msg/CameraInfo
+    (``k``, ``d``)."""
+    k = list(cal.K if hasattr(cal, "K") else cal.k)
+    d = (list(cal.D if hasattr(cal, "D") else cal.d) + [0.0] * 5)[:5]
     return CameraIntrinsics(int(cal.width), int(cal.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]),
                             (d[0], d[1], d[2], d[3], d[4]))
 
@@ -202,6 +205,7 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
         with atomic_output(check_output_folder(into or out_dir) / log_path.name) as tmp:
             tmp.unlink()  # the logbook creates its file itself and never opens an existing one
             with Logbook.create(tmp) as log:
+                write_log_metadata(log, None, db, data.intrinsics)
                 ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
                 if ok:
                     log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from appliance.acquisition import onboard, procedures
+from appliance.acquisition.log_metadata import write_log_metadata
 from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
 from appliance.config import Config
@@ -162,7 +163,9 @@ class Session:
         return r
 
     def write_header(self) -> None:
-        """The session's description and the camera's calibration, once at the start of the log."""
+        """The metadata records (software, configuration, calibrations, map), the session's description
+        and the camera's calibration, once at the start of the log."""
+        write_log_metadata(self.log, self.cfg, self.db, self.p.camera.intrinsics if self.p.camera is not None else None)
         self.log.write_json(t.SESSION, "viper.Session", {"session_id": self.result.session_id}, self.now())
         if self.p.camera is not None:
             intr = self.p.camera.intrinsics
@@ -365,21 +368,20 @@ class Session:
 
         pano = onboard.stitch_frames(frames, self.p.camera.intrinsics)
         self.result.panorama = pano
+        pano_ns = self.now()  # the panorama's time: its skyline and the skyline's annotations carry it too
         ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
         if ok:
-            self.log.write_proto(
-                t.PANORAMA, m.compressed_image(self.now(), jpeg.tobytes(), frame_id="panorama"), self.now()
-            )
+            self.log.write_proto(t.PANORAMA, m.compressed_image(pano_ns, jpeg.tobytes(), frame_id="panorama"), pano_ns)
         sky = detect_skyline(pano)
         tagged = [f for f in frames if f.heading_deg is not None]
         if self.cfg.session.body_mask_deg and tagged:
             platform_heading = (float(tagged[0].heading_deg or 0.0) - tagged[0].stage_deg) % 360.0
             sky = onboard.mask_stage_angles(sky, platform_heading, self.cfg.session.body_mask_deg)
         self.result.skyline = sky
-        self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), self.now())
-        overlay = m.skyline_annotations(self.now(), pano.azimuth_to_column(sky.azimuth_deg),
+        self.log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), pano_ns)
+        overlay = m.skyline_annotations(pano_ns, pano.azimuth_to_column(sky.azimuth_deg),
                                         pano.elevation_to_row(sky.elevation_deg))
-        self.log.write_proto(t.PANORAMA_SKYLINE, overlay, self.now())
+        self.log.write_proto(t.PANORAMA_SKYLINE, overlay, pano_ns)
         self.on_status("estimate: searching the skyline database")
         where = None
         if truth is not None and truth.lat_deg is not None and truth.lon_deg is not None:
@@ -436,7 +438,8 @@ def open_session_log(config: Config, log_dir: Path, now_ns: int,
     existed = path.exists()  # never remove a file this session did not create
     try:
         logbook = Logbook.create(path, fsync_interval_s=lc.fsync_interval_s, chunk_size_bytes=lc.chunk_size_bytes,
-                                 compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher)
+                                 compression=lc.compression, reserve_bytes=lc.reserve_bytes, publisher=publisher,
+                                 encoding=lc.encoding)
     except LogError as exc:
         if existed or not path.exists():
             raise

@@ -14,6 +14,10 @@ Each stop writes ``/traverse/stop`` (both estimates, their errors against the GP
 statuses) and ``/traverse/track`` (GeoJSON lines through the estimates and through the GPS truths so
 far: the last message is the whole track).  A stop request ends the traverse between steps with the
 log sealed; an odometry line that does not come within ``[traverse] odometry_timeout_s`` ends it too.
+
+Frames: stop N's frames are named ``stop-N/world``, ``stop-N/platform``, ... (the logbook's frame
+prefix), and ``/tf`` places each ``stop-N/world`` in ``map``, east-north-up at the first stop's position,
+at the stop's position (its estimate, else its GPS truth), so the 3D panel shows the path.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from appliance.acquisition.session import (
     StopRequestedError,
     open_session_log,
 )
+from appliance.bodies import EARTH, Body, body_named
 from appliance.config import Config
 from appliance.drivers.factory import Devices
 from appliance.drivers.odometry import OdometryReport
@@ -153,6 +158,18 @@ def track_features(stops: list[StopResult]) -> list[dict[str, Any]]:
             for name, coords in lines.items() if len(coords) >= 2]
 
 
+def stop_prefix(i: int) -> str:
+    """The prefix of stop ``i``'s frames (``stop-2/world``...)."""
+    return f"stop-{i}/"
+
+
+def enu_offset_m(body: Body, origin: tuple[float, float], where: tuple[float, float]) -> tuple[float, float]:
+    """(east, north) in metres of ``where`` from ``origin`` (both lat, lon in degrees): the geodesic's
+    length along its azimuth at ``origin``."""
+    az_deg, _, dist_m = body.geod.inv(origin[1], origin[0], where[1], where[0])
+    return (float(dist_m * np.sin(np.radians(az_deg))), float(dist_m * np.cos(np.radians(az_deg))))
+
+
 def _status_of(stops: list[StopResult]) -> Status:
     statuses = {s.session.status for s in stops}
     if statuses <= {Status.OK}:
@@ -177,6 +194,8 @@ class Traverse:
         self.last_stop_id = 0
         self.note = ""
         self._queued: list[OdometryReport] = []
+        self.map_origin: tuple[float, float] | None = None  # (lat, lon) of ``map``'s origin: the first stop placed
+        self.stop_start_ns = 0
 
     def session(self, result: SessionResult, log_prior: np.ndarray | None = None,
                 position_prior: PositionPrior | None = None) -> Session:
@@ -188,6 +207,7 @@ class Traverse:
         head = self.session(SessionResult(r.log_path, r.session_id))
         current: Session | None = None
         try:
+            self.log.frame_prefix = stop_prefix(0)
             head.write_header()
             head.say("info", f"traverse {r.session_id} started: {self.n_stops} stops")
             for i in range(self.n_stops):
@@ -200,6 +220,7 @@ class Traverse:
                 stop = self.prepare_stop(i, odometry)
                 current = self.session(stop.session, stop.log_prior, stop.position_prior)
                 r.stops.append(stop)
+                self.start_frames(i)
                 current.run_procedures()
                 current = None
                 self.finish_stop(head, stop)
@@ -276,8 +297,28 @@ class Traverse:
         self.note = ""
         return StopResult(i, result, odometry, prior, fix, peak, note)
 
+    def start_frames(self, i: int) -> None:
+        """Stop ``i``'s frames from now on: named ``stop-i/...``, its camera -> camera_optical given."""
+        self.stop_start_ns = self.p.clock.now_ns()
+        self.log.frame_prefix = stop_prefix(i)
+        self.log.write_proto(t.TF, m.optical_transform(self.stop_start_ns), self.stop_start_ns)
+
+    def place_stop(self, stop: StopResult) -> None:
+        """map -> stop-N/world: the stop's position (its estimate, else its GPS truth) east and north of
+        ``map``'s origin (the first stop placed), stamped with the stop's start."""
+        where = (stop.position.lat, stop.position.lon) if stop.position is not None else stop.truth
+        if where is None:
+            return
+        if self.map_origin is None:
+            self.map_origin = where
+        body = body_named(self.db.header["body"]) if self.db is not None else EARTH
+        east_m, north_m = enu_offset_m(body, self.map_origin, where)
+        ns = self.stop_start_ns
+        self.log.write_proto(t.TF, m.map_transform(ns, east_m, north_m), self.p.clock.now_ns())
+
     def finish_stop(self, head: Session, stop: StopResult) -> None:
         """The stop's records; its position becomes the belief the next stop's prior moves."""
+        self.place_stop(stop)
         if stop.position is not None:
             self.belief, self.moved = stop.position, Move(0.0, 0.0, 0.0)
         if self.db is None:

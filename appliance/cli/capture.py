@@ -6,12 +6,13 @@ exit status is then non-zero."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
 from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
-from appliance.config import load_config
+from appliance.config import Config, LogEncoding, load_config, override
 from appliance.logsetup import StatusLine
 
 LOG = logging.getLogger(__name__)
@@ -22,12 +23,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="TOML configuration (default: built-in defaults)")
     p.add_argument("--log-dir", metavar="DIR", help="override logbook.log_dir")
     p.add_argument("--seed", type=int, help="seed of the simulated platform (platform.kind = 'sim')")
+    add_log_encoding_option(p)
     add_live_option(p)
     p.set_defaults(func=_capture)
 
 
+def add_log_encoding_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--log-encoding", choices=[e.value for e in LogEncoding],
+                   help="messages of the MCAP log: Foxglove protobuf or standard ROS 2 messages "
+                        "(default: [logbook] encoding, protobuf)")
+
+
+def with_log_encoding(config: Config, encoding: str | None) -> Config:
+    """``config`` with ``[logbook] encoding`` replaced by ``--log-encoding`` when given."""
+    if encoding is None:
+        return config
+    logbook = override(config.logbook, "--log-encoding", encoding=LogEncoding(encoding))
+    return dataclasses.replace(config, logbook=logbook)
+
+
 def _capture(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    config = with_log_encoding(load_config(args.config), args.log_encoding)
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     with live_server(args.live) as live, StatusLine("capture") as status:

@@ -18,7 +18,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from appliance.atomic import check_output_folder
-from appliance.config import CameraDeviceConfig, Config, DevicesConfig, LogbookConfig, SessionConfig, SimConfig
+from appliance.config import (
+    CameraDeviceConfig,
+    Config,
+    DevicesConfig,
+    LogbookConfig,
+    LogEncoding,
+    SessionConfig,
+    SimConfig,
+)
 from appliance.errors import InputError
 
 if TYPE_CHECKING:
@@ -37,12 +45,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--traverse", type=int, metavar="N",
                    help="a rover's traverse of N stops (legs of 200-400 m), each fused with the last")
     p.add_argument("--time-rate", type=float, default=20.0, help="simulated seconds per real second (default 20)")
+    p.add_argument("--log-encoding", choices=[e.value for e in LogEncoding], default=LogEncoding.PROTOBUF.value,
+                   help="messages of the MCAP log: Foxglove protobuf (default) or standard ROS 2 messages")
     p.set_defaults(func=run)
 
 
-def demo_config(out: Path, time_rate: float) -> Config:
+def demo_config(out: Path, time_rate: float, encoding: str = LogEncoding.PROTOBUF.value) -> Config:
     return Config(
-        logbook=LogbookConfig(log_dir=out),
+        logbook=LogbookConfig(log_dir=out, encoding=LogEncoding(encoding)),
         session=SessionConfig(level_tolerance_deg=0.3),
         devices=DevicesConfig(camera=CameraDeviceConfig(width=640, height=480)),
         sim=SimConfig(time_rate=time_rate),
@@ -72,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--traverse {args.traverse}: expected a number of stops in 1..1000")
         return run_traverse(args)
     if args.skyline_only:
+        if args.log_encoding != LogEncoding.PROTOBUF.value:
+            raise InputError(f"--log-encoding {args.log_encoding}: --skyline-only writes no log")
         return run_skyline_only(args)
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.acquisition.replay import session_report
@@ -86,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     def status(text: str) -> None:
         print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
-    config = demo_config(out, args.time_rate)
+    config = demo_config(out, args.time_rate, args.log_encoding)
     r, sim_truth = run_field_session(config, out, seed=args.seed, dem=dem, db=db, on_status=status)
     lat, lon = sim_truth.lat_deg, sim_truth.lon_deg
     print(f"  session    {r.status.value}: " + ", ".join(f"{k} {v}" for k, v in r.outcomes.items()))
@@ -159,7 +171,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         if not text.startswith("capture "):
             print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
-    config = demo_config(out, args.time_rate)
+    config = demo_config(out, args.time_rate, args.log_encoding)
     r, truths = run_field_traverse(config, out, args.traverse, seed=args.seed, dem=dem, db=db, on_status=status)
     print(f"  traverse   {r.status.value}: {len(r.stops)} of {args.traverse} stops")
     for problem in r.problems:

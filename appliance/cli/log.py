@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 
 from appliance.logbook.recover import recover_log
 from appliance.logbook.summary import summarize_log
@@ -14,6 +15,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     info = sub.add_parser("info", help="topics, counts, time span, estimate vs GPS truth")
     info.add_argument("logs", nargs="+", metavar="LOG.mcap")
+    info.add_argument("--json", action="store_true",
+                      help="the same facts as one JSON object on stdout (a list of them for several logs)")
     info.set_defaults(func=_info)
 
     rec = sub.add_parser("recover", help="rewrite a truncated log (power cut, kill) into a valid one")
@@ -25,6 +28,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _info(args: argparse.Namespace) -> int:
     incomplete = 0
+    if args.json:
+        summaries = [summarize_log(path) for path in args.logs]
+        objects = [s.to_json() for s in summaries]
+        print(json.dumps(objects[0] if len(objects) == 1 else objects, allow_nan=False))
+        return 1 if any(not s.complete for s in summaries) else 0
     for i, path in enumerate(args.logs):
         summary = summarize_log(path)
         if i:

@@ -28,6 +28,7 @@ from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -148,6 +149,14 @@ def grid_transform(time_ns: int, east_m: float, north_m: float, convergence_deg:
     return tf
 
 
+def map_transform(time_ns: int, east_m: float, north_m: float, up_m: float = 0.0) -> FrameTransform:
+    """map -> world: a stop's ``world`` (east-north-up at its tripod) ``east_m``/``north_m``/``up_m`` from
+    the origin of a traverse's ``map`` (east-north-up at its first stop), axes parallel."""
+    tf = frame_transform(time_ns, MAP, "world", 0.0)
+    tf.translation.x, tf.translation.y, tf.translation.z = float(east_m), float(north_m), float(up_m)
+    return tf
+
+
 def skyline_annotations(time_ns: int, columns: np.ndarray, rows: np.ndarray,
                         rgba: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 1.0)) -> ImageAnnotations:
     """The skyline drawn over an image: one line strip per run of valid points (pixel ``columns`` and
@@ -168,6 +177,33 @@ def skyline_annotations(time_ns: int, columns: np.ndarray, rows: np.ndarray,
                 line.points.add(x=float(cols[i]), y=float(rws[i]))
         start = stop
     return out
+
+
+def pose_in_frame(time_ns: int, frame_id: str, position_m: Sequence[float]) -> PoseInFrame:
+    """A position (x, y, z in metres) in ``frame_id`` with no rotation."""
+    pose = PoseInFrame(timestamp=timestamp(time_ns), frame_id=frame_id)
+    pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = (float(v) for v in position_m)
+    pose.pose.orientation.w = 1.0
+    return pose
+
+
+#: the frames of one session's transform tree (``map`` is a traverse's root, above them)
+SESSION_FRAMES = frozenset({"world", "platform", "camera", CAMERA_OPTICAL, "skyline-grid"})
+MAP = "map"
+
+
+def with_frame_prefix(message: Any, prefix: str) -> Any:
+    """``message`` with each of its frames of :data:`SESSION_FRAMES` named ``prefix + frame`` (a copy;
+    ``message`` itself unchanged): a traverse's stops each keep their own tree under ``map``."""
+    fields = [f for f in ("frame_id", "parent_frame_id", "child_frame_id")
+              if f in type(message).DESCRIPTOR.fields_by_name and getattr(message, f) in SESSION_FRAMES]
+    if not prefix or not fields:
+        return message
+    copy = type(message)()
+    copy.CopyFrom(message)
+    for f in fields:
+        setattr(copy, f, prefix + getattr(message, f))
+    return copy
 
 
 def log_message(time_ns: int, level: str, text: str, name: str = "viper") -> Log:

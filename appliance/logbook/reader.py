@@ -21,13 +21,15 @@ from typing import Any
 import zstandard
 from google.protobuf.message import DecodeError
 from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Schema
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding
 from mcap_protobuf.decoder import DecoderFactory
 
 from appliance.errors import ErrorPolicy, LogError
+from appliance.extras import require
 from appliance.inputs import check_nesting, open_regular
+from appliance.logbook.topics import JSON_SCHEMA_KEY
 
 log = logging.getLogger(__name__)
 
@@ -47,17 +49,17 @@ class LogMessage:
     schema: Schema | None
     sequence: int = 0
     channel_id: int = 0
+    #: the JSON schema a ROS 2 log's ``std_msgs/msg/String`` channel carries (its channel metadata)
+    json_schema: str = ""
 
     def decode(self) -> Any:
-        """The protobuf object (``foxglove.*``) or the parsed JSON value."""
+        """The protobuf object (``foxglove.*``), the ROS 2 message (attributes named as its fields) or
+        the parsed JSON value (of a JSON channel, or of a ROS 2 String channel holding JSON)."""
         if self.message_encoding == MessageEncoding.JSON:
-            try:
-                check_nesting(self.data)
-                return json.loads(self.data)
-            except (ValueError, UnicodeDecodeError) as exc:
-                raise LogError(
-                    f"{self.topic} at {self.log_time_ns} ns: invalid JSON message: {exc}"
-                ) from None
+            return self._json(self.data)
+        if self.message_encoding == MessageEncoding.CDR and self.schema is not None:
+            decoded = _ros2_decoder(self.schema)(self.data)
+            return self._json(decoded.data.encode()) if self.json_schema else decoded
         if self.message_encoding == MessageEncoding.Protobuf and self.schema is not None:
             decoder = _proto_decoder(self.schema)
             try:
@@ -66,6 +68,13 @@ class LogMessage:
                 raise LogError(f"{self.topic} at {self.log_time_ns} ns: invalid {self.schema.name} message: "
                                f"{exc}") from None
         raise LogError(f"{self.topic}: cannot decode messages of encoding {self.message_encoding!r}")
+
+    def _json(self, data: bytes) -> Any:
+        try:
+            check_nesting(data)
+            return json.loads(data)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise LogError(f"{self.topic} at {self.log_time_ns} ns: invalid JSON message: {exc}") from None
 
 
 _DECODERS: dict[tuple[str, bytes], Callable[[bytes], Any]] = {}
@@ -85,12 +94,42 @@ def _proto_decoder(schema: Schema) -> Callable[[bytes], Any]:
     return dec
 
 
+def _ros2_decoder(schema: Schema) -> Callable[[bytes], Any]:
+    key = (schema.name, schema.data)
+    dec = _DECODERS.get(key)
+    if dec is None:
+        # mcap-ros2-support is optional (the rover extra): loaded only for a ROS 2 log
+        factory = require("mcap_ros2.decoder", "reading a ROS 2-encoded log").DecoderFactory()
+        try:
+            made = factory.decoder_for(MessageEncoding.CDR, schema)
+        except (McapError, ValueError) as exc:
+            raise LogError(f"schema {schema.name}: cannot build a ROS 2 decoder: {exc}") from None
+        if made is None:
+            raise LogError(f"schema {schema.name}: not a ROS 2 schema")
+        wrapped = _decode_errors(schema.name, made)
+        dec = _DECODERS[key] = wrapped
+    return dec
+
+
+def _decode_errors(name: str, decoder: Callable[[bytes], Any]) -> Callable[[bytes], Any]:
+    """``decoder`` raising :class:`LogError` for a message that does not decode."""
+
+    def decode(data: bytes) -> Any:
+        try:
+            return decoder(data)
+        except (ValueError, IndexError, struct.error, UnicodeDecodeError, EOFError) as exc:
+            raise LogError(f"invalid {name} message: {exc}") from None
+
+    return decode
+
+
 class LogReader:
     """Sequential reader of one MCAP log.  Iterate :meth:`messages` once; then read the outcome.
 
     After iteration: ``complete`` (the footer was reached), ``problem`` (why reading stopped early,
     or None), ``stopped_at`` (byte offset of the first unreadable record), ``header``,
-    ``size_bytes``.
+    ``size_bytes``, ``metadata`` (the MCAP metadata records read: name -> key/value pairs; a name
+    written twice keeps its last record).
     """
 
     def __init__(self, path: str | Path, policy: ErrorPolicy = ErrorPolicy.SKIP) -> None:
@@ -102,6 +141,7 @@ class LogReader:
         self.header: Header | None = None
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
+        self.metadata: dict[str, dict[str, str]] = {}
         try:
             with open_regular(self.path, "log", LogError) as fh:
                 self._data = fh.read()
@@ -147,6 +187,8 @@ class LogReader:
             self.schemas[rec.id] = rec
         elif isinstance(rec, Channel):
             self.channels[rec.id] = rec
+        elif isinstance(rec, Metadata):
+            self.metadata[rec.name] = dict(rec.metadata)
         elif isinstance(rec, Message):
             channel = self.channels.get(rec.channel_id)
             if channel is None:
@@ -166,6 +208,7 @@ class LogReader:
                 schema=schema,
                 sequence=rec.sequence,
                 channel_id=rec.channel_id,
+                json_schema=channel.metadata.get(JSON_SCHEMA_KEY, ""),
             )
         elif isinstance(rec, DataEnd):
             pass

@@ -6,8 +6,9 @@ chunk, its CRC.  Where a record does not check, the walk resynchronises on the n
 valid record starts (followed by another, by the file's trailing magic or by its end, unless it is a
 chunk whose CRC holds), so that everything after a corrupt stretch is kept; a stretch that runs to
 the end of the file is where it was cut.  Every message read is written again, with its topic,
-schema and times, into a new file that gets a summary and a footer; a message whose channel was
-lost in a corrupt stretch is taken with the channel the log's summary declares, if it has one.  The
+schema, times and sequence number, into a new file (with the log's metadata records and a data CRC)
+that gets a summary and a footer; a message whose channel was lost in a corrupt stretch is taken
+with the channel the log's summary declares, if it has one.  The
 output is written beside its final name and renamed into place only when complete
 (:func:`appliance.atomic.atomic_output`); the reserve file a killed session left beside the broken
 log is removed.
@@ -78,6 +79,7 @@ class Scan:
     skipped: list[tuple[int, int]] = field(default_factory=list)
     cut_at: int | None = None
     footer: bool = False
+    metadata: list[Metadata] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,8 @@ def scan_records(data: bytes) -> Scan:
             scan.channels.setdefault(rec.id, rec)
         elif isinstance(rec, Message):
             scan.messages += 1
+        elif isinstance(rec, Metadata):
+            scan.metadata.append(rec)
     return scan
 
 
@@ -236,8 +240,10 @@ def _copy(scan: Scan, found: Iterator[Message], tmp: Path) -> tuple[dict[str, in
     topics: dict[str, int] = {}
     count = 0
     try:
-        writer = McapWriter(sink, compression=CompressionType.ZSTD)  # type: ignore[arg-type]
+        writer = McapWriter(sink, compression=CompressionType.ZSTD, enable_data_crcs=True)  # type: ignore[arg-type]
         writer.start(profile=scan.header.profile if scan.header is not None else PROFILE, library=LIBRARY)
+        for record in scan.metadata:
+            writer.add_metadata(record.name, dict(record.metadata))
         schema_ids: dict[int, int] = {}
         channel_ids: dict[int, int] = {}
         for msg in found:

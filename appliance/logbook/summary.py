@@ -17,6 +17,8 @@ from appliance.logbook.reader import LogMessage, LogReader
 @dataclass
 class TopicStats:
     schema_name: str
+    message_encoding: str = ""
+    json_schema: str = ""  # the JSON schema a ROS 2 String channel carries
     count: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
@@ -31,6 +33,8 @@ class LogSummary:
     topics: dict[str, TopicStats] = field(default_factory=dict)
     estimate: dict[str, Any] | None = None
     truth: dict[str, Any] | None = None
+    profile: str | None = None
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
 
     @property
     def message_count(self) -> int:
@@ -70,9 +74,19 @@ class LogSummary:
         span = self.span_ns
         if span is not None:
             out.append(f"time span: {utc_text(span[0])} .. {utc_text(span[1])} ({(span[1] - span[0]) / 1e9:.3f} s)")
+        software = self.metadata.get("viper.software")
+        if software is not None:
+            out.append(f"written by {software.get('name', '?')} {software.get('version', '?')}, profile "
+                       f"{self.profile or '?'}, metadata: {', '.join(sorted(self.metadata))}")
+        elif self.profile is not None:
+            out.append(f"profile {self.profile}, metadata: {', '.join(sorted(self.metadata)) or 'none'}")
+        the_map = self.metadata.get("viper.map")
+        if the_map is not None:
+            out.append(f"map: {the_map.get('path', '?')} sha256 {the_map.get('sha256', '?')}")
         width = max((len(t) for t in self.topics), default=5)
         for name, st in sorted(self.topics.items()):
-            out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}")
+            carried = f" ({st.json_schema})" if st.json_schema else ""
+            out.append(f"  {name:<{width}}  {st.count:>6}  {st.schema_name}{carried}")
         if self.truth is not None:
             out.append(f"GPS truth: lat {self.truth['lat']:.6f} lon {self.truth['lon']:.6f}")
         if self.estimate is not None:
@@ -84,6 +98,29 @@ class LogSummary:
         elif self.estimate is None:
             out.append("no estimate in this log")
         return out
+
+    def to_json(self) -> dict[str, Any]:
+        """The facts of :meth:`lines` as one JSON object (times in ns since the Unix epoch and as UTC text)."""
+        span = self.span_ns
+        return {
+            "path": str(self.path),
+            "size_bytes": self.size_bytes,
+            "message_count": self.message_count,
+            "complete": self.complete,
+            "problem": self.problem,
+            "profile": self.profile,
+            "span": None if span is None else {"start_ns": span[0], "end_ns": span[1], "start": utc_text(span[0]),
+                                               "end": utc_text(span[1]), "duration_s": (span[1] - span[0]) / 1e9},
+            "topics": {name: {"schema": st.schema_name, "message_encoding": st.message_encoding,
+                              "json_schema": st.json_schema or None, "count": st.count,
+                              "first_ns": st.first_ns, "last_ns": st.last_ns}
+                       for name, st in sorted(self.topics.items())},
+            "metadata": self.metadata,
+            "truth": self.truth,
+            "estimate": None if self.estimate is None else {
+                "lat": self.estimate["lat"], "lon": self.estimate["lon"], "status": self.estimate_status},
+            "error_m": self.error_m,
+        }
 
 
 def utc_text(time_ns: int) -> str:
@@ -140,7 +177,7 @@ def summarize_log(path: str | Path) -> LogSummary:
     estimate: dict[str, Any] | None = None
     truth: dict[str, Any] | None = None
     for msg in reader.messages():
-        st = stats.setdefault(msg.topic, TopicStats(msg.schema_name))
+        st = stats.setdefault(msg.topic, TopicStats(msg.schema_name, msg.message_encoding, msg.json_schema))
         st.count += 1
         st.first_ns = msg.log_time_ns if st.first_ns is None else min(st.first_ns, msg.log_time_ns)
         st.last_ns = msg.log_time_ns if st.last_ns is None else max(st.last_ns, msg.log_time_ns)
@@ -158,4 +195,6 @@ def summarize_log(path: str | Path) -> LogSummary:
         topics=stats,
         estimate=estimate,
         truth=truth,
+        profile=reader.header.profile if reader.header is not None else None,
+        metadata=reader.metadata,
     )

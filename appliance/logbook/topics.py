@@ -12,6 +12,8 @@ topic                         schema                      content
 ``/gps/fix``                  foxglove.LocationFix        every GPS fix as received
 ``/gps/truth``                foxglove.LocationFix        the averaged ground truth of the session
 ``/estimate/fix``             foxglove.LocationFix        the onboard (or replayed) estimate
+``/estimate/pose``            foxglove.PoseInFrame        the estimate at the origin of ``world`` (a ROS 2
+                                                          log: PoseWithCovarianceStamped, its covariance)
 ``/tf``                       foxglove.FrameTransform     attitude (world->platform), stage (->camera),
                                                           camera->camera_optical, world->skyline-grid
 ``/log``                      foxglove.Log                daemon and procedure messages
@@ -34,11 +36,21 @@ strict: every field a writer writes is declared and no other is allowed (``addit
 false), so a reader can rely on the names.  log_time of every message is the acquisition time in
 nanoseconds since the Unix epoch (UTC).  The same messages go live to Foxglove with ``--live``
 (:mod:`appliance.logbook.live`).
+
+A log written with ``[logbook] encoding = "ros2"`` has the same topics as standard ROS 2 messages
+(:mod:`appliance.logbook.ros2`: NavSatFix, CompressedImage, CameraInfo, TFMessage, rcl_interfaces Log,
+foxglove_msgs for the annotations, GeoJSON and grid) and the JSON records as ``std_msgs/msg/String``
+whose channel metadata ``json_schema`` names their schema.  In a traverse every stop's frames are
+named ``stop-N/...`` and ``/tf`` places each stop's ``stop-N/world`` in ``map``, the traverse's one
+root (local east-north-up at the first stop).
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+#: the channel metadata key naming the JSON schema of a ROS 2 log's ``std_msgs/msg/String`` channel
+JSON_SCHEMA_KEY = "json_schema"
 
 IMAGE = "/camera/image"
 PANORAMA = "/camera/panorama"
@@ -47,6 +59,7 @@ CALIBRATION = "/camera/calibration"
 GPS_FIX = "/gps/fix"
 GPS_TRUTH = "/gps/truth"
 ESTIMATE_FIX = "/estimate/fix"
+ESTIMATE_POSE = "/estimate/pose"
 TF = "/tf"
 LOG = "/log"
 REGION = "/region"

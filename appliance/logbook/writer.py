@@ -11,6 +11,12 @@ record, frees a small reserve file kept beside the log, and closes the data sect
 summary (DataEnd, Footer, magic): a valid MCAP file holding everything written before the failure.
 The logbook then refuses further writes and raises :class:`LogbookFullError`.
 
+Encoding.  ``encoding`` chooses the messages: Foxglove's protobuf schemas (the default), or standard
+ROS 2 messages in CDR (:mod:`appliance.logbook.ros2`), the JSON records then as ``std_msgs/msg/String``
+whose channel metadata ``json_schema`` names their JSON schema.  Either way every message carries its
+channel's sequence number (1, 2, ...), the data section its CRC, and :meth:`Logbook.write_metadata`
+adds MCAP metadata records (the configuration, calibrations, software version, map).
+
 The reserve file (``.NAME.mcap.reserve``) stays locked (``flock``) while its log is open; a killed
 session leaves it unlocked, and :func:`remove_stale_reserves` (called at session start and by
 ``viper log recover``) removes it.
@@ -36,15 +42,17 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from appliance.atomic import remove_if_unheld
-from appliance.config import Compression
+from appliance.config import Compression, LogEncoding
 from appliance.errors import LogError
+from appliance.logbook import ros2
 from appliance.logbook.live import Publisher
-from appliance.logbook.messages import to_jsonable
+from appliance.logbook.messages import SESSION_FRAMES, pose_in_frame, to_jsonable, with_frame_prefix
 from appliance.logbook.sink import DurableFile, Sink
-from appliance.logbook.topics import JSON_SCHEMAS
+from appliance.logbook.topics import JSON_SCHEMA_KEY, JSON_SCHEMAS
 
 LOG = logging.getLogger(__name__)
 PROFILE = "viper"
+PROFILES = {LogEncoding.PROTOBUF: PROFILE, LogEncoding.ROS2: "ros2"}
 LIBRARY = "viper-appliance logbook"
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 COMPRESSIONS = {Compression.ZSTD: CompressionType.ZSTD, Compression.LZ4: CompressionType.LZ4,
@@ -76,6 +84,7 @@ class Logbook:
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
         publisher: Publisher | None = None,
+        encoding: LogEncoding = LogEncoding.PROTOBUF,
     ) -> None:
         if compression not in COMPRESSIONS:
             known = ", ".join(c.value for c in COMPRESSIONS)
@@ -91,6 +100,11 @@ class Logbook:
         self._state = "open"
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}
+        self._sequences: dict[int, int] = {}
+        self.encoding = LogEncoding(encoding)
+        self._ros2 = ros2.Ros2Encoder() if self.encoding is LogEncoding.ROS2 else None
+        #: prefixed to the session frames of every message (a traverse's stop: ``stop-2/``)
+        self.frame_prefix = ""
         self._publisher = publisher
         self._schema_data: dict[str, tuple[str, bytes]] = {}
         self._published: dict[str, tuple[str, str, bytes, str]] = {}
@@ -104,8 +118,9 @@ class Logbook:
             sink,  # type: ignore[arg-type]
             chunk_size=chunk_size_bytes,
             compression=COMPRESSIONS[compression],
+            enable_data_crcs=True,
         )
-        self._guarded(lambda: self._writer.start(profile=PROFILE, library=LIBRARY))
+        self._guarded(lambda: self._writer.start(profile=PROFILES[self.encoding], library=LIBRARY))
         self._last_flush = self._clock()
 
     @classmethod
@@ -119,6 +134,7 @@ class Logbook:
         reserve_bytes: int = 64 * 1024,
         clock: Callable[[], float] = time.monotonic,
         publisher: Publisher | None = None,
+        encoding: LogEncoding = LogEncoding.PROTOBUF,
     ) -> Logbook:
         """A new log at ``path`` (its directory is created; an existing file is never overwritten)."""
         p = Path(path)
@@ -140,6 +156,7 @@ class Logbook:
                 reserve_bytes=reserve_bytes,
                 clock=clock,
                 publisher=publisher,
+                encoding=encoding,
             )
         except LogError:
             sink.close()
@@ -161,29 +178,65 @@ class Logbook:
             raise LogError(f"{self.name}: log is closed")
 
     # ----------------------------------------------------------------------------------- writes
-    def write_proto(self, topic: str, message: Any, log_time_ns: int, sequence: int = 0) -> None:
-        """Write a protobuf message (a Foxglove schema) on ``topic``."""
+    def write_proto(self, topic: str, message: Any, log_time_ns: int) -> None:
+        """Write a Foxglove protobuf message on ``topic`` (as its ROS 2 message in a ROS 2 log)."""
         self._require_open()
+        message = with_frame_prefix(message, self.frame_prefix)
+        if self._ros2 is not None:
+            ros_type, fields = ros2.to_ros2(message)
+            self._write_ros2(topic, ros_type, ros_type, fields, log_time_ns)
+            return
         type_name = type(message).DESCRIPTOR.full_name
         channel_id = self._channel(
             topic, type_name, MessageEncoding.Protobuf, lambda: self._proto_schema(message)
         )
         data = message.SerializeToString()
-        self._add(channel_id, log_time_ns, data, sequence)
+        self._add(channel_id, log_time_ns, data)
         self._publish(topic, data, log_time_ns)
 
-    def write_json(
-        self, topic: str, schema_name: str, payload: Any, log_time_ns: int, sequence: int = 0
-    ) -> None:
-        """Write a JSON message; ``schema_name`` must be one of :data:`topics.JSON_SCHEMAS`."""
+    def write_json(self, topic: str, schema_name: str, payload: Any, log_time_ns: int) -> None:
+        """Write a JSON message; ``schema_name`` must be one of :data:`topics.JSON_SCHEMAS` (in a ROS 2 log,
+        a ``std_msgs/msg/String`` holding the JSON text)."""
         self._require_open()
         if schema_name not in JSON_SCHEMAS:
             raise LogError(f"{self.name}: unknown JSON schema {schema_name!r} for topic {topic}")
+        text = json.dumps(to_jsonable(payload), allow_nan=False, separators=(",", ":"))
+        if self._ros2 is not None:
+            self._write_ros2(topic, schema_name, ros2.STRING, {"data": text}, log_time_ns,
+                             {JSON_SCHEMA_KEY: schema_name})
+            return
         channel_id = self._channel(
             topic, schema_name, MessageEncoding.JSON, lambda: self._json_schema(schema_name)
         )
-        data = json.dumps(to_jsonable(payload), allow_nan=False, separators=(",", ":")).encode()
-        self._add(channel_id, log_time_ns, data, sequence)
+        data = text.encode()
+        self._add(channel_id, log_time_ns, data)
+        self._publish(topic, data, log_time_ns)
+
+    def write_pose(self, topic: str, time_ns: int, frame_id: str, position_m: Any,
+                   covariance_m2: Any = None) -> None:
+        """A position (x, y, z in metres) in ``frame_id``: a ``geometry_msgs/msg/PoseWithCovarianceStamped``
+        with ``covariance_m2`` (3 x 3) in a ROS 2 log, a foxglove.PoseInFrame (no covariance) otherwise."""
+        frame = self.frame_prefix + frame_id if frame_id in SESSION_FRAMES else frame_id
+        if self._ros2 is None:
+            self.write_proto(topic, pose_in_frame(time_ns, frame, position_m), time_ns)
+            return
+        self._require_open()
+        fields = ros2.pose_with_covariance(time_ns, frame, position_m, covariance_m2)
+        self._write_ros2(topic, ros2.POSE, ros2.POSE, fields, time_ns)
+
+    def write_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An MCAP metadata record ``name`` (string keys and values)."""
+        self._require_open()
+        self._guarded(lambda: self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()}))
+
+    def _write_ros2(self, topic: str, channel_schema: str, ros_type: str, fields: dict[str, Any], log_time_ns: int,
+                    metadata: dict[str, str] | None = None) -> None:
+        assert self._ros2 is not None
+        encoder = self._ros2
+        channel_id = self._channel(topic, channel_schema, ros2.MESSAGE_ENCODING,
+                                   lambda: (ros2.SCHEMA_ENCODING, encoder.schema(ros_type)), ros_type, metadata)
+        data = encoder.encode(ros_type, fields)
+        self._add(channel_id, log_time_ns, data)
         self._publish(topic, data, log_time_ns)
 
     def flush(self) -> None:
@@ -225,23 +278,28 @@ class Logbook:
 
     # ----------------------------------------------------------------------------------- internals
     def _channel(
-        self, topic: str, schema_name: str, encoding: str, schema: Callable[[], tuple[str, bytes]]
+        self, topic: str, schema_name: str, encoding: str, schema: Callable[[], tuple[str, bytes]],
+        record_name: str | None = None, metadata: dict[str, str] | None = None,
     ) -> int:
+        """The channel of ``topic`` (made the first time); ``schema_name`` is what the topic carries (the
+        JSON schema of a ROS 2 String channel), ``record_name`` the schema record's name if another."""
         known = self._channels.get(topic)
         if known is not None:
             if known[1] != schema_name:
                 raise LogError(f"{self.name}: topic {topic} carries {known[1]}, cannot write a {schema_name}")
             return known[0]
-        schema_id = self._schemas.get(schema_name)
+        stored = record_name or schema_name
+        schema_id = self._schemas.get(stored)
         if schema_id is None:
             schema_encoding, data = schema()
-            self._schema_data[schema_name] = (schema_encoding, data)
+            self._schema_data[stored] = (schema_encoding, data)
             schema_id = self._guarded(
-                lambda: self._writer.register_schema(schema_name, schema_encoding, data)
+                lambda: self._writer.register_schema(stored, schema_encoding, data)
             )
-            self._schemas[schema_name] = schema_id
-        self._published[topic] = (schema_name, *self._schema_data[schema_name], encoding)
-        channel_id = self._guarded(lambda: self._writer.register_channel(topic, encoding, schema_id))
+            self._schemas[stored] = schema_id
+        self._published[topic] = (stored, *self._schema_data[stored], encoding)
+        channel_id = self._guarded(
+            lambda: self._writer.register_channel(topic, encoding, schema_id, metadata or {}))
         self._channels[topic] = (channel_id, schema_name)
         return channel_id
 
@@ -265,11 +323,13 @@ class Logbook:
     def _json_schema(schema_name: str) -> tuple[str, bytes]:
         return SchemaEncoding.JSONSchema, json.dumps(JSON_SCHEMAS[schema_name]).encode()
 
-    def _add(self, channel_id: int, log_time_ns: int, data: bytes, sequence: int) -> None:
+    def _add(self, channel_id: int, log_time_ns: int, data: bytes) -> None:
         t = int(log_time_ns)
         if t < 0:
             raise LogError(f"{self.name}: negative log_time {t} ns")
+        sequence = self._sequences.get(channel_id, 0) + 1
         self._guarded(lambda: self._writer.add_message(channel_id, t, data, t, sequence))
+        self._sequences[channel_id] = sequence
         self.messages_written += 1
         self.maybe_flush()
 

@@ -87,11 +87,13 @@ def estimate_record(db: SkylineDatabase, pos: Position, skyline: Skyline,
 
 def write_estimate_records(log: Logbook, time_ns: int, db: SkylineDatabase, pos: Position, skyline: Skyline,
                            truth: tuple[float, float] | None) -> EstimateRecord:
-    """The estimate into ``log``: LocationFix, full JSON record, region (GeoJSON), world -> skyline-grid
+    """The estimate into ``log``: LocationFix, the pose at the origin of ``world`` with its covariance
+    (PoseWithCovarianceStamped in a ROS 2 log), full JSON record, region (GeoJSON), world -> skyline-grid
     (FrameTransform), lower posterior (Grid) and the skyline rendered at the estimate; returns the
     record with its error against ``truth``."""
     rec = estimate_record(db, pos, skyline, truth)
     log.write_proto(t.ESTIMATE_FIX, estimate_fix(db, pos, time_ns, "estimate"), time_ns)
+    log.write_pose(t.ESTIMATE_POSE, time_ns, "world", (0.0, 0.0, 0.0), covariance_enu_m2(pos))
     log.write_json(t.ESTIMATE_RECORD, "viper.Estimate", rec.record, time_ns)
     log.write_proto(t.REGION, m.geojson(region_features(db, pos)), time_ns)
     log.write_proto(t.TF, posterior_transform(db, pos, time_ns), time_ns)
@@ -104,10 +106,17 @@ def write_estimate_records(log: Logbook, time_ns: int, db: SkylineDatabase, pos:
 def estimate_fix(db: SkylineDatabase, pos: Position, time_ns: int, frame_id: str) -> m.LocationFix:
     """The estimate as a LocationFix: the map's altitude plus the eye's height, and the covariance
     (east, north from the estimate; up: the map's height error under the camera)."""
+    return m.location_fix(time_ns, pos.lat, pos.lon, altitude_m(db, pos), frame_id=frame_id,
+                          covariance_enu_m2=covariance_enu_m2(pos))
+
+
+def covariance_enu_m2(pos: Position) -> np.ndarray | None:
+    """The estimate's covariance (3 x 3, m^2) in east, north, up: east and north from the estimate, up the
+    map's height error under the camera; None when the estimate has none."""
     cov = pos.result.covariance_m2
-    enu = None
-    if cov is not None:
-        enu = np.zeros((3, 3))
-        enu[:2, :2] = cov
-        enu[2, 2] = EYE_SIGMA_M**2
-    return m.location_fix(time_ns, pos.lat, pos.lon, altitude_m(db, pos), frame_id=frame_id, covariance_enu_m2=enu)
+    if cov is None:
+        return None
+    enu = np.zeros((3, 3))
+    enu[:2, :2] = cov
+    enu[2, 2] = EYE_SIGMA_M**2
+    return enu
