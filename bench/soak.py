@@ -48,21 +48,23 @@ def write_dem(path: Path) -> None:
     """An 8 x 8 DEM of 0.01 deg cells around (LAT, LON), heights 400-460 m."""
     import numpy as np
     import rasterio
-    from rasterio.transform import from_origin
+    from rasterio.transform import Affine
 
     z = (400 + 60 * np.random.default_rng(0).random((8, 8))).astype("float32")
     with rasterio.open(path, "w", driver="GTiff", width=8, height=8, count=1, dtype="float32", crs="EPSG:4326",
-                       transform=from_origin(LON - 0.04, LAT + 0.04, 0.01, 0.01)) as ds:
+                       transform=Affine(0.01, 0.0, LON - 0.04, 0.0, -0.01, LAT + 0.04)) as ds:
         ds.write(z, 1)
 
 
-def config_text(dem: Path, log_dir: Path, sessions: int, cap_bytes: int, camera: bool) -> str:
+def config_text(dem: Path, log_dir: Path, sessions: int, cap_bytes: int, camera: bool, time_rate: float = 200.0,
+                truth_s: float = 2.0) -> str:
+    """The soak's configuration (see the module's description)."""
     return (f'[platform]\nkind = "sim"\n'
             f'[logbook]\nlog_dir = "{log_dir}"\nreserve_bytes = 4096\nmax_total_bytes = {cap_bytes}\n'
             f"[session]\ninterval_s = 0.05\nmax_sessions = {sessions}\nlevel_poll_s = 0.05\ncompass_steps = 8\n"
-            "truth_duration_s = 2.0\ntruth_min_fixes = 1\nsettle_s = 0.0\ncapture_overlap = 0.0\n"
+            f"truth_duration_s = {truth_s}\ntruth_min_fixes = 1\nsettle_s = 0.0\ncapture_overlap = 0.0\n"
             "[devices.camera]\nwidth = 64\nheight = 48\nflush_frames = 0\n"
-            f'[sim]\ndem = "{dem}"\nlat_deg = {LAT}\nlon_deg = {LON}\ntime_rate = 200.0\ngps_rate_hz = 5.0\n'
+            f'[sim]\ndem = "{dem}"\nlat_deg = {LAT}\nlon_deg = {LON}\ntime_rate = {time_rate}\ngps_rate_hz = 5.0\n'
             + ("" if camera else "[sim.faults]\ncamera_unplug_after = 0\n"))
 
 
@@ -116,7 +118,8 @@ def whole(path: Path) -> bool:
         return False
 
 
-def run_soak(work: Path, sessions: int, cap_bytes: int, minutes: float, camera: bool = True) -> Soak:
+def run_soak(work: Path, sessions: int, cap_bytes: int, minutes: float, camera: bool = True,
+             verbose: bool = False) -> Soak:
     """The daemon through ``sessions`` sessions with the logs capped at ``cap_bytes`` (see the module)."""
     dem, logs = work / "dem.tif", work / "logs"
     if not dem.exists():
@@ -163,7 +166,8 @@ def run_soak(work: Path, sessions: int, cap_bytes: int, minutes: float, camera: 
                 present = path.exists() and is_complete(path)
                 out.rows.append(Row(int(words[1]), time.monotonic() - start, rss, threads, fds,
                                     logs_total_bytes(logs), len(list(logs.glob("viper-*.mcap"))), name, present))
-                print(f"session {words[1]}: {out.rows[-1]}", flush=True)
+                if verbose:
+                    print(f"session {words[1]}: {out.rows[-1]}", flush=True)
         out.exit_code = proc.wait(timeout=300)
     finally:
         if proc.poll() is None:
@@ -182,9 +186,9 @@ def run_soak(work: Path, sessions: int, cap_bytes: int, minutes: float, camera: 
     return out
 
 
-def log_size(work: Path, camera: bool) -> int:
-    """The largest log of two sessions without a cap."""
-    s = run_soak(work, 2, 0, 10.0, camera)
+def log_size(work: Path, camera: bool, sessions: int = 2) -> int:
+    """The largest log of ``sessions`` sessions without a cap."""
+    s = run_soak(work, sessions, 0, 10.0, camera)
     sizes = [p.stat().st_size for p in (work / "logs").glob("viper-*.mcap")]
     if s.exit_code != 0 or not sizes:
         raise SystemExit(f"the sizing run failed (exit {s.exit_code}): {s.stderr_tail}")
@@ -261,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tmp)
         one_log = log_size(work, not args.no_camera)
         cap = args.cap_logs * one_log
-        s = run_soak(work, args.sessions, cap, args.minutes, not args.no_camera)
+        s = run_soak(work, args.sessions, cap, args.minutes, not args.no_camera, verbose=True)
     text, ok = report(s, args.sessions, args.cap_logs, cap, one_log, command)
     header = ("# Soak: the session daemon through hundreds of simulated sessions, logs capped\n\n"
               "Written by `bench/soak.py` (its docstring says what is measured and how).\n")
