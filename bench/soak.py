@@ -202,7 +202,8 @@ def mean(values: list[int]) -> float:
     return sum(values) / len(values)
 
 
-def report(s: Soak, sessions: int, cap_logs: int, cap_bytes: int, one_log: int, command: str) -> tuple[str, bool]:
+def report(s: Soak, sessions: int, cap_logs: int, cap_bytes: int, one_log: int, command: str,
+           commit: str = "") -> tuple[str, bool]:
     rows = s.rows
     n = len(rows)
     if not rows:
@@ -225,7 +226,8 @@ def report(s: Soak, sessions: int, cap_logs: int, cap_bytes: int, one_log: int, 
         f"{sessions} sessions run": n >= sessions,
     }
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    lines = [f"\n## {stamp} (commit {checkout_commit(ROOT)}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f})\n",
+    lines = [f"\n## {stamp} (commit {commit or checkout_commit(ROOT)}, {os.cpu_count()} CPUs, load "
+             f"{os.getloadavg()[0]:.1f} at the end)\n",
              f"Command: `{command}`\n",
              f"{n} sessions in {s.wall_s / 60:.1f} min ({per_session:.1f} s per session with the daemon's "
              f"interval of 0.05 s); daemon exit {s.exit_code}; one log {one_log} bytes, cap {cap_logs} logs = "
@@ -261,12 +263,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args(argv)
     command = "python bench/soak.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    commit = checkout_commit(ROOT)  # the code the daemon runs, before anything changes during the run
     with tempfile.TemporaryDirectory(prefix="viper-soak-") as tmp:
         work = Path(tmp)
         one_log = log_size(work, not args.no_camera)
         cap = args.cap_logs * one_log
         s = run_soak(work, args.sessions, cap, args.minutes, not args.no_camera, verbose=True)
-    text, ok = report(s, args.sessions, args.cap_logs, cap, one_log, command)
+    text, ok = report(s, args.sessions, args.cap_logs, cap, one_log, command, commit)
     header = ("# Soak: the session daemon through hundreds of simulated sessions, logs capped\n\n"
               "Written by `bench/soak.py` (its docstring says what is measured and how).\n")
     append_result(args.out, header, text)
