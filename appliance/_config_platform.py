@@ -214,6 +214,7 @@ class SimFaultsConfig:
     gps_bad_checksum_rate: float = 0.0
     gps_stuck_at_s: float | None = None  # the receiver repeats its last position from then on
     gps_drift_m_per_s: float = 0.0  # the reported position walks north at this speed
+    clock_offset_s: float = 0.0  # the platform's clock runs this far ahead of the GPS time (s)
     compass_stuck: bool = False  # the magnetometer repeats its first reading
     compass_drift_deg_per_s: float = 0.0  # the field turns slowly (a nearby magnet moving)
     inclinometer_stuck: bool = False
@@ -234,6 +235,7 @@ class SimFaultsConfig:
         if self.gps_stuck_at_s is not None:
             _non_negative("sim.faults.gps_stuck_at_s", self.gps_stuck_at_s)
         _finite("sim.faults.gps_drift_m_per_s", self.gps_drift_m_per_s)
+        _within("sim.faults.clock_offset_s", self.clock_offset_s, -86_400.0, 86_400.0)
         _finite("sim.faults.compass_drift_deg_per_s", self.compass_drift_deg_per_s)
         _require(self.stage_miss_step_every >= 0, "sim.faults.stage_miss_step_every", "an integer >= 0",
                  self.stage_miss_step_every)

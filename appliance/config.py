@@ -49,8 +49,9 @@ from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read
 
 __all__ = [
     "CameraDeviceConfig", "CompassConfig", "CompassKind", "Compression", "Config", "DevicesConfig", "EstimatorConfig",
-    "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LogEncoding", "LogbookConfig", "OdometryDeviceConfig",
-    "PlatformConfig", "PlatformKind", "SIGMA_MAX_DEG", "SIGMA_MIN_DEG", "SessionConfig", "SimConfig",
+    "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LEAST_LOG_BYTES", "LogEncoding", "LogbookConfig",
+    "OdometryDeviceConfig", "PlatformConfig", "PlatformKind", "SIGMA_MAX_DEG", "SIGMA_MIN_DEG", "SessionConfig",
+    "SimConfig",
     "SimFaultsConfig", "StageConfig", "TraverseConfig", "UDP_SCHEME", "from_mapping", "load_config", "override",
     "read_config_toml", "udp_address",
 ]
@@ -77,6 +78,10 @@ class LogEncoding(str, enum.Enum):
     PROTOBUF = "protobuf"
     ROS2 = "ros2"
 
+#: The least a session's log takes besides its reserve (bytes): the header, the camera's calibration and
+#: the readings of level, compass and GPS truth (a session of the simulated platform with six frames of
+#: 64 x 48 pixels writes about 27 kB).
+LEAST_LOG_BYTES = 16_384
 
 #: The physical range of a skyline's sigma (deg): a thousandth of a degree (far below any sensor's
 #: arc-second survey) to 30 degrees (a skyline that says nothing).
@@ -131,6 +136,18 @@ class LogbookConfig:
     compression: Compression = Compression.ZSTD
     reserve_bytes: int = 65_536  # freed on a full disk so the log can still be sealed
     encoding: LogEncoding = LogEncoding.PROTOBUF
+    # retention (appliance.acquisition.retention): before and after every session the oldest complete logs
+    # are removed until the disk keeps this much free and the logs take at most this much; 0 = no limit
+    keep_free_bytes: int = 0
+    max_total_bytes: int = 0
+    keep_unreplayed: bool = False  # never remove a log `viper replay` has not marked replayed (LOG.replayed)
+    max_clock_offset_s: float = 2.0  # a session whose clock is farther than this from the GPS time is flagged
+
+    @property
+    def least_log_bytes(self) -> int:
+        """The least one session's log takes in the folder while it is written: its reserve beside it
+        and :data:`LEAST_LOG_BYTES` (the header, the calibration, the readings of a session without frames)."""
+        return self.reserve_bytes + LEAST_LOG_BYTES
 
     def __post_init__(self) -> None:
         _positive("logbook.fsync_interval_s", self.fsync_interval_s)
@@ -141,6 +158,13 @@ class LogbookConfig:
         _require(isinstance(self.compression, Compression), "logbook.compression", _choices(Compression),
                  self.compression)
         _require(isinstance(self.encoding, LogEncoding), "logbook.encoding", _choices(LogEncoding), self.encoding)
+        _require(0 <= self.keep_free_bytes <= _LARGEST_INT, "logbook.keep_free_bytes", "an integer >= 0 (0: no "
+                 "limit)", self.keep_free_bytes)
+        _require(self.max_total_bytes == 0 or self.least_log_bytes <= self.max_total_bytes <= _LARGEST_INT,
+                 "logbook.max_total_bytes", f"0 (no cap) or at least one log: reserve_bytes + {LEAST_LOG_BYTES} = "
+                 f"{self.least_log_bytes} bytes", self.max_total_bytes)
+        _require(math.isfinite(self.max_clock_offset_s) and self.max_clock_offset_s > 0,
+                 "logbook.max_clock_offset_s", "a finite number of seconds > 0", self.max_clock_offset_s)
 
 
 @dataclass(frozen=True)

@@ -527,7 +527,7 @@ def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: in
     if answer is None or "lat" not in answer or "lon" not in answer:
         row["failed"] = stderr.strip().splitlines()[-1] if stderr.strip() else f"exit {exit_code}, no JSON answer"
         return row
-    _, _, d_m = Geod(ellps="WGS84").inv(float(answer["lon"]), float(answer["lat"]), spec.lon, spec.lat)
+    az_deg, _, d_m = Geod(ellps="WGS84").inv(float(answer["lon"]), float(answer["lat"]), spec.lon, spec.lat)
     truth = answer.get("truth") or {}
     timing = answer.get("timing") or {}
     orient = answer.get("orientation") or {}
@@ -539,6 +539,7 @@ def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: in
         "region_cells": (answer.get("region") or {}).get("n_cells"),
         "truth_error_m": truth.get("error_m"), "in_region": truth.get("in_region"),
         "in_ellipse": truth.get("in_ellipse"), "build_s": timing.get("build_s"), "total_s": timing.get("total_s"),
+        "mahalanobis2": _mahalanobis2(answer.get("covariance_m2"), float(d_m), float(az_deg)),
     })
     if orient:
         true_f = spec.intrinsics.fx
@@ -549,6 +550,19 @@ def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: in
             "focal_err": round(float(orient["focal_px"]) / true_f - 1.0, 4),
         })
     return row
+
+
+def _mahalanobis2(cov_m2: list | None, distance_m: float, azimuth_deg: float) -> float | None:
+    """The truth's squared Mahalanobis distance from the answer under its covariance (east, north):
+    chi-square with 2 degrees of freedom when the covariance is right (5.99 at 95 %)."""
+    if not cov_m2:
+        return None
+    cov = np.asarray(cov_m2, dtype=float)
+    e = distance_m * np.array([math.sin(math.radians(azimuth_deg)), math.cos(math.radians(azimuth_deg))])
+    try:
+        return round(float(e @ np.linalg.solve(cov, e)), 3)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _node_cell_m(answer: dict) -> float | None:

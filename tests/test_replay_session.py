@@ -245,5 +245,9 @@ def test_cli_replay_prints_the_error_and_fails_cleanly_on_junk(session_log, wind
     junk.write_bytes(b"\x89MCAP0\r\n garbage")
     assert main(["replay", str(junk), "--db", window_db.path, "--out", str(tmp_path / "j")]) == 1
     assert "not a readable MCAP log" in capsys.readouterr().out
+    # the replayed log is marked for retention's keep_unreplayed; the unreadable one is not
+    marker = session_log.log_path.with_name(session_log.log_path.name + ".replayed")
+    assert marker.read_text() == f"replayed into {tmp_path.absolute()}\n"
+    assert not junk.with_name("junk.mcap.replayed").exists()
     assert main(["replay", str(junk), "--db", window_db.path, "--sigma", "x"]) != 0
     assert "--sigma" in capsys.readouterr().err

@@ -20,6 +20,7 @@ log.  A session that could not write its log is skipped with one line on stderr;
 
 from __future__ import annotations
 
+import enum
 import fcntl
 import logging
 import os
@@ -32,9 +33,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
 
+from appliance.acquisition import retention
 from appliance.acquisition.notify import Notifier
 from appliance.acquisition.session import SessionResult, earlier_faults
-from appliance.config import Config
+from appliance.config import Config, LogbookConfig
 from appliance.errors import DeviceError, LogError, ProtocolError
 
 LOG = logging.getLogger(__name__)
@@ -71,10 +73,26 @@ def run_one_session(
     log_dir: Path,
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
+    logbook: LogbookConfig | None = None,
 ) -> SessionResult:
-    """One session under the session lock."""
+    """One session under the session lock; with ``logbook``, its retention limits enforced before the
+    session (room for its log, else :class:`appliance.acquisition.retention.NoRoomError`) and after."""
     with session_lock(log_dir):
-        return run_session(log_dir, should_stop, on_status)
+        if logbook is not None:
+            retention.make_room(log_dir, logbook)
+        result = run_session(log_dir, should_stop, on_status)
+        if logbook is not None:
+            retention.enforce(log_dir, logbook, open_log=result.log_path)
+        return result
+
+
+class NoRoom(enum.Enum):
+    """A session that did not start for want of room within the retention limits."""
+
+    NO_ROOM = "no room"
+
+
+NO_ROOM = NoRoom.NO_ROOM
 
 
 @dataclass
@@ -175,6 +193,9 @@ class SessionDaemon:
         n = written = 0
         while not self._stop.is_set():
             outcome = self._session(n + 1)
+            if outcome is NO_ROOM:  # not a session either: the next slot tries again
+                self._wait(cfg.interval_s)
+                continue
             if outcome is None:  # the devices did not answer: not a session, try again later
                 self._wait(self.outage.wait_s if self.outage is not None else self.retry_first_s)
                 continue
@@ -189,16 +210,22 @@ class SessionDaemon:
             return 1
         return 0
 
-    def _session(self, n: int) -> bool | None:
-        """Session ``n``: whether it wrote a log; None when the devices did not answer."""
+    def _session(self, n: int) -> bool | None | NoRoom:
+        """Session ``n``: whether it wrote a log; None when the devices did not answer, :data:`NO_ROOM`
+        when the retention limits left no room for its log."""
         self._status(f"session {n} starting")
         notes = [] if self.outage is None else [self.outage.note(self._clock())]
         try:
             with earlier_faults(notes):
-                result = run_one_session(self.run_session, self.log_dir, self._stop.is_set, self._status)
+                result = run_one_session(self.run_session, self.log_dir, self._stop.is_set, self._status,
+                                         self.config.logbook)
         except (DeviceError, ProtocolError) as exc:  # the procedures catch their own: opening the devices failed
             self._devices_down(exc)
             return None
+        except retention.NoRoomError as exc:
+            LOG.error("session %d not started: %s; trying again in %g s", n, exc, self.config.session.interval_s)
+            self._status(f"session {n} not started: {exc}; next attempt in {self.config.session.interval_s:g} s")
+            return NO_ROOM
         except LogError as exc:
             LOG.error("session %d skipped: %s", n, exc)
             self._status(f"session {n} skipped: {exc}")
@@ -211,8 +238,12 @@ class SessionDaemon:
         if result.log_error is not None:
             LOG.error("session %d: %s", n, result.log_error)
         err = "n/a" if result.error_m is None else f"{result.error_m:.0f} m"
+        clock = ""
+        if result.clock_fault is not None:
+            LOG.warning("session %d: %s", n, result.clock_fault)
+            clock = f"; CLOCK OFF by {result.clock_offset_s:+.1f} s"
         self._status(
-            f"session {n} {result.status.value} ({result.frames} frames, error {err}): {result.log_path.name}"
+            f"session {n} {result.status.value} ({result.frames} frames, error {err}{clock}): {result.log_path.name}"
         )
         return True
 

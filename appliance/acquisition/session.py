@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from appliance.acquisition import onboard, procedures
+from appliance.acquisition.clock_check import check_clock
 from appliance.acquisition.log_metadata import write_log_metadata
 from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
@@ -82,6 +83,9 @@ class SessionResult:
     # ``estimate`` is then the fused one
     estimate_alone: Position | None = None
     error_alone_m: float | None = None
+    # the system clock against the GPS time (s, positive: ahead), and the fault line when beyond the limit
+    clock_offset_s: float | None = None
+    clock_fault: str | None = None
 
 
 def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:
@@ -259,7 +263,10 @@ class Session:
             self.outcome("truth", Status.DEGRADED, "no GPS receiver: no ground truth")
             return None
 
+        fixes: list[Any] = []
+
         def on_fix(fix: Any) -> None:
+            fixes.append(fix)
             self.log.write_proto(
                 t.GPS_FIX,
                 m.location_fix(fix.receive_time_ns, fix.lat_deg, fix.lon_deg, fix.alt_msl_m, fix.sigma_m),
@@ -267,6 +274,11 @@ class Session:
             )
 
         res = procedures.ground_truth(self.p.gps, self.p.clock, self.cfg.session, on_fix)
+        clock = check_clock(fixes, self.cfg.logbook.max_clock_offset_s)
+        self.log.write_json(t.CLOCK, "viper.Clock", clock.payload(), self.now())
+        self.result.clock_offset_s, self.result.clock_fault = clock.offset_s, clock.fault()
+        if self.result.clock_fault is not None:
+            self.say("error", self.result.clock_fault)
         if res.lat_deg is not None and res.lon_deg is not None:
             fix = m.location_fix(self.now(), res.lat_deg, res.lon_deg, res.alt_m, res.sigma_m, frame_id="truth")
             self.log.write_proto(t.GPS_TRUTH, fix, self.now())

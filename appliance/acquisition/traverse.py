@@ -348,6 +348,8 @@ class Traverse:
             r.outcomes, r.truth, r.estimate, r.error_m = last.outcomes, last.truth, last.estimate, last.error_m
             r.panorama, r.skyline = last.panorama, last.skyline
             r.estimate_alone, r.error_alone_m = last.estimate_alone, last.error_alone_m
+            off = next((s.session for s in r.stops if s.session.clock_fault is not None), last)  # the first flagged
+            r.clock_offset_s, r.clock_fault = off.clock_offset_s, off.clock_fault
         if r.disk_full:
             r.status = Status.FAILED
         elif r.stopped or len(r.stops) < self.n_stops:

@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
+from appliance.acquisition.retention import check_retention
 from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import Config, LogEncoding, load_config, override
 from appliance.logsetup import StatusLine
@@ -46,8 +47,10 @@ def _capture(args: argparse.Namespace) -> int:
     config = with_log_encoding(load_config(args.config), args.log_encoding)
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
+    check_retention(config.logbook, log_dir)
     with live_server(args.live) as live, StatusLine("capture") as status:
-        result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status)
+        result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status,
+                                 logbook=config.logbook)
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
     for name, outcome in result.outcomes.items():

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from appliance.acquisition.daemon import SessionDaemon
 from appliance.acquisition.notify import Notifier
+from appliance.acquisition.retention import check_retention
 from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import load_config
 
@@ -25,6 +26,7 @@ def _session(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
+    check_retention(config.logbook, log_dir)
     with live_server(args.live) as live:
         daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config, publisher=live))
         daemon.install_signal_handlers()

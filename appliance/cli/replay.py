@@ -10,9 +10,10 @@ from typing import TYPE_CHECKING
 
 from appliance.acquisition.onboard import load_session_database
 from appliance.acquisition.replay import ReplayResult, replay_logs
+from appliance.acquisition.retention import mark_replayed
 from appliance.atomic import check_output_folder
 from appliance.config import load_config, override
-from appliance.errors import InputError
+from appliance.errors import InputError, OutputError
 from appliance.locating.position import estimate_status
 from appliance.logsetup import ProgressCallback
 
@@ -105,6 +106,13 @@ def run(args: argparse.Namespace) -> int:
 
     results, page = replay_logs([Path(p) for p in args.logs], db, est, out, show)
     print(f"report: {page}  table: {out / 'summary.csv'}")
+    for r in results:  # retention's keep_unreplayed may now remove the logs that were read
+        if r.data.problem is not None and not r.data.frames:
+            continue
+        try:
+            mark_replayed(r.data.path, f"replayed into {out.absolute()}")
+        except OutputError as exc:
+            LOG.warning("%s: not marked replayed: %s", r.data.path, exc)
     if elsewhere:
         raise InputError(f"{len(elsewhere)} of {len(results)} logs were taken outside the database {db.path} "
                          f"(a database of another map?): {', '.join(elsewhere)}")

@@ -77,6 +77,7 @@ ESTIMATE_ALONE_FIX = "/estimate/alone/fix"
 TRAVERSE_TRACK = "/traverse/track"
 TRAVERSE_STOP = "/traverse/stop"
 ODOMETRY = "/traverse/odometry"
+CLOCK = "/session/clock"
 
 _NUM = {"type": ["number", "null"]}
 _INT = {"type": "integer"}
@@ -247,6 +248,14 @@ JSON_SCHEMAS["viper.TraverseStop"] = _object(
      "truth"),
 )
 
+JSON_SCHEMAS["viper.Clock"] = _object(
+    "The system clock against the GPS time in one session: the least (receive time - GPS UTC) over the "
+    "fixes with a date (s; positive: the clock is ahead), the session's limit, the fixes, and whether it "
+    "was exceeded",
+    {"offset_s": _NUM, "max_offset_s": _NUM, "fixes": _INT, "flagged": _BOOL},
+    ("offset_s", "max_offset_s", "fixes", "flagged"),
+)
+
 JSON_TOPIC_SCHEMAS: dict[str, str] = {
     HEADING_RAW: "viper.HeadingRaw",
     TILT_RAW: "viper.TiltRaw",
@@ -259,6 +268,7 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     SKYLINE_RENDERED: "viper.Skyline",
     ODOMETRY: "viper.Odometry",
     TRAVERSE_STOP: "viper.TraverseStop",
+    CLOCK: "viper.Clock",
 }
 
 #: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the

@@ -125,7 +125,8 @@ class GpsTwin(_TwinThread):
                     de / (6_371_008.8 * math.cos(math.radians(lat)))
                 )
             out = b""
-            for s in gps_epoch_sentences(now, lat, lon, self.world.alt_msl_m, self.world.geoid_separation_m,
+            gps_time = now - dt.timedelta(seconds=f.clock_offset_s)
+            for s in gps_epoch_sentences(gps_time, lat, lon, self.world.alt_msl_m, self.world.geoid_separation_m,
                                          self.sim.gps_satellites, self.sim.gps_hdop, self.sim.gps_sigma_m):
                 if self.rng.random() < f.gps_garbage_rate:
                     out += bytes(self.rng.integers(0, 256, 24, dtype=np.uint8).tolist()).replace(b"$", b"\x00")
