@@ -78,6 +78,7 @@ class LogEncoding(str, enum.Enum):
     PROTOBUF = "protobuf"
     ROS2 = "ros2"
 
+
 #: The least a session's log takes besides its reserve (bytes): the header, the camera's calibration and
 #: the readings of level, compass and GPS truth (a session of the simulated platform with six frames of
 #: 64 x 48 pixels writes about 27 kB).
