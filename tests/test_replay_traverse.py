@@ -4,6 +4,7 @@ odometry as on board; the odometry from a PX4 ULog instead; ``--json`` on replay
 from __future__ import annotations
 
 import contextlib
+import csv
 import io
 import json
 import re
@@ -20,18 +21,16 @@ from appliance.config import EstimatorConfig
 from appliance.drivers.ulog_position import LocalPositions, displacements, read_local_positions, ulog_problem
 from appliance.errors import InputError
 from appliance.logbook import topics as t
-from appliance.sim.field_session import run_field_traverse
-from tests.conftest import data_file, small_config
+from tests.conftest import data_file
 
 STOPS = 3
 PX4_SAMPLE = "imu_magnetometer/px4_sample.ulg"
 
 
 @pytest.fixture(scope="module")
-def traverse(tmp_path_factory, dem, window_db):
+def traverse(field_traverse):
     """What ``viper demo --traverse 3`` runs (:func:`run_field_traverse`), at the tests' quick settings."""
-    out = tmp_path_factory.mktemp("traverse")
-    result, _ = run_field_traverse(small_config(), out, STOPS, seed=3, dem=dem, db=window_db)
+    result, _, _ = field_traverse
     assert len(result.stops) == STOPS and all(s.position is not None for s in result.stops)
     return result
 
@@ -76,8 +75,8 @@ def test_each_replayed_stop_matches_its_onboard_error_within_a_metre(traverse, r
     with open(out / f"{traverse.log_path.stem}.replay.mcap", "rb") as f:
         msgs = [(ch.topic, m.data) for _, ch, m in make_reader(f).iter_messages()]
     fixes = [LocationFix.FromString(d) for topic, d in msgs if topic == t.ESTIMATE_FIX]
-    assert [(f.latitude, f.longitude) for f in fixes] == pytest.approx(
-        [(s["position"]["lat"], s["position"]["lon"]) for s in obj["stops"]])
+    assert [f.latitude for f in fixes] == pytest.approx([s["position"]["lat"] for s in obj["stops"]])
+    assert [f.longitude for f in fixes] == pytest.approx([s["position"]["lon"] for s in obj["stops"]])
     assert sum(topic == t.TRAVERSE_STOP for topic, _ in msgs) == STOPS
 
 
@@ -85,13 +84,14 @@ def test_the_report_says_traverse_and_lists_each_stops_coordinates(replayed):
     obj, out = replayed
     html = (out / "report.html").read_text()
     assert "a traverse of 3 stops" in html and 'src="track.png"' in html
-    rows = (out / "summary.csv").read_text().splitlines()
-    header = rows[0].split(",")
-    assert {"lat", "lon", "truth_lat", "truth_lon", "onboard: error (m)"} <= set(header)
-    assert len(rows) == 1 + STOPS
-    lat = header.index("lat")
-    for row, stop in zip(rows[1:], obj["stops"], strict=True):
-        assert float(row.split(",")[lat]) == pytest.approx(stop["position"]["lat"], abs=1e-6)
+    with open(out / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == STOPS
+    for row, stop in zip(rows, obj["stops"], strict=True):
+        assert float(row["lat"]) == pytest.approx(stop["position"]["lat"], abs=1e-6)
+        assert float(row["lon"]) == pytest.approx(stop["position"]["lon"], abs=1e-6)
+        assert float(row["truth_lat"]) == pytest.approx(stop["truth"]["lat"], abs=1e-6)
+        assert float(row["onboard: error (m)"]) == pytest.approx(stop["onboard_error_m"], abs=0.051)
 
 
 def test_the_text_output_says_what_the_json_says(traverse, window_db, replayed, tmp_path, capsys):
