@@ -18,7 +18,7 @@ from appliance.acquisition.replay_traverse import is_traverse_log
 from appliance.acquisition.result_json import dumps, replay_json
 from appliance.atomic import check_output_folder
 from appliance.cli._replay_traverse import replay_traverse_command
-from appliance.config import EstimatorConfig, load_config, override
+from appliance.config import Config, EstimatorConfig, load_config, override
 from appliance.drivers.ulog_position import read_local_positions
 from appliance.errors import InputError
 from appliance.locating.position import estimate_status
@@ -68,8 +68,8 @@ def parse_sigma(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _estimator_config(args: argparse.Namespace) -> EstimatorConfig:
-    est = load_config(args.config).estimator
+def _estimator_config(args: argparse.Namespace, config: Config) -> EstimatorConfig:
+    est = config.estimator
     if args.sigma:
         est = override(est, "--sigma", sigma_deg=parse_sigma(args.sigma))
     if args.heading_tolerance is not None:
@@ -77,8 +77,8 @@ def _estimator_config(args: argparse.Namespace) -> EstimatorConfig:
     return est
 
 
-def _database(args: argparse.Namespace) -> SkylineDatabase:
-    session = load_config(args.config).session
+def _database(args: argparse.Namespace, config: Config) -> SkylineDatabase:
+    session = config.session
     if args.db:
         session = dataclasses.replace(session, database=Path(args.db))
     db = load_session_database(session)
@@ -107,9 +107,10 @@ def run(args: argparse.Namespace) -> int:
     if traverse:  # the stops' pictures: as many as the log holds
         files += ["track.png", *(q.name for q in out.glob("stop-*.png"))]
     check_output_folder(args.out, args.logs, files, args.force)
-    est = _estimator_config(args)
+    config = load_config(args.config)
+    est = _estimator_config(args, config)
     positions = None if args.odometry_log is None else read_local_positions(args.odometry_log)
-    db = _database(args)
+    db = _database(args, config)
     if traverse:
         return replay_traverse_command(args, db, est, positions)
     elsewhere: list[str] = []
