@@ -106,6 +106,14 @@ class ProgressCallback:
             self._bar.close()
             self._bar = None
 
+    @staticmethod
+    def write(text: str) -> None:
+        """A result line on stdout, through the bar's own writer: the bar is lifted, the line printed
+        and the bar redrawn below it, so that the line does not land on the bar."""
+        from tqdm import tqdm  # tqdm loads only when a command reports progress
+
+        tqdm.write(text, file=sys.stdout)
+
 
 class StatusLine:
     """An ``on_status`` callback for sessions: each status is logged at debug level and, on a terminal,

@@ -61,6 +61,18 @@ def window_db(dem, tmp_path_factory):
     return load_database(path, dem)
 
 
+@pytest.fixture(scope="session")
+def field_traverse(tmp_path_factory, dem, window_db):
+    """A rover's traverse of three stops on the simulated platform (what ``viper demo --traverse 3`` runs, at
+    :func:`small_config`'s settings on :data:`WINDOW`): its result, the true stops and its folder; shared by
+    the traverse's tests and its replay's, which only read it."""
+    from appliance.sim.field_session import run_field_traverse
+
+    out = tmp_path_factory.mktemp("traverse")
+    result, truths = run_field_traverse(small_config(), out, 3, seed=3, dem=dem, db=window_db)
+    return result, truths, out
+
+
 def small_config(time_rate: float = 50.0) -> Config:
     """A quick simulated session: short GPS averaging, short settling, a 320x240 camera."""
     return Config(

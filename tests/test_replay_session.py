@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import json
 from html.parser import HTMLParser
 from urllib.parse import quote, unquote
 
@@ -251,3 +252,22 @@ def test_cli_replay_prints_the_error_and_fails_cleanly_on_junk(session_log, wind
     assert not junk.with_name("junk.mcap.replayed").exists()
     assert main(["replay", str(junk), "--db", window_db.path, "--sigma", "x"]) != 0
     assert "--sigma" in capsys.readouterr().err
+
+
+def test_cli_replay_json_is_one_object_that_says_what_the_text_says(session_log, window_db, tmp_path, capsys):
+    args = ["replay", str(session_log.log_path), "--db", window_db.path, "--out"]
+    assert main([*args, str(tmp_path / "text")]) == 0
+    text = capsys.readouterr().out
+    assert main([*args, str(tmp_path / "json"), "--json"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1
+    obj = json.loads(out[0])
+    (log,) = obj["logs"]
+    assert log["traverse"] is False and log["frames"] == 9 and log["failure"] is None
+    e = log["estimate"]
+    line = next(x for x in text.splitlines() if x.startswith(f"{session_log.log_path}: "))
+    assert f"{e['lat']:.6f}, {e['lon']:.6f}" in line and f"error {log['error_m']:.1f} m" in line
+    assert f"(onboard {log['onboard_error_m']:.1f} m)" in line and log["status"] in line
+    assert e["error_m"] == pytest.approx(log["error_m"])
+    assert log["onboard_error_m"] == pytest.approx(session_log.error_m)
+    assert obj["report"] == str(tmp_path / "json" / "report.html") and (tmp_path / "json" / "report.html").exists()

@@ -27,10 +27,8 @@ from appliance.estimator import transport_prior
 from appliance.locating.position import truth_error_m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
-from appliance.sim.field_session import run_field_traverse
 from appliance.sim.pty_port import PtyPort
 from appliance.sim.world import SimClock
-from tests.conftest import small_config
 
 jsonschema = pytest.importorskip("jsonschema")
 
@@ -38,9 +36,9 @@ STOPS = 3
 
 
 @pytest.fixture(scope="module")
-def traverse(tmp_path_factory, dem, window_db):
-    out = tmp_path_factory.mktemp("traverse")
-    result, truths = run_field_traverse(small_config(), out, STOPS, seed=3, dem=dem, db=window_db)
+def traverse(field_traverse, window_db):
+    result, truths, out = field_traverse
+    assert len(result.stops) == STOPS
     return result, truths, window_db, out
 
 

@@ -40,7 +40,7 @@ from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError,
 from appliance.inputs import check_image_pixels
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
-from appliance.logbook.reader import LogReader
+from appliance.logbook.reader import LogMessage, LogReader
 from appliance.logbook.writer import Logbook
 from appliance.outputs.records import skyline_payload, write_estimate_records
 from appliance.outputs.report import write_replay_report
@@ -67,6 +67,7 @@ class SessionData:
     complete: bool
     problem: str | None  # why reading stopped early (truncated, corrupt), or None
     facts: SessionFacts = field(default_factory=SessionFacts)
+    traverse: bool = False  # the log is a traverse's (several stops; :mod:`appliance.acquisition.replay_traverse`)
 
     @property
     def frame_count(self) -> int:
@@ -101,49 +102,70 @@ def read_session(path: str | Path) -> SessionData:
     """Frames with their tags, the intrinsics and the truth of a session log (up to its last readable
     record).  Raises :class:`LogError` for a file that is not a readable MCAP log at all."""
     reader = LogReader(path, ErrorPolicy.SKIP)
-    images: dict[int, np.ndarray] = {}
-    tags: dict[int, dict[str, Any]] = {}
-    intr = None
-    truth = None
-    onboard_error = None
-    undecodable = 0
-    facts = FactsCollector()
+    collector = SessionCollector()
     for msg in reader.messages():
+        collector.take(msg)
+    return collector.finish(reader)
+
+
+class SessionCollector:
+    """Gathers a session's records (frames and tags, calibration, GPS truth, the onboard error and the
+    facts) from a log's messages taken one by one; a traverse's replay keeps one per stop."""
+
+    def __init__(self, intrinsics: CameraIntrinsics | None = None) -> None:
+        self.images: dict[int, np.ndarray] = {}
+        self.tags: dict[int, dict[str, Any]] = {}
+        self.intrinsics = intrinsics
+        self.truth: tuple[float, float] | None = None
+        self.onboard_error: float | None = None
+        self.undecodable = 0
+        self.problem: str | None = None
+        self.facts = FactsCollector()
+        self.traverse = False  # the log holds a traverse's records
+
+    def take(self, msg: LogMessage) -> None:
         try:
-            facts.take(msg)
-            if msg.topic == t.IMAGE:
+            self.facts.take(msg)
+            if msg.topic in (t.ODOMETRY, t.TRAVERSE_STOP):
+                self.traverse = True
+            elif msg.topic == t.IMAGE:
                 jpeg = bytes(msg.decode().data)
                 check_image_pixels(jpeg, f"{msg.topic} at {msg.log_time_ns} ns")
                 img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
                 if img is None:
-                    undecodable += 1
-                    continue
-                images[msg.log_time_ns] = img
+                    self.undecodable += 1
+                    return
+                self.images[msg.log_time_ns] = img
             elif msg.topic == t.CAPTURE:
-                tags[msg.log_time_ns] = _capture_tag(msg.decode())
+                self.tags[msg.log_time_ns] = _capture_tag(msg.decode())
             elif msg.topic == t.CALIBRATION:
-                intr = intrinsics_from_calibration(msg.decode())
+                self.intrinsics = intrinsics_from_calibration(msg.decode())
             elif msg.topic == t.GPS_TRUTH:
                 fix = msg.decode()
-                truth = (float(fix.latitude), float(fix.longitude))
+                self.truth = (float(fix.latitude), float(fix.longitude))
             elif msg.topic == t.ESTIMATE_RECORD:
                 rec = msg.decode()
                 if isinstance(rec, dict) and rec.get("error_m") is not None:
-                    onboard_error = float(rec["error_m"])
+                    self.onboard_error = float(rec["error_m"])
         # a message of another encoding, schema or shape on its topic (no .data, no .latitude, a field
         # of another type) counts as undecodable, like a damaged one
         except (LogError, ValueError, TypeError, AttributeError, OverflowError) as exc:
-            undecodable += 1
-            if undecodable == 1:
-                reader.problem = reader.problem or f"undecodable message on {msg.topic}: {exc}"
-    if reader.header is None and not images and not tags:
-        raise LogError(f"{path}: not a readable MCAP log ({reader.problem or 'no records'})")
-    frames = []
-    for ns in sorted(set(images) & set(tags)):
-        tag = tags[ns]
-        frames.append(TaggedFrame(tag["index"], Frame(ns, images[ns]), tag["stage_deg"],
-                                  tag["heading_deg"], tag["roll_deg"], tag["pitch_deg"]))
-    return SessionData(Path(path), frames, intr, truth, onboard_error, reader.complete, reader.problem, facts.facts)
+            self.undecodable += 1
+            if self.undecodable == 1:
+                self.problem = f"undecodable message on {msg.topic}: {exc}"
+
+    def finish(self, reader: LogReader) -> SessionData:
+        """The session's data; ``reader`` (done reading) says whether the log was whole."""
+        problem = self.problem or reader.problem  # an undecodable message came before any cut
+        if reader.header is None and not self.images and not self.tags:
+            raise LogError(f"{reader.path}: not a readable MCAP log ({problem or 'no records'})")
+        frames = []
+        for ns in sorted(set(self.images) & set(self.tags)):
+            tag = self.tags[ns]
+            frames.append(TaggedFrame(tag["index"], Frame(ns, self.images[ns]), tag["stage_deg"],
+                                      tag["heading_deg"], tag["roll_deg"], tag["pitch_deg"]))
+        return SessionData(reader.path, frames, self.intrinsics, self.truth, self.onboard_error, reader.complete,
+                           problem, self.facts.facts, traverse=self.traverse)
 
 
 def _capture_tag(payload: Any) -> dict[str, Any]:
@@ -201,27 +223,34 @@ def replay_session(data: SessionData, db: SkylineDatabase, cfg: EstimatorConfig,
     res.position = pos
     log_path = out_dir / f"{name}.replay.mcap"
     now = data.frames[-1].frame.time_ns
-    try:
-        with atomic_output(check_output_folder(into or out_dir) / log_path.name) as tmp:
-            tmp.unlink()  # the logbook creates its file itself and never opens an existing one
-            with Logbook.create(tmp) as log:
-                write_log_metadata(log, None, db, data.intrinsics)
-                ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
-                if ok:
-                    log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
-                if data.truth is not None:
-                    log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"),
-                                    now)
-                log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
-                rec = write_estimate_records(log, now, db, pos, sky, data.truth)
-                for note in res.notes:
-                    log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
-    except LogError as exc:  # the log's own words name its temporary: say it of the results log
-        why = str(exc).rsplit(f"{tmp.name}: ", 1)[-1].split(";")[0]
-        raise OutputError(f"{log_path}: cannot write: {why}") from None
+    with results_logbook(log_path, into) as log:
+        write_log_metadata(log, None, db, data.intrinsics)
+        ok, jpeg = cv2.imencode(".jpg", pano.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        if ok:
+            log.write_proto(t.PANORAMA, m.compressed_image(now, jpeg.tobytes(), frame_id="panorama"), now)
+        if data.truth is not None:
+            log.write_proto(t.GPS_TRUTH, m.location_fix(now, data.truth[0], data.truth[1], frame_id="truth"), now)
+        log.write_json(t.SKYLINE_DETECTED, "viper.Skyline", skyline_payload(sky), now)
+        rec = write_estimate_records(log, now, db, pos, sky, data.truth)
+        for note in res.notes:
+            log.write_proto(t.LOG, m.log_message(now, "warning", note, "replay"), now)
     res.error_m = rec.error_m
     res.results_log = log_path
     return res
+
+
+@contextmanager
+def results_logbook(log_path: Path, into: Path | None = None) -> Iterator[Logbook]:
+    """A new results log to become ``log_path`` (written in the folder ``into`` instead, where given),
+    in place only once it is closed whole; a failed write raises :class:`OutputError` naming it."""
+    with atomic_output(check_output_folder(into or log_path.parent) / log_path.name) as tmp:
+        tmp.unlink()  # the logbook creates its file itself and never opens an existing one
+        try:
+            with Logbook.create(tmp) as log:
+                yield log
+        except LogError as exc:  # the log's own words name its temporary: say it of the results log
+            why = str(exc).rsplit(f"{tmp.name}: ", 1)[-1].split(";")[0]
+            raise OutputError(f"{log_path}: cannot write: {why}") from None
 
 
 def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, out_dir: Path,
@@ -229,7 +258,7 @@ def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, ou
     """Replay every log (an unreadable one is a row with its reason) and write the report; the files
     appear in ``out_dir`` all together once all are written, or none of them."""
     results = []
-    with _staged(out_dir) as staging:
+    with staged_output(out_dir) as staging:
         for p in paths:
             try:
                 data = read_session(p)
@@ -238,7 +267,11 @@ def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, ou
                                    complete=False, problem=str(exc))
                 r = ReplayResult(Path(p).stem, data, failure=str(exc))
             else:
-                r = replay_session(data, db, cfg, out_dir, into=staging)
+                if data.traverse and len(paths) > 1:  # its stops' frames in one panorama would be a ghost
+                    r = ReplayResult(Path(p).stem, data, failure="a traverse's log (several stops): replay it "
+                                     "on its own, stop by stop")
+                else:
+                    r = replay_session(data, db, cfg, out_dir, into=staging)
             results.append(r)
             if on_result is not None:
                 on_result(r)
@@ -247,7 +280,7 @@ def replay_logs(paths: list[Path], db: SkylineDatabase, cfg: EstimatorConfig, ou
 
 
 @contextmanager
-def _staged(out_dir: Path) -> Iterator[Path]:
+def staged_output(out_dir: Path) -> Iterator[Path]:
     """A new hidden staging folder in ``out_dir`` (named as a temporary file, so that a dead writer's is
     removed by the next write there); on a clean exit its files replace those of the same names in
     ``out_dir`` (keeping their modes), and it is removed in any case."""

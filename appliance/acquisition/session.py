@@ -11,6 +11,7 @@ daemon hands faults it saw before a session (devices that did not answer) to the
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -26,7 +27,7 @@ import numpy as np
 from appliance.acquisition import onboard, procedures
 from appliance.acquisition.clock_check import check_clock
 from appliance.acquisition.log_metadata import write_log_metadata
-from appliance.acquisition.platform import Platform, platform_of
+from appliance.acquisition.platform import Frame, Platform, platform_of
 from appliance.acquisition.procedures import CaptureProblem, Status, TaggedFrame
 from appliance.config import Config
 from appliance.drivers.factory import Devices
@@ -313,12 +314,16 @@ class Session:
                 self.say("warning", "capture: no position for the magnetic declination; headings are magnetic")
             heading = (compass.platform_heading_deg + decl) % 360.0
         captured: list[TaggedFrame] = []
+        logged: dict[int, np.ndarray] = {}  # each frame as the log holds it, by its time
 
         def on_frame(f: TaggedFrame) -> None:
             ok, jpeg = cv2.imencode(".jpg", f.frame.image, [cv2.IMWRITE_JPEG_QUALITY, 90])
             if not ok:
                 raise InputError(f"capture {f.index}: JPEG encoding failed")
             ns = f.frame.time_ns
+            image = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
+            if image is not None:
+                logged[ns] = image
             self.log.write_proto(t.IMAGE, m.compressed_image(ns, jpeg.tobytes()), ns)
             tag = {
                 "index": f.index,
@@ -360,11 +365,11 @@ class Session:
                 f"{exc} after {len(captured)} frames",
                 frames=len(captured),
             )
-            return captured
+            return as_logged(captured, logged)
         status = Status.OK if not problems else Status.DEGRADED
         reason = f"{len(problems)} of {len(frames) + len(problems)} steps failed" if problems else ""
         self.outcome("capture", status, reason, frames=len(frames))
-        return frames
+        return as_logged(frames, logged)
 
     def do_estimate(self, frames: list[TaggedFrame], truth: procedures.TruthResult | None) -> None:
         if not frames or self.p.camera is None:
@@ -422,6 +427,13 @@ class Session:
                          region_cells=int(pos.result.region_nodes.size))
         else:
             self.outcome("estimate", Status.OK)
+
+
+def as_logged(frames: list[TaggedFrame], logged: dict[int, np.ndarray]) -> list[TaggedFrame]:
+    """``frames`` with each image as the log holds it (its JPEG decoded), so that the onboard estimate is
+    made from what the log keeps and ``viper replay`` of the log reproduces it."""
+    return [dataclasses.replace(f, frame=Frame(f.frame.time_ns, logged[f.frame.time_ns]))
+            if f.frame.time_ns in logged else f for f in frames]
 
 
 def session_log_path(log_dir: Path, start_ns: int, session_id: str) -> Path:

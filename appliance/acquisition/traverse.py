@@ -146,6 +146,14 @@ def odometry_record(o: OdometryReport) -> dict[str, Any]:
             "receive_time_ns": o.receive_time_ns}
 
 
+def added_odometry(total: OdometryReport | None, rep: OdometryReport) -> OdometryReport:
+    """``rep`` added to the lines before it (the rover drove on): displacements add, sigmas in quadrature."""
+    if total is None:
+        return rep
+    return OdometryReport(rep.stop_id, total.east_m + rep.east_m, total.north_m + rep.north_m,
+                          float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns)
+
+
 def track_features(stops: list[StopResult]) -> list[dict[str, Any]]:
     """GeoJSON LineStrings (lon, lat) through the stops' positions and through their GPS truths; a line
     of fewer than two points is left out."""
@@ -179,6 +187,59 @@ def _status_of(stops: list[StopResult]) -> Status:
     return Status.DEGRADED
 
 
+class FusionChain:
+    """The belief a traverse carries from stop to stop: the last estimate and the rover's displacement
+    since it, from the odometry lines in stop order.  The onboard traverse and its replay
+    (:mod:`appliance.acquisition.replay_traverse`) fuse through it alike."""
+
+    def __init__(self, db: SkylineDatabase | None) -> None:
+        self.db = db
+        self.grid: SkylineGrid | None = None
+        self.belief: Position | None = None  # the last estimate, whose posterior the next prior moves
+        self.moved: Move | None = None  # the rover's displacement since that estimate
+        self.last_stop_id = 0
+        self.note = ""
+
+    def take_move(self, rep: OdometryReport) -> str | None:
+        """Add ``rep`` to the displacement since the last estimate; on a lost line (stop ids not in
+        sequence) break the chain and return why."""
+        expected = self.last_stop_id + 1
+        self.last_stop_id = rep.stop_id
+        move = Move(rep.east_m, rep.north_m, rep.sigma_m)
+        if rep.stop_id != expected:
+            self.lose(f"odometry of stop {expected} missing (got stop {rep.stop_id}): not fused across the gap")
+            return self.note
+        self.moved = move if self.moved is None else self.moved.then(move)
+        return None
+
+    def lose(self, note: str) -> None:
+        """Break the chain: the next stop is not fused, for the reason ``note``."""
+        self.note, self.belief, self.moved = note, None, None
+
+    def prepare_stop(self, i: int, result: SessionResult, odometry: OdometryReport | None) -> StopResult:
+        """Stop ``i`` (from 0) with its prior: the belief moved by the displacement, when there is both."""
+        prior, fix, peak, note = None, None, None, self.note
+        if i == 0:
+            note = "first stop"
+        elif self.db is not None and self.belief is not None and self.moved is not None:
+            if self.grid is None:
+                self.grid = skyline_grid(self.db)
+            prior = transported_prior(self.db, self.grid, self.belief, self.moved)
+            fix = transported_fix(self.db, self.grid, self.belief, self.moved)
+            g = self.db.grid
+            lon, lat = g.xy_to_lonlat(*g.rc_to_xy(*divmod(int(np.argmax(prior)), g.n_cols)))
+            peak, note = (float(lat), float(lon)), ""
+        elif not note:
+            note = "no earlier estimate to fuse with"
+        self.note = ""
+        return StopResult(i, result, odometry, prior, fix, peak, note)
+
+    def settle(self, stop: StopResult) -> None:
+        """The stop is over: its position (if any) becomes the belief the next stop's prior moves."""
+        if stop.position is not None:
+            self.belief, self.moved = stop.position, Move(0.0, 0.0, 0.0)
+
+
 class Traverse:
     """Runs the stops of one traverse into one log."""
 
@@ -188,14 +249,18 @@ class Traverse:
         self.p, self.log, self.cfg, self.db = platform, logbook, config, db
         self.result, self.n_stops = result, n_stops
         self.should_stop, self.on_status, self.on_stop_done = should_stop, on_status, on_stop_done
-        self.grid: SkylineGrid | None = None
-        self.belief: Position | None = None  # the last estimate, whose posterior the next prior moves
-        self.moved: Move | None = None  # the rover's displacement since that estimate
-        self.last_stop_id = 0
-        self.note = ""
+        self.chain = FusionChain(db)
         self._queued: list[OdometryReport] = []
         self.map_origin: tuple[float, float] | None = None  # (lat, lon) of ``map``'s origin: the first stop placed
         self.stop_start_ns = 0
+
+    @property
+    def moved(self) -> Move | None:
+        return self.chain.moved
+
+    @property
+    def note(self) -> str:
+        return self.chain.note
 
     def session(self, result: SessionResult, log_prior: np.ndarray | None = None,
                 position_prior: PositionPrior | None = None) -> Session:
@@ -261,41 +326,19 @@ class Traverse:
             now = self.p.clock.now_ns()
             self.log.write_json(t.ODOMETRY, "viper.Odometry", odometry_record(rep), now)
             self.take_move(head, rep)
-            total = rep if total is None else OdometryReport(
-                rep.stop_id, total.east_m + rep.east_m, total.north_m + rep.north_m,
-                float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns)
+            total = added_odometry(total, rep)
         return total
 
     def take_move(self, head: Session, rep: OdometryReport) -> None:
         """Add ``rep`` to the displacement since the last estimate, or break the chain on a lost line."""
-        expected = self.last_stop_id + 1
-        self.last_stop_id = rep.stop_id
-        move = Move(rep.east_m, rep.north_m, rep.sigma_m)
-        if rep.stop_id != expected:
-            self.note = f"odometry of stop {expected} missing (got stop {rep.stop_id}): not fused across the gap"
-            head.say("warning", f"traverse: {self.note}")
-            self.belief, self.moved = None, None
-            return
-        self.moved = move if self.moved is None else self.moved.then(move)
+        gap = self.chain.take_move(rep)
+        if gap is not None:
+            head.say("warning", f"traverse: {gap}")
 
     # ---------------------------------------------------------------------------------- stops
     def prepare_stop(self, i: int, odometry: OdometryReport | None) -> StopResult:
         result = SessionResult(self.result.log_path, f"{self.result.session_id}-{i}")
-        prior, fix, peak, note = None, None, None, self.note
-        if i == 0:
-            note = "first stop"
-        elif self.db is not None and self.belief is not None and self.moved is not None:
-            if self.grid is None:
-                self.grid = skyline_grid(self.db)
-            prior = transported_prior(self.db, self.grid, self.belief, self.moved)
-            fix = transported_fix(self.db, self.grid, self.belief, self.moved)
-            g = self.db.grid
-            lon, lat = g.xy_to_lonlat(*g.rc_to_xy(*divmod(int(np.argmax(prior)), g.n_cols)))
-            peak, note = (float(lat), float(lon)), ""
-        elif not note:
-            note = "no earlier estimate to fuse with"
-        self.note = ""
-        return StopResult(i, result, odometry, prior, fix, peak, note)
+        return self.chain.prepare_stop(i, result, odometry)
 
     def start_frames(self, i: int) -> None:
         """Stop ``i``'s frames from now on: named ``stop-i/...``, its camera -> camera_optical given."""
@@ -319,8 +362,7 @@ class Traverse:
     def finish_stop(self, head: Session, stop: StopResult) -> None:
         """The stop's records; its position becomes the belief the next stop's prior moves."""
         self.place_stop(stop)
-        if stop.position is not None:
-            self.belief, self.moved = stop.position, Move(0.0, 0.0, 0.0)
+        self.chain.settle(stop)
         if self.db is None:
             return
         now = self.p.clock.now_ns()

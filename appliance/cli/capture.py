@@ -1,7 +1,7 @@
 """``viper capture``: one session now (level, compass, GPS truth, capture, onboard estimate).
 
-The session's result goes to stdout; what went wrong with the log (a full disk) to stderr, and the
-exit status is then non-zero."""
+The session's result goes to stdout (``--json``: as one JSON object); what went wrong with the log (a
+full disk) to stderr, and the exit status is then non-zero."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ import logging
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
+from appliance.acquisition.result_json import capture_json, dumps
 from appliance.acquisition.retention import check_retention
+from appliance.acquisition.session import SessionResult
 from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import Config, LogEncoding, load_config, override
 from appliance.logsetup import StatusLine
@@ -25,6 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log-dir", metavar="DIR", help="override logbook.log_dir")
     p.add_argument("--seed", type=int, help="seed of the simulated platform (platform.kind = 'sim')")
     add_log_encoding_option(p)
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object on stdout")
     add_live_option(p)
     p.set_defaults(func=_capture)
 
@@ -51,6 +54,20 @@ def _capture(args: argparse.Namespace) -> int:
     with live_server(args.live) as live, StatusLine("capture") as status:
         result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status,
                                  logbook=config.logbook)
+    if args.json:
+        print(dumps(capture_json(result)))
+    else:
+        _print_result(result)
+    if result.log_error is not None:
+        LOG.error("%s", result.log_error)
+        return 1
+    if result.frames == 0:
+        LOG.error("no frame captured: the session measured nothing")
+        return 1
+    return 0 if result.status.value != "failed" else 1
+
+
+def _print_result(result: SessionResult) -> None:
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
     for name, outcome in result.outcomes.items():
@@ -62,10 +79,3 @@ def _capture(args: argparse.Namespace) -> int:
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
         area = e.result.region_area_m2 / 1e6
         print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
-    if result.log_error is not None:
-        LOG.error("%s", result.log_error)
-        return 1
-    if result.frames == 0:
-        LOG.error("no frame captured: the session measured nothing")
-        return 1
-    return 0 if result.status.value != "failed" else 1

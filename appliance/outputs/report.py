@@ -1,8 +1,9 @@
 """The HTML report, ``report.html`` with the pictures and files it shows: of estimates from skyline files
 (``viper estimate --report``: :func:`write_estimate_files` per skyline, then
 :func:`write_estimate_report`), of session logs replayed (``viper replay``) or of a session that has just
-run (``viper demo``) (:func:`write_replay_report`), and of a traverse (``viper demo --traverse``:
-:func:`write_traverse_report`).
+run (``viper demo``) (:func:`write_replay_report`), and of a traverse (``viper demo --traverse`` and
+``viper replay`` of a traverse's log: :func:`write_traverse_report`, its stop table as CSV
+:func:`write_stop_table`).
 
 Every page has the same build: the title, the skyline database, a table with a row per estimate that
 links to the estimate's own section further down (its heading, facts, pictures and files); the look
@@ -355,24 +356,44 @@ def _err(value: float | None) -> str:
     return "" if value is None else f"{value:.1f}"
 
 
-def stop_rows(db: SkylineDatabase, stops: Sequence[Stop]) -> list[dict[str, str]]:
+def _coords(pos: tuple[float, float] | None) -> tuple[str, str]:
+    return ("", "") if pos is None else (f"{pos[0]:.6f}", f"{pos[1]:.6f}")
+
+
+def stop_rows(db: SkylineDatabase, stops: Sequence[Stop],
+              onboard_error_m: Sequence[float | None] | None = None) -> list[dict[str, str]]:
+    """A row per stop: its odometry, its estimates alone and fused (errors, statuses, the position's
+    coordinates beside the GPS truth's), its session facts; with ``onboard_error_m`` (a replay), the
+    error the stop's estimate had on board."""
     rows = []
-    for s in stops:
+    for k, s in enumerate(stops):
         odo = s.odometry
         alone, pos = s.alone, s.position
         moved = "" if odo is None else f"{odo.east_m:.0f}, {odo.north_m:.0f} ± {odo.sigma_m:.0f}"
-        rows.append({
+        lat, lon = _coords(_latlon(pos))
+        truth_lat, truth_lon = _coords(s.truth)
+        row = {
             "stop": str(s.stop),
             "odometry east, north ± σ (m)": moved,
             "alone: error (m)": _err(s.error_alone_m),
             "alone: status": "" if alone is None else estimate_status(db, alone, s.truth),
             "fused: error (m)": _err(s.error_m) if s.fused else "",
             "fused: status": "" if pos is None or not s.fused else estimate_status(db, pos, s.truth),
+            "lat": lat, "lon": lon, "truth_lat": truth_lat, "truth_lon": truth_lon,
             "region (cells)": "" if pos is None else str(pos.result.region_nodes.size),
-            **_stop_facts(s),
-            "note": s.fusion_note,
-        })
+        }
+        if onboard_error_m is not None:
+            row["onboard: error (m)"] = _err(onboard_error_m[k] if k < len(onboard_error_m) else None)
+        rows.append({**row, **_stop_facts(s), "note": s.fusion_note})
     return rows
+
+
+def write_stop_table(db: SkylineDatabase, stops: Sequence[Stop], path: Path, into: Path | None = None,
+                     onboard_error_m: Sequence[float | None] | None = None) -> Path:
+    """The stop table (:func:`stop_rows`) as CSV at ``path`` (written in the folder ``into`` instead,
+    where given); returns ``path``."""
+    _write_summary_csv(stop_rows(db, stops, onboard_error_m), (into or path.parent) / path.name)
+    return path
 
 
 def _stop_facts(s: Stop) -> dict[str, str]:
@@ -396,25 +417,37 @@ def estimate_flag_text(db: SkylineDatabase, s: Stop) -> str:
 
 
 def write_traverse_report(result: Traversed, db: SkylineDatabase, out_dir: Path, title: str,
-                          log_facts: LogFacts) -> Path:
+                          log_facts: LogFacts, into: Path | None = None,
+                          onboard_error_m: Sequence[float | None] | None = None, results_log: Path | None = None,
+                          notes: Sequence[str] = ()) -> Path:
     """``report.html`` in ``out_dir`` with ``track.png`` and a picture per stop, and the facts of the
-    traverse's whole log (``log_facts``); returns the page's path."""
-    check_output_folder(out_dir)
+    traverse's whole log (``log_facts``); returns the page's path.  A replay gives the folder the files
+    are written in (``into``, a staging folder that becomes ``out_dir``), the onboard errors per stop,
+    its results log and its notes."""
+    folder = check_output_folder(into or out_dir)
     track = [TrackStop(str(s.stop), _latlon(s.position), _latlon(s.alone), s.truth) for s in result.stops]
     track_png = out_dir / "track.png"
-    save_png(track_figure(db, track, f"traverse {result.session_id}: {len(result.stops)} stops"), track_png, dpi=90)
+    save_png(track_figure(db, track, f"traverse {result.session_id}: {len(result.stops)} stops"),
+             folder / track_png.name, dpi=90)
     pictures: list[Path | None] = []
     for s in result.stops:
         if s.position is None or s.session.skyline is None:
             pictures.append(None)
             continue
         png = out_dir / f"stop-{s.stop:02d}.png"
-        write_png(db, s.position, s.session.skyline, png, s.truth)
+        write_png(db, s.position, s.session.skyline, folder / png.name, s.truth)
         pictures.append(png)
-    parts = [f"<p><b>Log:</b> {rp.link(result.log_path, out_dir)}</p>",
-             rp.image(track_png, out_dir, "the track"),
-             rp.table(stop_rows(db, result.stops), {i: f"#stop-{s.stop}" for i, s in enumerate(result.stops)}),
-             rp.facts_table(log_facts.rows(one_session=False))]
+    fused = sum(1 for s in result.stops if s.fused)
+    parts = [rp.paragraph(f"a traverse of {len(result.stops)} stops in one log, {fused} of them fused with the "
+                          "stop before through the rover's odometry", "Traverse:"),
+             f"<p><b>Log:</b> {rp.link(result.log_path, out_dir)}</p>"]
+    if results_log is not None:
+        parts.append(f"<p><b>Results log:</b> {rp.link(results_log, out_dir)}</p>")
+    parts += [rp.paragraph(rp.without_folders(n, [result.log_path, db.path], out_dir), "note:") for n in notes]
+    parts += [rp.image(track_png, out_dir, "the track"),
+              rp.table(stop_rows(db, result.stops, onboard_error_m),
+                       {i: f"#stop-{s.stop}" for i, s in enumerate(result.stops)}),
+              rp.facts_table(log_facts.rows(one_session=False))]
     for s, picture in zip(result.stops, pictures, strict=True):
         parts.append(rp.heading(f"stop {s.stop}", anchor=f"stop-{s.stop}"))
         if s.position is not None:
@@ -422,4 +455,4 @@ def write_traverse_report(result: Traversed, db: SkylineDatabase, out_dir: Path,
             parts.append(rp.paragraph(f"{s.position.lat:.6f}, {s.position.lon:.6f} {flag}", "estimate"))
         if picture is not None:
             parts.append(rp.image(picture, out_dir, picture.stem))
-    return _write_page(db, out_dir, title, parts)
+    return _write_page(db, out_dir, title, parts, into=folder)
