@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING, Any
 import cv2
 
 from appliance.acquisition import onboard
-from appliance.acquisition.procedures import Status, TruthResult
 from appliance.acquisition.log_metadata import write_log_metadata
+from appliance.acquisition.procedures import Status, TruthResult
 from appliance.acquisition.replay import SessionCollector, SessionData, results_logbook, staged_output
 from appliance.acquisition.session import SessionResult
 from appliance.acquisition.session_facts import FactsCollector, SessionFacts
