@@ -9,7 +9,11 @@ reports both: its estimate from its own skyline alone (``/estimate/alone/fix``) 
 which is the stop's position (``/estimate/fix`` and the other estimate topics).
 
 Fusion spans a stop without an estimate (the moves add up, their sigmas in quadrature) but never a
-lost odometry line: stop ids must follow each other, and after a gap the next stop starts afresh.
+lost odometry line: stop ids must follow each other, and after a gap the next stop starts afresh; nor
+a reset of the odometry's frame (a MAVLink autopilot's reboot, :attr:`OdometryReport.reset`).  With a
+MAVLink autopilot (``[devices.odometry] kind = "mavlink"``, :mod:`appliance.acquisition.rover_link`)
+the link's faults become the traverse's warnings, each stop's capture logs the autopilot's attitude
+and mode (``/traverse/rover``), and each estimate goes back to the autopilot (``/traverse/position_out``).
 Each stop writes ``/traverse/stop`` (both estimates, their errors against the GPS truth, their
 statuses) and ``/traverse/track`` (GeoJSON lines through the estimates and through the GPS truths so
 far: the last message is the whole track).  A stop request ends the traverse between steps with the
@@ -27,6 +31,7 @@ import numpy as np
 
 from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import Status
+from appliance.acquisition.rover_link import log_rover_state, say_faults, send_estimate
 from appliance.acquisition.session import (
     Session,
     SessionResult,
@@ -138,7 +143,7 @@ def stop_record(db: SkylineDatabase, s: StopResult) -> dict[str, Any]:
 
 def odometry_record(o: OdometryReport) -> dict[str, Any]:
     return {"stop_id": o.stop_id, "east_m": o.east_m, "north_m": o.north_m, "sigma_m": o.sigma_m,
-            "receive_time_ns": o.receive_time_ns}
+            "receive_time_ns": o.receive_time_ns, "reset": o.reset}
 
 
 def track_features(stops: list[StopResult]) -> list[dict[str, Any]]:
@@ -200,6 +205,7 @@ class Traverse:
                 stop = self.prepare_stop(i, odometry)
                 current = self.session(stop.session, stop.log_prior, stop.position_prior)
                 r.stops.append(stop)
+                log_rover_state(self.p.autopilot, self.log, i, self.p.clock.now_ns())
                 current.run_procedures()
                 current = None
                 self.finish_stop(head, stop)
@@ -231,18 +237,20 @@ class Traverse:
             if self.should_stop():
                 raise StopRequestedError()
             if clock.monotonic_s() - start > timeout_s:
+                say_faults(self.p.autopilot, head)
                 head.say("error", f"traverse: no odometry line within {timeout_s:g} s; the traverse ends")
                 return None
             reports = self.p.odometry.poll()
+            say_faults(self.p.autopilot, head)
         self._queued = []
         total: OdometryReport | None = None
         for rep in reports:
             now = self.p.clock.now_ns()
             self.log.write_json(t.ODOMETRY, "viper.Odometry", odometry_record(rep), now)
             self.take_move(head, rep)
-            total = rep if total is None else OdometryReport(
+            total = rep if total is None or rep.reset else OdometryReport(
                 rep.stop_id, total.east_m + rep.east_m, total.north_m + rep.north_m,
-                float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns)
+                float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns, total.reset)
         return total
 
     def take_move(self, head: Session, rep: OdometryReport) -> None:
@@ -250,6 +258,12 @@ class Traverse:
         expected = self.last_stop_id + 1
         self.last_stop_id = rep.stop_id
         move = Move(rep.east_m, rep.north_m, rep.sigma_m)
+        if rep.reset:
+            self.note = (f"the autopilot's position frame was reset before stop {rep.stop_id} (a reboot): "
+                         "not fused across it")
+            head.say("warning", f"traverse: {self.note}")
+            self.belief, self.moved = None, None
+            return
         if rep.stop_id != expected:
             self.note = f"odometry of stop {expected} missing (got stop {rep.stop_id}): not fused across the gap"
             head.say("warning", f"traverse: {self.note}")
@@ -288,6 +302,8 @@ class Traverse:
         features = track_features(self.result.stops)
         if features:
             self.log.write_proto(t.TRAVERSE_TRACK, m.geojson(features), now)
+        send_estimate(self.p.autopilot, self.log, head, stop.stop, stop.position, now)
+        say_faults(self.p.autopilot, head)
         self.log.flush()
         pos, alone = rec["position"], rec["alone"]
         if pos is not None and alone is not None:

@@ -6,7 +6,9 @@ leaves the MCAP log and the report in ``--out``.  ``--skyline-only`` is the quic
 demo (:func:`appliance.sim.demo.run_demo`).  ``--traverse N`` is a rover's traverse: N such sessions
 at stops a few hundred metres apart along a random path, the rover twin reporting each leg over its
 odometry line, each stop's estimate fused with the previous stop's; it prints every stop's error
-alone and fused, and the report shows the track.
+alone and fused, and the report shows the track.  With ``--mavlink`` the odometry comes from the
+autopilot twin over MAVLink (UDP, :mod:`appliance.sim.autopilot_twin`) and every estimate that says ok
+goes back to it as GPS_INPUT.
 """
 
 from __future__ import annotations
@@ -18,7 +20,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from appliance.atomic import check_output_folder
-from appliance.config import CameraDeviceConfig, Config, DevicesConfig, LogbookConfig, SessionConfig, SimConfig
+from appliance.config import (
+    CameraDeviceConfig,
+    Config,
+    DevicesConfig,
+    LogbookConfig,
+    OdometryDeviceConfig,
+    OdometryKind,
+    PositionOutput,
+    SessionConfig,
+    SimConfig,
+)
 from appliance.errors import InputError
 
 if TYPE_CHECKING:
@@ -36,15 +48,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="only locate a synthetic noisy skyline (no platform, no images)")
     p.add_argument("--traverse", type=int, metavar="N",
                    help="a rover's traverse of N stops (legs of 200-400 m), each fused with the last")
+    p.add_argument("--mavlink", action="store_true",
+                   help="with --traverse: the rover's odometry from a simulated autopilot over MAVLink (UDP), "
+                        "each estimate sent back to it as GPS_INPUT")
     p.add_argument("--time-rate", type=float, default=20.0, help="simulated seconds per real second (default 20)")
     p.set_defaults(func=run)
 
 
-def demo_config(out: Path, time_rate: float) -> Config:
+def demo_config(out: Path, time_rate: float, mavlink: bool = False) -> Config:
+    """The demo's configuration; ``mavlink``: the rover's odometry over MAVLink, estimates sent back as GPS_INPUT."""
+    odometry = OdometryDeviceConfig()
+    if mavlink:
+        odometry = OdometryDeviceConfig(kind=OdometryKind.MAVLINK, output=PositionOutput.GPS_INPUT,
+                                        read_timeout_s=0.1)
     return Config(
         logbook=LogbookConfig(log_dir=out),
         session=SessionConfig(level_tolerance_deg=0.3),
-        devices=DevicesConfig(camera=CameraDeviceConfig(width=640, height=480)),
+        devices=DevicesConfig(camera=CameraDeviceConfig(width=640, height=480), odometry=odometry),
         sim=SimConfig(time_rate=time_rate),
     )
 
@@ -71,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
         if not 1 <= args.traverse <= 1000:
             raise InputError(f"--traverse {args.traverse}: expected a number of stops in 1..1000")
         return run_traverse(args)
+    if args.mavlink:
+        raise InputError("--mavlink goes with --traverse N (the rover's odometry over MAVLink)")
     if args.skyline_only:
         return run_skyline_only(args)
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
@@ -151,7 +173,8 @@ def run_traverse(args: argparse.Namespace) -> int:
 
     out = check_output_folder(args.out)
     print(f"Viper demo: a rover's traverse of {args.traverse} stops on the jacksboro DEM "
-          "(Cumberland Mountains, Tennessee)")
+          "(Cumberland Mountains, Tennessee)" + (", odometry over MAVLink from a simulated autopilot"
+                                                 if args.mavlink else ""))
     dem, db = demo_map(out)
     t1 = time.monotonic()
 
@@ -159,7 +182,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         if not text.startswith("capture "):
             print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
-    config = demo_config(out, args.time_rate)
+    config = demo_config(out, args.time_rate, mavlink=args.mavlink)
     r, truths = run_field_traverse(config, out, args.traverse, seed=args.seed, dem=dem, db=db, on_status=status)
     print(f"  traverse   {r.status.value}: {len(r.stops)} of {args.traverse} stops")
     for problem in r.problems:
