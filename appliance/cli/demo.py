@@ -59,8 +59,9 @@ def demo_config(out: Path, time_rate: float, mavlink: bool = False) -> Config:
     """The demo's configuration; ``mavlink``: the rover's odometry over MAVLink, estimates sent back as GPS_INPUT."""
     odometry = OdometryDeviceConfig()
     if mavlink:
+        # the link's timeout in simulated seconds: five real ones, as a busy machine stalls the twin's thread
         odometry = OdometryDeviceConfig(kind=OdometryKind.MAVLINK, output=PositionOutput.GPS_INPUT,
-                                        read_timeout_s=0.1)
+                                        read_timeout_s=0.1, link_timeout_s=5.0 * time_rate)
     return Config(
         logbook=LogbookConfig(log_dir=out),
         session=SessionConfig(level_tolerance_deg=0.3),

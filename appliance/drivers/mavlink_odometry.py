@@ -89,8 +89,8 @@ class StopTracker:
             self._reset_counter = p.reset_counter
         speed = self._speed(p)
         self._last = p
-        if self.mark is None:
-            self.mark = p
+        if self.mark is None or (not self.moving and _mean_var(self.mark) is None and _mean_var(p) is not None):
+            self.mark = p  # the first position, or the first with a covariance while the rover still stands
         if speed > self.rules.moving_speed_m_s:
             self.moving, self._still_since_ms = True, None
             return None, frame_reset
