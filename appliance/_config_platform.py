@@ -285,6 +285,7 @@ class SimFaultsConfig:
     compass_metal_nearby: bool = False  # steel nearby distorts the field beyond any hard/soft iron fit
     camera_unplug_after: int | None = None  # the camera disappears after this many stills
     camera_black_frames: tuple[int, ...] = ()  # still numbers (from 0) that come back black
+    autopilot_reboot_leg: int | None = None  # the MAVLink autopilot twin reboots halfway through this leg (from 1)
 
     def __post_init__(self) -> None:
         if self.gps_unplug_at_s is not None:
@@ -305,6 +306,9 @@ class SimFaultsConfig:
         if self.camera_unplug_after is not None:
             _require(self.camera_unplug_after >= 0, "sim.faults.camera_unplug_after", "an integer >= 0",
                      self.camera_unplug_after)
+        if self.autopilot_reboot_leg is not None:
+            _require(self.autopilot_reboot_leg >= 1, "sim.faults.autopilot_reboot_leg", "an integer >= 1",
+                     self.autopilot_reboot_leg)
         for i, n in enumerate(self.camera_black_frames):
             _require(n >= 0, f"sim.faults.camera_black_frames[{i}]", "an integer >= 0", n)
 

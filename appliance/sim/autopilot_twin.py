@@ -110,6 +110,7 @@ class AutopilotTwin:
         self.parser.robust_parsing = True
         self.received: list[Received] = []
         self.boots = 0
+        self._reboot_at: float | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -126,10 +127,12 @@ class AutopilotTwin:
         self.home = (self.world.lat_deg, self.world.lon_deg)
         self._next_hb = self._next_pos = now_s
 
-    def drive(self, east_m: float, north_m: float) -> None:
-        """Start a leg of (east, north) metres from where the rover stands (in simulated time)."""
+    def drive(self, east_m: float, north_m: float, reboot_at: float | None = None) -> None:
+        """Start a leg of (east, north) metres from where the rover stands (in simulated time);
+        ``reboot_at``: reboot when this fraction of the leg is driven (a fault to inject)."""
         with self._lock:
             now = self.clock.monotonic_s()
+            self._reboot_at = reboot_at
             self._finish_leg(now)
             length = math.hypot(east_m, north_m)
             sigma = self.drift_per_m * length
@@ -162,21 +165,24 @@ class AutopilotTwin:
         """Restart: silent for ``reboot_silence_s``, then time and frame from zero where the rover is (a
         leg under way goes on in the new frame)."""
         with self._lock:
-            now = self.clock.monotonic_s()
-            self._finish_leg(now)
-            rest = None
-            if self.leg is not None:
-                t0, delta, drift, duration, var = self.leg
-                done = min(max((now - t0) / duration, 0.0), 1.0)
-                rest = (1.0 - done) * delta, (1.0 - done) * drift, (1.0 - done) * duration, (1.0 - done) * var
-            self.boots += 1
-            self._boot(now + self.reboot_silence_s)
-            self.quiet_until_s = self.boot_s
-            if rest is not None:
-                delta, drift, duration, var = rest
-                self.leg = (self.boot_s, delta, drift, max(duration, 1e-3), var)
-                # the world stands at the leg's end already: the new frame's zero is the rest of the leg back
-                self.home = _offset(self.world.lat_deg, self.world.lon_deg, -delta[0], -delta[1])
+            self._reboot(self.clock.monotonic_s())
+
+    def _reboot(self, now: float) -> None:
+        self._reboot_at = None
+        self._finish_leg(now)
+        rest = None
+        if self.leg is not None:
+            t0, delta, drift, duration, var = self.leg
+            done = min(max((now - t0) / duration, 0.0), 1.0)
+            rest = (1.0 - done) * delta, (1.0 - done) * drift, (1.0 - done) * duration, (1.0 - done) * var
+        self.boots += 1
+        self._boot(now + self.reboot_silence_s)
+        self.quiet_until_s = self.boot_s
+        if rest is not None:
+            delta, drift, duration, var = rest
+            self.leg = (self.boot_s, delta, drift, max(duration, 1e-3), var)
+            # the world stands at the leg's end already: the new frame's zero is the rest of the leg back
+            self.home = _offset(self.world.lat_deg, self.world.lon_deg, -delta[0], -delta[1])
 
     # ---------------------------------------------------------------------------- the wire
     def _send(self, msg: Any) -> None:
@@ -190,6 +196,9 @@ class AutopilotTwin:
         return int(round(lat * 1e7)), int(round(lon * 1e7))
 
     def _emit(self, now_s: float) -> None:
+        leg = self.leg
+        if self._reboot_at is not None and leg is not None and now_s >= leg[0] + self._reboot_at * leg[3]:
+            self._reboot(now_s)
         if now_s < self.quiet_until_s:
             return
         ms = int((now_s - self.boot_s) * 1000)
@@ -264,10 +273,12 @@ class _Frames:
 
 
 class MavlinkRover:
-    """The rover twin's legs told to the autopilot twin too: ``drive()`` as :meth:`RoverTwin.drive`."""
+    """The rover twin's legs told to the autopilot twin too: ``drive()`` as :meth:`RoverTwin.drive`;
+    the autopilot reboots halfway through leg ``reboot_leg`` (from 1; None: never)."""
 
-    def __init__(self, rover: RoverTwin, autopilot: AutopilotTwin, on_leg: Callable[[Leg], None] | None = None):
-        self.rover, self.autopilot, self.on_leg = rover, autopilot, on_leg
+    def __init__(self, rover: RoverTwin, autopilot: AutopilotTwin, reboot_leg: int | None = None,
+                 on_leg: Callable[[Leg], None] | None = None) -> None:
+        self.rover, self.autopilot, self.reboot_leg, self.on_leg = rover, autopilot, reboot_leg, on_leg
 
     @property
     def legs(self) -> list[Leg]:
@@ -275,7 +286,7 @@ class MavlinkRover:
 
     def drive(self) -> Leg:
         leg = self.rover.drive()
-        self.autopilot.drive(leg.east_m, leg.north_m)
+        self.autopilot.drive(leg.east_m, leg.north_m, 0.5 if len(self.rover.legs) == self.reboot_leg else None)
         if self.on_leg is not None:
             self.on_leg(leg)
         return leg

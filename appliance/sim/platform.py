@@ -150,7 +150,8 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
         # pymavlink (an optional library) loads only for a MAVLink rover
         from appliance.sim.autopilot_twin import MavlinkRover
 
-        devices.rover = MavlinkRover(rover, start_autopilot_twin(world, sim, devices))  # type: ignore[attr-defined]
+        devices.rover = MavlinkRover(rover, start_autopilot_twin(world, sim, devices),  # type: ignore[attr-defined]
+                                     sim.faults.autopilot_reboot_leg)
     return devices
 
 
