@@ -182,6 +182,7 @@ class Traverse:
         self.last_stop_id = 0
         self.note = ""
         self._queued: list[OdometryReport] = []
+        self.head_problems: list[str] = []
 
     def session(self, result: SessionResult, log_prior: np.ndarray | None = None,
                 position_prior: PositionPrior | None = None) -> Session:
@@ -191,6 +192,7 @@ class Traverse:
     def run(self) -> TraverseResult:
         r = self.result
         head = self.session(SessionResult(r.log_path, r.session_id))
+        self.head_problems = head.result.problems  # the traverse's own warnings (odometry, autopilot)
         current: Session | None = None
         try:
             head.write_header()
@@ -315,6 +317,7 @@ class Traverse:
 
     def summarise(self) -> None:
         r = self.result
+        r.problems += self.head_problems
         for s in r.stops:
             r.problems += s.session.problems
             r.frames += s.session.frames
