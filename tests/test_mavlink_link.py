@@ -169,6 +169,7 @@ def test_the_link_reads_the_twin_over_a_pty(tmp_path):
     twin.start()
     link = open_mavlink(str(port.path), _cfg(baudrate=57600), clock_ns=world.clock.now_ns)
     try:
+        _until(lambda: link._odometry_seen, "an ODOMETRY message over the pty")
         twin.drive(-50.0, 20.0)  # no drift: the displacement is the leg's, its sigma from the covariance (0)
         twin_var = twin.var_m2
         (rep,) = _poll_stop(link)
