@@ -1,6 +1,6 @@
 """A traverse's exchanges with the rover's autopilot (:class:`appliance.acquisition.platform.Autopilot`,
 the MAVLink link): its faults logged as the session's warnings, what it says of the rover at each
-stop's capture (``/traverse/rover``), and each stop's estimate sent back (``/traverse/position_out``).
+stop's session and capture begin (``/traverse/rover``), and each stop's estimate sent back (``/traverse/position_out``).
 
 An estimate is sent as ok when it says so itself: not ambiguous and with a covariance (the GPS truth
 the simulator logs plays no part: on a rover there is none).
@@ -38,7 +38,7 @@ def rover_record(stop: int, s: RoverState, faults: dict[str, int]) -> dict[str, 
 
 
 def log_rover_state(autopilot: Autopilot | None, log: Logbook, stop: int, now_ns: int) -> RoverState | None:
-    """What the autopilot says of the rover as stop ``stop``'s capture begins, written to the log."""
+    """What the autopilot says of the rover as stop ``stop``'s session (and its capture) begins, logged."""
     if autopilot is None:
         return None
     state = autopilot.state()

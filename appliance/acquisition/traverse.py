@@ -12,8 +12,9 @@ Fusion spans a stop without an estimate (the moves add up, their sigmas in quadr
 lost odometry line: stop ids must follow each other, and after a gap the next stop starts afresh; nor
 a reset of the odometry's frame (a MAVLink autopilot's reboot, :attr:`OdometryReport.reset`).  With a
 MAVLink autopilot (``[devices.odometry] kind = "mavlink"``, :mod:`appliance.acquisition.rover_link`)
-the link's faults become the traverse's warnings, each stop's capture logs the autopilot's attitude
-and mode (``/traverse/rover``), and each estimate goes back to the autopilot (``/traverse/position_out``).
+the link's faults become the traverse's warnings, each stop logs the autopilot's attitude and mode
+as its capture begins (``/traverse/rover``), and each estimate goes back to the autopilot
+(``/traverse/position_out``).
 Each stop writes ``/traverse/stop`` (both estimates, their errors against the GPS truth, their
 statuses) and ``/traverse/track`` (GeoJSON lines through the estimates and through the GPS truths so
 far: the last message is the whole track).  A stop request ends the traverse between steps with the

@@ -43,6 +43,7 @@ class FaultKind(str, enum.Enum):
     REBOOT = "autopilot reboot"
     FRAME_RESET = "position frame reset"
     LINK_SILENT = "link silent"
+    LINK_ERROR = "link error"
     BAD_FRAME = "bad MAVLink frame"
     UNSUPPORTED = "unsupported message content"
 

@@ -188,7 +188,9 @@ class MavlinkLink:
             try:
                 self.pump()
             except DeviceError as exc:
-                self._fault(Fault(FaultKind.LINK_SILENT, str(exc)))
+                with self._lock:
+                    self.monitor.count(FaultKind.LINK_ERROR)
+                self._fault(Fault(FaultKind.LINK_ERROR, str(exc)))
                 self._stop.wait(0.5)
 
     def pump(self) -> None:

@@ -27,7 +27,7 @@ topic                         schema                      content
 A traverse (a rover's series of stops, :mod:`appliance.acquisition.traverse`) writes every stop's
 session records into one log, one after the other, and per stop ``/traverse/odometry`` (the line
 received) and ``/traverse/stop`` (the stop's estimates alone and fused, their errors and statuses).
-With a MAVLink autopilot, also ``/traverse/rover`` at each stop's capture (the autopilot's heading,
+With a MAVLink autopilot, also ``/traverse/rover`` as each stop's session begins (the autopilot's heading,
 roll, pitch, armed state, mode and position) and ``/traverse/position_out`` after each estimate (what
 was sent back to the autopilot, or why nothing was).
 
@@ -227,8 +227,9 @@ _ROVER_FIELDS = {"stop": _INT, "heading_deg": _NUM, "roll_deg": _NUM, "pitch_deg
                  "time_boot_ms": _COUNT, "boots": _INT, "faults": {"type": "object",
                                                                   "additionalProperties": _INT}}
 JSON_SCHEMAS["viper.RoverState"] = _object(
-    "What the rover's autopilot last said when a stop's capture began: heading (deg clockwise from true "
-    "north), roll and pitch (deg), armed state, mode, its global position (deg), its time since boot (ms), "
+    "What the rover's autopilot last said as a stop's session (and its capture) began: heading (deg "
+    "clockwise from true north), roll and pitch (deg), armed state, mode, its global position (deg), its time since "
+    "boot (ms), "
     "the reboots seen and the link's faults so far by kind (null: not heard)", _ROVER_FIELDS, tuple(_ROVER_FIELDS))
 _OUT_FIELDS = {"stop": _INT, "message": _STR, "sent": _BOOL, "reason": _STR, "fix_type": _COUNT,
                "horiz_accuracy_m": _NUM, "lat": _NUM, "lon": _NUM, "ok": _BOOL}
