@@ -6,6 +6,7 @@ link, and a UDP port already taken."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 import math
 import socket
 import time
@@ -227,6 +228,19 @@ def test_a_reboot_mid_leg_is_a_logged_fault_and_breaks_the_fusion(tmp_path, udp_
         assert trav.belief is None and trav.moved == Move(rep.east_m, rep.north_m, rep.sigma_m)
     finally:
         log.close()
+    # the log, read back: the fault as a warning, the odometry of stop 2 marked reset, both schema-valid
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from mcap.reader import make_reader
+
+    odometry, logs = [], []
+    with open(tmp_path / "t.mcap", "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            if channel.topic == t.ODOMETRY:
+                odometry.append(json.loads(message.data))
+            elif channel.topic == t.LOG:
+                logs.append(Log.FromString(message.data).message)
+    assert [(o["stop_id"], o["reset"]) for o in odometry] == [(1, False), (2, True), (3, False)]
+    assert any(text.startswith("autopilot: autopilot reboot: ") for text in logs)
 
 
 def _sender(port, system=1):
