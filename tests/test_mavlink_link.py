@@ -304,3 +304,9 @@ def test_a_taken_udp_port_is_a_one_line_error(tmp_path, capsys):
         assert not list(tmp_path.rglob("*.mcap"))
     finally:
         taken.close()
+
+
+def test_mavlink_without_a_traverse_is_a_one_line_error(tmp_path, capsys):
+    code = main(["demo", "--mavlink", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0 and len(err) == 1 and "--mavlink goes with --traverse N" in err[0]
