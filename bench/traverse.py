@@ -14,6 +14,11 @@ truth the session logs).  Target (issue 16): the 90th-percentile error over the 
 first is lower fused than alone.
 
     python bench/traverse.py [--mode session|skyline] [--seeds 20] [--stops 5] [--first 1] [--jobs 2]
+
+``--mavlink`` runs each seed with the odometry through the line and through MAVLink (the autopilot twin
+and the appliance's MAVLink link over UDP, :mod:`bench.traverse_mavlink`), every estimate sent back as
+GPS_INPUT and checked where the twin receives it; ``--reboot-leg K`` adds a run with the twin rebooting
+halfway through leg K.  Its results go to results/traverse_mavlink.md.
 """
 
 from __future__ import annotations
