@@ -310,3 +310,27 @@ def test_mavlink_without_a_traverse_is_a_one_line_error(tmp_path, capsys):
     code = main(["demo", "--mavlink", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code != 0 and len(err) == 1 and "--mavlink goes with --traverse N" in err[0]
+
+
+def test_the_simulated_rover_reboots_its_autopilot_on_the_leg_asked(tmp_path, udp_pair):
+    """[sim.faults] autopilot_reboot_leg = 2: the rover twin's second leg comes back reset, the others not."""
+    from appliance.config import SimConfig
+    from appliance.sim.autopilot_twin import MavlinkRover
+    from appliance.sim.rover_twin import RoverTwin
+
+    world, link, twin = udp_pair
+    port = PtyPort(tmp_path / "odometry")
+    try:
+        rover = RoverTwin(world, port, SimConfig(leg_length_m=(50.0, 80.0)), lambda lat, lon: 500.0,
+                          lambda lat, lon: True, seed=4)
+        both = MavlinkRover(rover, twin, reboot_leg=2)
+        resets = []
+        for _ in range(3):
+            leg = both.drive()
+            (rep,) = _poll_stop(link)
+            resets.append(rep.reset)
+            if not rep.reset:
+                assert math.hypot(rep.east_m - leg.east_m, rep.north_m - leg.north_m) < 5 * 0.05 * 80.0
+        assert resets == [False, True, False] and twin.boots == 1 and link.state().boots == 1
+    finally:
+        port.close()
