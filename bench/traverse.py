@@ -209,7 +209,7 @@ def _run(args: tuple) -> tuple[int, list[dict]]:
     return seed, rows
 
 
-def main() -> int:
+def _parse_args() -> argparse.Namespace:
     ap = argparse.ArgumentParser()
     ap.add_argument("--mode", choices=("session", "skyline"), default="session")
     ap.add_argument("--seeds", type=int, default=20)
@@ -221,7 +221,11 @@ def main() -> int:
                          "estimates sent back as GPS_INPUT and checked; results in results/traverse_mavlink.md")
     ap.add_argument("--reboot-leg", type=int, default=None,
                     help="with --mavlink: also each seed with the twin rebooting halfway through this leg")
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> int:
+    args = _parse_args()
     _setup(args.mode)  # builds the database once, before any worker starts
     if args.mavlink:
         return main_mavlink(args)
