@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import enum
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,20 +73,80 @@ class GpsDeviceConfig:
                  self.reconnect_max_s)
 
 
+class OdometryKind(str, enum.Enum):
+    LINE = "line"  # one ODO line per stop (appliance.drivers.odometry)
+    MAVLINK = "mavlink"  # the autopilot's MAVLink position, cut into stops where the rover stands still
+
+
+class PositionOutput(str, enum.Enum):
+    """What the MAVLink link sends the autopilot after each estimate."""
+
+    NONE = "none"
+    GPS_INPUT = "gps_input"
+    VISION_POSITION_ESTIMATE = "vision_position_estimate"
+
+
+_MAVLINK_UDP = re.compile(r"(udpin|udpout|udp):(?:\[(?P<v6>[^\]]+)\]|(?P<host>[^:/\[\]]*)):(?P<port>\d{1,5})")
+
+
+def mavlink_udp_address(url: str, key: str) -> tuple[str, str, int] | None:
+    """(mode, host, port) of ``udpin:HOST:PORT``, ``udpout:HOST:PORT`` or ``udp:HOST:PORT`` (= udpin);
+    None for anything else (a serial device path or pyserial URL).  A malformed UDP URL raises naming ``key``."""
+    if not url.startswith(("udpin:", "udpout:", "udp:")):
+        return None
+    m = _MAVLINK_UDP.fullmatch(url)
+    _require(m is not None and int(m.group("port")) <= 65535, key,
+             "udpin:HOST:PORT, udpout:HOST:PORT or udp:HOST:PORT with a port in [0, 65535]", url)
+    assert m is not None
+    mode = "udpin" if m.group(1) == "udp" else m.group(1)
+    return mode, m.group("v6") or m.group("host") or "0.0.0.0", int(m.group("port"))
+
+
 @dataclass(frozen=True)
 class OdometryDeviceConfig:
-    """The rover's odometry, one line per stop (``appliance.drivers.odometry``): a device path or
-    pyserial URL, or ``udp://HOST:PORT`` to listen on ("" = none)."""
+    """The rover's odometry.  ``kind = "line"``: one line per stop (``appliance.drivers.odometry``) from
+    ``source``, a device path or pyserial URL, or ``udp://HOST:PORT`` to listen on ("" = none).
+    ``kind = "mavlink"``: the autopilot's MAVLink stream at ``url`` (``udpin:HOST:PORT`` to listen,
+    ``udpout:HOST:PORT`` to send to, or a serial device at ``baudrate``; "" = none), a stop being where
+    the rover stands still (``appliance.drivers.mavlink_odometry``); each estimate goes back as ``output``."""
 
+    kind: OdometryKind = OdometryKind.LINE
     source: str = ""
     baudrate: int = 9600
     read_timeout_s: float = 0.5
+    url: str = ""
+    system_id: int = 1  # the autopilot's MAVLink system id: messages from any other are ignored and counted
+    component_id: int = 1  # the autopilot's component id (0: any component of that system)
+    own_system_id: int = 1  # the ids the appliance's own messages carry
+    own_component_id: int = 191  # MAV_COMP_ID_ONBOARD_COMPUTER
+    link_timeout_s: float = 5.0  # no message from the autopilot for this long is a fault (link silent)
+    sigma_per_m: float = 0.05  # the displacement's 1-sigma per metre driven, where no covariance comes with it
+    moving_speed_m_s: float = 0.3  # faster than this the rover is driving
+    settle_s: float = 3.0  # a stop: still (below moving_speed_m_s) this long after driving
+    reorder_window_s: float = 2.0  # a timestamp this much older than the last is a reboot, less is out of order
+    output: PositionOutput = PositionOutput.NONE
+    output_min_interval_s: float = 1.0  # at most one position sent per this interval
+    output_ambiguous: bool = False  # also send estimates that are not ok (GPS_INPUT with fix_type 0)
 
     def __post_init__(self) -> None:
+        _require(isinstance(self.kind, OdometryKind), "devices.odometry.kind", _choices(OdometryKind), self.kind)
+        _require(isinstance(self.output, PositionOutput), "devices.odometry.output", _choices(PositionOutput),
+                 self.output)
         _baud("devices.odometry.baudrate", self.baudrate)
         _positive("devices.odometry.read_timeout_s", self.read_timeout_s)
         if self.source.startswith(UDP_SCHEME):
             udp_address(self.source, "devices.odometry.source")
+        mavlink_udp_address(self.url, "devices.odometry.url")
+        for key in ("system_id", "own_system_id"):
+            _require(1 <= getattr(self, key) <= 255, f"devices.odometry.{key}", "an integer in [1, 255]",
+                     getattr(self, key))
+        for key in ("component_id", "own_component_id"):
+            _require(0 <= getattr(self, key) <= 255, f"devices.odometry.{key}", "an integer in [0, 255]",
+                     getattr(self, key))
+        for key in ("link_timeout_s", "moving_speed_m_s", "settle_s", "reorder_window_s"):
+            _positive(f"devices.odometry.{key}", getattr(self, key))
+        _within("devices.odometry.sigma_per_m", self.sigma_per_m, 0.0, 1.0)
+        _non_negative("devices.odometry.output_min_interval_s", self.output_min_interval_s)
 
 
 @dataclass(frozen=True)
@@ -225,6 +286,7 @@ class SimFaultsConfig:
     compass_metal_nearby: bool = False  # steel nearby distorts the field beyond any hard/soft iron fit
     camera_unplug_after: int | None = None  # the camera disappears after this many stills
     camera_black_frames: tuple[int, ...] = ()  # still numbers (from 0) that come back black
+    autopilot_reboot_leg: int | None = None  # the MAVLink autopilot twin reboots halfway through this leg (from 1)
 
     def __post_init__(self) -> None:
         if self.gps_unplug_at_s is not None:
@@ -246,6 +308,9 @@ class SimFaultsConfig:
         if self.camera_unplug_after is not None:
             _require(self.camera_unplug_after >= 0, "sim.faults.camera_unplug_after", "an integer >= 0",
                      self.camera_unplug_after)
+        if self.autopilot_reboot_leg is not None:
+            _require(self.autopilot_reboot_leg >= 1, "sim.faults.autopilot_reboot_leg", "an integer >= 1",
+                     self.autopilot_reboot_leg)
         for i, n in enumerate(self.camera_black_frames):
             _require(n >= 0, f"sim.faults.camera_black_frames[{i}]", "an integer >= 0", n)
 

@@ -38,11 +38,14 @@ from appliance._config_platform import (
     InclinometerConfig,
     InclinometerKind,
     OdometryDeviceConfig,
+    OdometryKind,
     PlatformConfig,
     PlatformKind,
+    PositionOutput,
     SimConfig,
     SimFaultsConfig,
     StageConfig,
+    mavlink_udp_address,
 )
 from appliance.errors import ConfigError, InputError
 from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read_text_bounded
@@ -50,10 +53,9 @@ from appliance.inputs import MAX_CONFIG_BYTES, NestingError, check_nesting, read
 __all__ = [
     "CameraDeviceConfig", "CompassConfig", "CompassKind", "Compression", "Config", "DevicesConfig", "EstimatorConfig",
     "GpsDeviceConfig", "InclinometerConfig", "InclinometerKind", "LEAST_LOG_BYTES", "LogEncoding", "LogbookConfig",
-    "OdometryDeviceConfig", "PlatformConfig", "PlatformKind", "SIGMA_MAX_DEG", "SIGMA_MIN_DEG", "SessionConfig",
-    "SimConfig",
-    "SimFaultsConfig", "StageConfig", "TraverseConfig", "UDP_SCHEME", "from_mapping", "load_config", "override",
-    "read_config_toml", "udp_address",
+    "OdometryDeviceConfig", "OdometryKind", "PlatformConfig", "PlatformKind", "PositionOutput", "SIGMA_MAX_DEG",
+    "SIGMA_MIN_DEG", "SessionConfig", "SimConfig", "SimFaultsConfig", "StageConfig", "TraverseConfig", "UDP_SCHEME",
+    "from_mapping", "load_config", "mavlink_udp_address", "override", "read_config_toml", "udp_address",
 ]
 
 if sys.version_info >= (3, 11):

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from appliance.drivers.autopilot import PositionFix, RoverState, SentPosition
 from appliance.drivers.gps import GpsFix
 from appliance.drivers.odometry import OdometryReport
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -109,6 +110,20 @@ class GpsSource(Protocol):
         ...
 
 
+class Autopilot(Protocol):
+    """A rover's autopilot (:class:`appliance.drivers.mavlink_reader.MavlinkLink`): its faults since
+    the last call (one line each) and counted by kind, what it last said of the rover, and the estimate
+    sent back to it."""
+
+    def faults(self) -> list[str]: ...
+
+    def counts(self) -> dict[str, int]: ...
+
+    def state(self) -> RoverState: ...
+
+    def send_position(self, fix: PositionFix) -> SentPosition: ...
+
+
 class OdometrySource(Protocol):
     def poll(self) -> list[OdometryReport]:
         """Odometry lines completed since the last call (may be empty; waits at most a read timeout)."""
@@ -133,6 +148,7 @@ class Platform:
     gps: GpsSource | None
     leveller: Leveller | None
     odometry: OdometrySource | None = None
+    autopilot: Autopilot | None = None
 
 
 def platform_of(devices: Devices) -> Platform:
@@ -146,4 +162,5 @@ def platform_of(devices: Devices) -> Platform:
         gps=devices.gps,
         leveller=devices.leveller,
         odometry=devices.odometry,
+        autopilot=devices.autopilot,
     )

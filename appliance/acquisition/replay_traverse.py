@@ -161,7 +161,8 @@ def _take_traverse_message(cur: _StopCollector, msg: LogMessage) -> None:
             return
         cur.odometry.append(OdometryReport(int(payload["stop_id"]), float(payload["east_m"]),
                                            float(payload["north_m"]), float(payload["sigma_m"]),
-                                           int(payload.get("receive_time_ns") or msg.log_time_ns)))
+                                           int(payload.get("receive_time_ns") or msg.log_time_ns),
+                                           bool(payload.get("reset", False))))
     except (LogError, ValueError, TypeError, KeyError) as exc:
         cur.session.undecodable += 1
         cur.session.problem = cur.session.problem or f"undecodable message on {msg.topic}: {exc}"

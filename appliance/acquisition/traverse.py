@@ -9,7 +9,12 @@ reports both: its estimate from its own skyline alone (``/estimate/alone/fix``) 
 which is the stop's position (``/estimate/fix`` and the other estimate topics).
 
 Fusion spans a stop without an estimate (the moves add up, their sigmas in quadrature) but never a
-lost odometry line: stop ids must follow each other, and after a gap the next stop starts afresh.
+lost odometry line: stop ids must follow each other, and after a gap the next stop starts afresh; nor
+a reset of the odometry's frame (a MAVLink autopilot's reboot, :attr:`OdometryReport.reset`).  With a
+MAVLink autopilot (``[devices.odometry] kind = "mavlink"``, :mod:`appliance.acquisition.rover_link`)
+the link's faults become the traverse's warnings, each stop logs the autopilot's attitude and mode
+as its capture begins (``/traverse/rover``), and each estimate goes back to the autopilot
+(``/traverse/position_out``).
 Each stop writes ``/traverse/stop`` (both estimates, their errors against the GPS truth, their
 statuses) and ``/traverse/track`` (GeoJSON lines through the estimates and through the GPS truths so
 far: the last message is the whole track).  A stop request ends the traverse between steps with the
@@ -31,6 +36,7 @@ import numpy as np
 
 from appliance.acquisition.platform import Platform, platform_of
 from appliance.acquisition.procedures import Status
+from appliance.acquisition.rover_link import log_rover_state, say_faults, send_estimate
 from appliance.acquisition.session import (
     Session,
     SessionResult,
@@ -143,15 +149,15 @@ def stop_record(db: SkylineDatabase, s: StopResult) -> dict[str, Any]:
 
 def odometry_record(o: OdometryReport) -> dict[str, Any]:
     return {"stop_id": o.stop_id, "east_m": o.east_m, "north_m": o.north_m, "sigma_m": o.sigma_m,
-            "receive_time_ns": o.receive_time_ns}
+            "receive_time_ns": o.receive_time_ns, "reset": o.reset}
 
 
 def added_odometry(total: OdometryReport | None, rep: OdometryReport) -> OdometryReport:
     """``rep`` added to the lines before it (the rover drove on): displacements add, sigmas in quadrature."""
-    if total is None:
+    if total is None or rep.reset:
         return rep
     return OdometryReport(rep.stop_id, total.east_m + rep.east_m, total.north_m + rep.north_m,
-                          float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns)
+                          float(np.hypot(total.sigma_m, rep.sigma_m)), rep.receive_time_ns, total.reset)
 
 
 def track_features(stops: list[StopResult]) -> list[dict[str, Any]]:
@@ -206,6 +212,10 @@ class FusionChain:
         expected = self.last_stop_id + 1
         self.last_stop_id = rep.stop_id
         move = Move(rep.east_m, rep.north_m, rep.sigma_m)
+        if rep.reset:
+            self.lose(f"the autopilot's position frame was reset before stop {rep.stop_id} (a reboot): "
+                      "not fused across it")
+            return self.note
         if rep.stop_id != expected:
             self.lose(f"odometry of stop {expected} missing (got stop {rep.stop_id}): not fused across the gap")
             return self.note
@@ -253,6 +263,7 @@ class Traverse:
         self._queued: list[OdometryReport] = []
         self.map_origin: tuple[float, float] | None = None  # (lat, lon) of ``map``'s origin: the first stop placed
         self.stop_start_ns = 0
+        self.head_problems: list[str] = []
 
     @property
     def moved(self) -> Move | None:
@@ -270,6 +281,7 @@ class Traverse:
     def run(self) -> TraverseResult:
         r = self.result
         head = self.session(SessionResult(r.log_path, r.session_id))
+        self.head_problems = head.result.problems  # the traverse's own warnings (odometry, autopilot)
         current: Session | None = None
         try:
             self.log.frame_prefix = stop_prefix(0)
@@ -286,6 +298,7 @@ class Traverse:
                 current = self.session(stop.session, stop.log_prior, stop.position_prior)
                 r.stops.append(stop)
                 self.start_frames(i)
+                log_rover_state(self.p.autopilot, self.log, i, self.p.clock.now_ns())
                 current.run_procedures()
                 current = None
                 self.finish_stop(head, stop)
@@ -317,9 +330,11 @@ class Traverse:
             if self.should_stop():
                 raise StopRequestedError()
             if clock.monotonic_s() - start > timeout_s:
+                say_faults(self.p.autopilot, head)
                 head.say("error", f"traverse: no odometry line within {timeout_s:g} s; the traverse ends")
                 return None
             reports = self.p.odometry.poll()
+            say_faults(self.p.autopilot, head)
         self._queued = []
         total: OdometryReport | None = None
         for rep in reports:
@@ -371,6 +386,8 @@ class Traverse:
         features = track_features(self.result.stops)
         if features:
             self.log.write_proto(t.TRAVERSE_TRACK, m.geojson(features), now)
+        send_estimate(self.p.autopilot, self.log, head, stop.stop, stop.position, now)
+        say_faults(self.p.autopilot, head)
         self.log.flush()
         pos, alone = rec["position"], rec["alone"]
         if pos is not None and alone is not None:
@@ -382,6 +399,7 @@ class Traverse:
 
     def summarise(self) -> None:
         r = self.result
+        r.problems += self.head_problems
         for s in r.stops:
             r.problems += s.session.problems
             r.frames += s.session.frames

@@ -6,7 +6,9 @@ leaves the MCAP log and the report in ``--out``.  ``--skyline-only`` is the quic
 demo (:func:`appliance.sim.demo.run_demo`).  ``--traverse N`` is a rover's traverse: N such sessions
 at stops a few hundred metres apart along a random path, the rover twin reporting each leg over its
 odometry line, each stop's estimate fused with the previous stop's; it prints every stop's error
-alone and fused, and the report shows the track.
+alone and fused, and the report shows the track.  With ``--mavlink`` the odometry comes from the
+autopilot twin over MAVLink (UDP, :mod:`appliance.sim.autopilot_twin`) and every estimate that says ok
+goes back to it as GPS_INPUT.
 """
 
 from __future__ import annotations
@@ -24,6 +26,9 @@ from appliance.config import (
     DevicesConfig,
     LogbookConfig,
     LogEncoding,
+    OdometryDeviceConfig,
+    OdometryKind,
+    PositionOutput,
     SessionConfig,
     SimConfig,
 )
@@ -44,17 +49,28 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="only locate a synthetic noisy skyline (no platform, no images)")
     p.add_argument("--traverse", type=int, metavar="N",
                    help="a rover's traverse of N stops (legs of 200-400 m), each fused with the last")
+    p.add_argument("--mavlink", action="store_true",
+                   help="with --traverse: the rover's odometry from a simulated autopilot over MAVLink (UDP), "
+                        "each estimate sent back to it as GPS_INPUT")
     p.add_argument("--time-rate", type=float, default=20.0, help="simulated seconds per real second (default 20)")
     p.add_argument("--log-encoding", choices=[e.value for e in LogEncoding], default=LogEncoding.PROTOBUF.value,
                    help="messages of the MCAP log: Foxglove protobuf (default) or standard ROS 2 messages")
     p.set_defaults(func=run)
 
 
-def demo_config(out: Path, time_rate: float, encoding: str = LogEncoding.PROTOBUF.value) -> Config:
+def demo_config(out: Path, time_rate: float, mavlink: bool = False,
+                encoding: str = LogEncoding.PROTOBUF.value) -> Config:
+    """The demo's configuration; ``mavlink``: the rover's odometry over MAVLink, estimates sent back as GPS_INPUT;
+    ``encoding``: the log's messages (protobuf or ros2)."""
+    odometry = OdometryDeviceConfig()
+    if mavlink:
+        # the link's timeout in simulated seconds: five real ones, as a busy machine stalls the twin's thread
+        odometry = OdometryDeviceConfig(kind=OdometryKind.MAVLINK, output=PositionOutput.GPS_INPUT,
+                                        read_timeout_s=0.1, link_timeout_s=5.0 * time_rate)
     return Config(
         logbook=LogbookConfig(log_dir=out, encoding=LogEncoding(encoding)),
         session=SessionConfig(level_tolerance_deg=0.3),
-        devices=DevicesConfig(camera=CameraDeviceConfig(width=640, height=480)),
+        devices=DevicesConfig(camera=CameraDeviceConfig(width=640, height=480), odometry=odometry),
         sim=SimConfig(time_rate=time_rate),
     )
 
@@ -81,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         if not 1 <= args.traverse <= 1000:
             raise InputError(f"--traverse {args.traverse}: expected a number of stops in 1..1000")
         return run_traverse(args)
+    if args.mavlink:
+        raise InputError("--mavlink goes with --traverse N (the rover's odometry over MAVLink)")
     if args.skyline_only:
         if args.log_encoding != LogEncoding.PROTOBUF.value:
             raise InputError(f"--log-encoding {args.log_encoding}: --skyline-only writes no log")
@@ -98,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     def status(text: str) -> None:
         print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
-    config = demo_config(out, args.time_rate, args.log_encoding)
+    config = demo_config(out, args.time_rate, encoding=args.log_encoding)
     r, sim_truth = run_field_session(config, out, seed=args.seed, dem=dem, db=db, on_status=status)
     lat, lon = sim_truth.lat_deg, sim_truth.lon_deg
     print(f"  session    {r.status.value}: " + ", ".join(f"{k} {v}" for k, v in r.outcomes.items()))
@@ -163,7 +181,8 @@ def run_traverse(args: argparse.Namespace) -> int:
 
     out = check_output_folder(args.out)
     print(f"Viper demo: a rover's traverse of {args.traverse} stops on the jacksboro DEM "
-          "(Cumberland Mountains, Tennessee)")
+          "(Cumberland Mountains, Tennessee)" + (", odometry over MAVLink from a simulated autopilot"
+                                                 if args.mavlink else ""))
     dem, db = demo_map(out)
     t1 = time.monotonic()
 
@@ -171,7 +190,7 @@ def run_traverse(args: argparse.Namespace) -> int:
         if not text.startswith("capture "):
             print(f"  {time.monotonic() - t1:6.1f} s  {text}", flush=True)
 
-    config = demo_config(out, args.time_rate, args.log_encoding)
+    config = demo_config(out, args.time_rate, mavlink=args.mavlink, encoding=args.log_encoding)
     r, truths = run_field_traverse(config, out, args.traverse, seed=args.seed, dem=dem, db=db, on_status=status)
     print(f"  traverse   {r.status.value}: {len(r.stops)} of {args.traverse} stops")
     for problem in r.problems:

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
-from appliance.config import CompassKind, Config, InclinometerKind
+from appliance.config import CompassKind, Config, InclinometerKind, OdometryKind
 from appliance.drivers.accelerometer import Adxl345, TiltOffset
 from appliance.drivers.devices import AccelTilt, MagnetometerCompass, NmeaCompass, PtuStage, SystemClock
 from appliance.drivers.gps_reader import GpsReader, GpsSourceOptions, open_gps
@@ -39,6 +39,7 @@ from appliance.errors import DeviceError
 
 if TYPE_CHECKING:
     from appliance.drivers.camera import V4l2Camera
+    from appliance.drivers.mavlink_reader import MavlinkLink
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,8 @@ class Devices:
     stage: PtuStage | None
     camera: V4l2Camera | None
     leveller: Leveller | None = None
-    odometry: OdometryReader | None = None
+    odometry: OdometryReader | MavlinkLink | None = None
+    autopilot: MavlinkLink | None = None  # the MAVLink link, also the odometry ([devices.odometry] kind = "mavlink")
     _closers: list[Callable[[], None]] = field(default_factory=list)
 
     def close(self) -> None:
@@ -106,7 +108,8 @@ def build_devices(
     calibration: DeviceCalibration,
     odometry_source: str = "",
 ) -> Devices:
-    """Wire the drivers to the given sources (shared by the hardware and the simulated platform)."""
+    """Wire the drivers to the given sources (shared by the hardware and the simulated platform);
+    ``odometry_source`` is the line's source or, for ``[devices.odometry] kind = "mavlink"``, the link's URL."""
     d = config.devices
     clock_ns = clock.now_ns
     closers: list[Callable[[], None]] = []
@@ -154,9 +157,16 @@ def build_devices(
             stage = PtuStage(unit)
         if camera is not None and hasattr(camera, "close"):
             closers.append(camera.close)
-        odometry = None
-        if odometry_source:
-            o = d.odometry
+        odometry: OdometryReader | MavlinkLink | None = None
+        autopilot = None
+        o = d.odometry
+        if odometry_source and o.kind is OdometryKind.MAVLINK:
+            # pymavlink (an optional library, seconds of imports) loads only for a MAVLink autopilot
+            from appliance.drivers.mavlink_reader import open_mavlink
+
+            odometry = autopilot = open_mavlink(odometry_source, o, backoff=backoff, clock_ns=clock_ns)
+            closers.append(autopilot.close)
+        elif odometry_source:
             odometry = open_odometry(odometry_source, o.baudrate, o.read_timeout_s, backoff=backoff,
                                      clock_ns=clock_ns)
             closers.append(odometry.close)
@@ -164,7 +174,8 @@ def build_devices(
         for c in reversed(closers):
             c()
         raise
-    return Devices(clock, gps, tilt, compass, heading, stage, camera, odometry=odometry, _closers=closers)
+    return Devices(clock, gps, tilt, compass, heading, stage, camera, odometry=odometry, autopilot=autopilot,
+                   _closers=closers)
 
 
 def uses_nmea_compass(config: Config) -> bool:
@@ -193,5 +204,6 @@ def open_hardware_platform(config: Config, calibration: DeviceCalibration) -> De
         except DeviceError as exc:
             log.warning("camera absent: %s", exc)
     compass_src = d.compass.nmea_source if uses_nmea_compass(config) else ""
+    odometry_src = d.odometry.url if d.odometry.kind is OdometryKind.MAVLINK else d.odometry.source
     return build_devices(config, d.gps.source, d.stage.source, compass_src, bus, camera, SystemClock(), calibration,
-                         d.odometry.source)
+                         odometry_src)

@@ -51,13 +51,15 @@ FIELDS = ("stop_id", "east_m", "north_m", "sigma_m")
 @dataclass(frozen=True)
 class OdometryReport:
     """The displacement from stop ``stop_id - 1`` to stop ``stop_id`` (m, true east and north, 1-sigma
-    per axis) and when its line was received (UTC ns)."""
+    per axis) and when its line was received (UTC ns).  ``reset``: the source's frame was reset since
+    the previous stop (an autopilot's reboot), so the displacement does not join the two stops."""
 
     stop_id: int
     east_m: float
     north_m: float
     sigma_m: float
     receive_time_ns: int = 0
+    reset: bool = False
 
 
 def checksum(body: str) -> str:

@@ -29,6 +29,9 @@ topic                         schema                      content
 A traverse (a rover's series of stops, :mod:`appliance.acquisition.traverse`) writes every stop's
 session records into one log, one after the other, and per stop ``/traverse/odometry`` (the line
 received) and ``/traverse/stop`` (the stop's estimates alone and fused, their errors and statuses).
+With a MAVLink autopilot, also ``/traverse/rover`` as each stop's session begins (the autopilot's heading,
+roll, pitch, armed state, mode and position) and ``/traverse/position_out`` after each estimate (what
+was sent back to the autopilot, or why nothing was).
 
 JSON-schema messages (schema names ``viper.*``): raw heading, tilt and stage readings, the tag of
 every capture, the result of each procedure and the estimate's full record.  Their schemas are
@@ -78,6 +81,8 @@ TRAVERSE_TRACK = "/traverse/track"
 TRAVERSE_STOP = "/traverse/stop"
 ODOMETRY = "/traverse/odometry"
 CLOCK = "/session/clock"
+ROVER_STATE = "/traverse/rover"
+POSITION_OUT = "/traverse/position_out"
 
 _NUM = {"type": ["number", "null"]}
 _INT = {"type": "integer"}
@@ -225,10 +230,27 @@ _ESTIMATE_SUMMARY = _nested(
     ("lat", "lon", "status", "region_cells", "region_area_m2", "error_m"),
 )
 
-_ODOMETRY_FIELDS = {"stop_id": _INT, "east_m": _NUM, "north_m": _NUM, "sigma_m": _NUM, "receive_time_ns": _INT}
+_ODOMETRY_FIELDS = {"stop_id": _INT, "east_m": _NUM, "north_m": _NUM, "sigma_m": _NUM, "receive_time_ns": _INT,
+                    "reset": _BOOL}
 JSON_SCHEMAS["viper.Odometry"] = _object(
-    "The rover's odometry line of one stop: displacement from the previous stop (m, true east and north) "
-    "and its 1-sigma per axis (m)", _ODOMETRY_FIELDS, tuple(_ODOMETRY_FIELDS))
+    "The rover's odometry of one stop: displacement from the previous stop (m, true east and north) "
+    "and its 1-sigma per axis (m); reset: the autopilot's position frame was reset since (not fused)",
+    _ODOMETRY_FIELDS, tuple(_ODOMETRY_FIELDS))
+_ROVER_FIELDS = {"stop": _INT, "heading_deg": _NUM, "roll_deg": _NUM, "pitch_deg": _NUM,
+                 "armed": {"type": ["boolean", "null"]}, "mode": _OPT_STR, "lat": _NUM, "lon": _NUM,
+                 "time_boot_ms": _COUNT, "boots": _INT, "faults": {"type": "object",
+                                                                  "additionalProperties": _INT}}
+JSON_SCHEMAS["viper.RoverState"] = _object(
+    "What the rover's autopilot last said as a stop's session (and its capture) began: heading (deg "
+    "clockwise from true north), roll and pitch (deg), armed state, mode, its global position (deg), its time since "
+    "boot (ms), "
+    "the reboots seen and the link's faults so far by kind (null: not heard)", _ROVER_FIELDS, tuple(_ROVER_FIELDS))
+_OUT_FIELDS = {"stop": _INT, "message": _STR, "sent": _BOOL, "reason": _STR, "fix_type": _COUNT,
+               "horiz_accuracy_m": _NUM, "lat": _NUM, "lon": _NUM, "ok": _BOOL}
+JSON_SCHEMAS["viper.PositionOut"] = _object(
+    "A stop's estimate sent back to the autopilot (GPS_INPUT or VISION_POSITION_ESTIMATE): whether it was "
+    "sent and why not, its fix type and horizontal accuracy (m, sqrt of the covariance's trace)",
+    _OUT_FIELDS, tuple(_OUT_FIELDS))
 JSON_SCHEMAS["viper.TraverseStop"] = _object(
     "One stop of a traverse: its estimate from its own skyline alone and fused with the previous stop's "
     "posterior moved by the odometry (the stop's position), against the GPS truth",
@@ -267,6 +289,8 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     SKYLINE_DETECTED: "viper.Skyline",
     SKYLINE_RENDERED: "viper.Skyline",
     ODOMETRY: "viper.Odometry",
+    ROVER_STATE: "viper.RoverState",
+    POSITION_OUT: "viper.PositionOut",
     TRAVERSE_STOP: "viper.TraverseStop",
     CLOCK: "viper.Clock",
 }

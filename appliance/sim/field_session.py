@@ -30,6 +30,7 @@ from appliance.terrain.dem import load_dem
 
 if TYPE_CHECKING:
     from appliance.acquisition.traverse import TraverseResult
+    from appliance.drivers.factory import Devices
     from appliance.logbook.live import Publisher
     from appliance.terrain.database import SkylineDatabase
     from appliance.terrain.dem import Dem
@@ -165,10 +166,12 @@ def run_field_traverse(
     should_stop: Callable[[], bool] = lambda: False,
     on_status: Callable[[str], None] = lambda s: None,
     publisher: Publisher | None = None,
+    on_open: Callable[[Devices], None] = lambda devices: None,
 ) -> tuple[TraverseResult, list[SimTruth]]:
     """A simulated traverse of ``n_stops`` stops from a random start on the ``[sim] dem`` map: the rover
     twin drives legs of ``[sim] leg_length_m`` in random directions between stops and reports them with
-    ``[sim] odometry_sigma_m`` of noise.  Returns the traverse and the true place of every stop."""
+    ``[sim] odometry_sigma_m`` of noise.  Returns the traverse and the true place of every stop;
+    ``on_open(devices)`` sees the simulated devices (and twins) once they are open."""
     if n_stops < 1:
         raise InputError(f"a traverse needs at least one stop, got {n_stops}")
     rng = np.random.default_rng(seed)
@@ -179,6 +182,7 @@ def run_field_traverse(
     truths: list[SimTruth] = []
     on_status("opening the devices")
     with open_sim_platform(sim_config, on_map=on_map_fn(dem, db)) as devices:
+        on_open(devices)
         world, rover = devices.world, devices.rover  # type: ignore[attr-defined]
 
         def record_truth() -> None:

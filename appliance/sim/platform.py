@@ -5,7 +5,9 @@ Serial twins (GPS, PTU, NMEA compass) get a pty each under a private temporary f
 twins (HMC5883L, ADXL345) sit on one :class:`FakeI2cBus`; the camera is a :class:`SimVideoCapture`
 driven by the real :class:`V4l2Camera` driver; the leveller is the person at the tripod
 (:class:`SimLeveller`).  For a traverse (``[traverse] stops``), the rover (:class:`RoverTwin`) sends its
-odometry over a pty too and drives the world between stops.  Faults come from ``[sim.faults]``.
+odometry over a pty too and drives the world between stops; with ``[devices.odometry] kind = "mavlink"``
+the autopilot twin (:class:`AutopilotTwin`) follows it and speaks MAVLink over UDP to the real link.
+Faults come from ``[sim.faults]``.
 """
 
 from __future__ import annotations
@@ -14,8 +16,9 @@ import datetime as dt
 import logging
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-from appliance.config import Config, SimConfig
+from appliance.config import Config, OdometryKind, SimConfig
 from appliance.drivers.accelerometer import TiltOffset
 from appliance.drivers.camera import V4l2Camera
 from appliance.drivers.factory import DeviceCalibration, Devices, build_devices, uses_nmea_compass
@@ -32,6 +35,9 @@ from appliance.sim.scratch import SimFolder
 from appliance.sim.world import SimClock, SimWorld
 from appliance.terrain.dem import load_dem
 from appliance.vision.intrinsics import CameraIntrinsics, load_intrinsics
+
+if TYPE_CHECKING:
+    from appliance.sim.autopilot_twin import AutopilotTwin
 
 log = logging.getLogger(__name__)
 
@@ -132,10 +138,36 @@ def _start_twins(config: Config, world: SimWorld, dem: object | None, stops: lis
 
         rover = RoverTwin(world, odo_port, sim, ground_m, on_map or (lambda lat, lon: True), sim.seed + 1)
         odometry_src = str(odo_port.path)
+        if config.devices.odometry.kind is OdometryKind.MAVLINK:
+            odometry_src = "udpin:127.0.0.1:0"  # a port of the system's choosing, told to the autopilot twin
     devices = build_devices(config, str(gps_port.path), str(ptu_port.path), compass_src, bus, camera,
                             world.clock, calibration, odometry_src)
     devices.leveller = SimLeveller(world)
     devices._closers[:0] = [scratch.remove, *stops]
     devices.world = world  # type: ignore[attr-defined]
     devices.rover = rover  # type: ignore[attr-defined]
+    if rover is not None and devices.autopilot is not None:
+        # pymavlink (an optional library) loads only for a MAVLink rover
+        from appliance.sim.autopilot_twin import MavlinkRover
+
+        devices.rover = MavlinkRover(rover, start_autopilot_twin(world, sim, devices),  # type: ignore[attr-defined]
+                                     sim.faults.autopilot_reboot_leg)
     return devices
+
+
+def start_autopilot_twin(world: SimWorld, sim: SimConfig, devices: Devices) -> AutopilotTwin:
+    """The autopilot twin sending to the MAVLink link's UDP port, its drift per metre the rover twin's
+    odometry sigma over the mean leg; stopped after the drivers when the devices close."""
+    # pymavlink (an optional library) loads only for a MAVLink rover
+    from appliance.sim.autopilot_twin import AutopilotTwin, UdpTwinLink
+
+    assert devices.autopilot is not None and devices.autopilot.udp_port is not None
+    mean_leg_m = 0.5 * (sim.leg_length_m[0] + sim.leg_length_m[1])
+    drift = sim.odometry_sigma_m / mean_leg_m if mean_leg_m > 0 else 0.0
+    o = devices.autopilot.cfg
+    twin = AutopilotTwin(world, UdpTwinLink(("127.0.0.1", devices.autopilot.udp_port)), sim.seed + 2, drift,
+                         system_id=o.system_id, component_id=o.component_id or 1)
+    twin.start()
+    devices._closers.insert(0, twin.stop)
+    devices.autopilot_twin = twin  # type: ignore[attr-defined]
+    return twin
