@@ -81,6 +81,8 @@ class SessionResult:
     # ``estimate`` is then the fused one
     estimate_alone: Position | None = None
     error_alone_m: float | None = None
+    # the skyline database ``estimate`` is on (its grid, for the map's layers written beside the log)
+    database: SkylineDatabase | None = None
 
 
 def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:
@@ -393,7 +395,7 @@ class Session:
             self.on_status("estimate: fusing with the previous stop")
             pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id,
                                          log_prior=self.log_prior, position_prior=self.position_prior)
-        self.result.estimate = pos
+        self.result.estimate, self.result.database = pos, self.db
         rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
         flag = fix_status(pos)

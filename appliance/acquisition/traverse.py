@@ -305,6 +305,7 @@ class Traverse:
         if r.stops:
             last = r.stops[-1].session
             r.outcomes, r.truth, r.estimate, r.error_m = last.outcomes, last.truth, last.estimate, last.error_m
+            r.database = last.database
             r.panorama, r.skyline = last.panorama, last.skyline
             r.estimate_alone, r.error_alone_m = last.estimate_alone, last.error_alone_m
         if r.disk_full:

@@ -1,7 +1,8 @@
 """``viper capture``: one session now (level, compass, GPS truth, capture, onboard estimate).
 
 The session's result goes to stdout; what went wrong with the log (a full disk) to stderr, and the
-exit status is then non-zero."""
+exit status is then non-zero.  With an estimate, the map's layers (the posteriors as GeoTIFF, the region
+and the points as GeoJSON with their QGIS styles) are written beside the log, named after it."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import logging
 from pathlib import Path
 
 from appliance.acquisition.daemon import run_one_session
+from appliance.acquisition.session import SessionResult
 from appliance.cli._platform import add_live_option, live_server, session_runner, warn_if_simulated
 from appliance.config import load_config
 from appliance.logsetup import StatusLine
@@ -43,6 +45,9 @@ def _capture(args: argparse.Namespace) -> int:
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
         area = e.result.region_area_m2 / 1e6
         print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
+        layers = _write_layers(result)
+        if layers:
+            print(f"map layers: {', '.join(str(p) for p in layers)}")
     if result.log_error is not None:
         LOG.error("%s", result.log_error)
         return 1
@@ -50,3 +55,15 @@ def _capture(args: argparse.Namespace) -> int:
         LOG.error("no frame captured: the session measured nothing")
         return 1
     return 0 if result.status.value != "failed" else 1
+
+
+def _write_layers(result: SessionResult) -> tuple[Path, ...]:
+    """The map's layers of the session's estimate beside its log (none without the estimate's database)."""
+    if result.estimate is None or result.database is None:
+        return ()
+    # the writers (rasterio, pyproj) load only once a session has estimated
+    from appliance.outputs.files import write_map_layers
+
+    t = result.truth
+    truth = None if t is None or t.lat_deg is None or t.lon_deg is None else (t.lat_deg, t.lon_deg)
+    return write_map_layers(result.database, result.estimate, result.log_path.parent, result.log_path.stem, truth)

@@ -1,7 +1,10 @@
 """An estimate's files that open elsewhere: the picture as PNG (:func:`write_png`, the figure of
 :mod:`appliance.outputs.picture`), the posteriors as GeoTIFF (:func:`write_geotiff`: float32, NaN
-nodata), the region's polygons (:func:`write_region_geojson`) and the estimate and the truth
-(:func:`write_points_geojson`) as GeoJSON; :func:`save_png` saves any figure the reports show.
+nodata, tiled, DEFLATE-compressed with the floating-point predictor, internal overviews), the region's
+polygons (:func:`write_region_geojson`) and the estimate and the truth (:func:`write_points_geojson`) as
+GeoJSON, each with its QGIS layer style beside it; :func:`write_map_layers` writes all the map's layers
+of one estimate, as every command does (``viper estimate --report``, ``demo``, ``capture``, ``replay``);
+:func:`save_png` saves any figure the reports show.
 
 GDAL does not always report a failed write (a full disk can leave a GeoTIFF cut short with no
 exception), and its TIFF library prints its errors on stderr itself: :func:`write_geotiff` reads the
@@ -22,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import rasterio
+from rasterio.enums import Resampling
 from rasterio.errors import RasterioError
 
 from appliance.atomic import atomic_output, describe_os_error, write_text_atomic
@@ -29,11 +33,20 @@ from appliance.errors import OutputError
 from appliance.locating.position import Position
 from appliance.outputs.features import estimate_feature, region_feature, truth_feature
 from appliance.outputs.picture import estimate_figure
+from appliance.outputs.styles import write_qml
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
+
+
+#: the files of :func:`write_map_layers`, after the estimate's name: the posteriors, the region and its
+#: layer style, the points and theirs
+MAP_LAYER_SUFFIXES = ("-posterior.tif", "-region.geojson", "-region.qml", "-points.geojson", "-points.qml")
+#: the GeoTIFF's tiles (pixels a side) and its overviews: halvings down to about this many pixels a side
+TIFF_BLOCK_PX = 256
+OVERVIEW_MIN_PX = 32
 
 
 def write_region_geojson(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
@@ -50,23 +63,52 @@ def write_points_geojson(pos: Position, path: str | Path, truth: tuple[float, fl
     write_text_atomic(Path(path), json.dumps({"type": "FeatureCollection", "features": features}))
 
 
+def write_map_layers(db: SkylineDatabase, pos: Position, folder: str | Path, stem: str,
+                     truth: tuple[float, float] | None = None) -> tuple[Path, ...]:
+    """The map's layers of one estimate in ``folder``, named ``stem`` and :data:`MAP_LAYER_SUFFIXES`: the
+    posteriors as GeoTIFF, the region and the points (estimate, and the truth (lat, lon) where known) as
+    GeoJSON, each GeoJSON with its QGIS style (``.qml`` of the same name, which QGIS loads with it);
+    returns their paths."""
+    tif, region, region_qml, points, points_qml = (Path(folder) / f"{stem}{e}" for e in MAP_LAYER_SUFFIXES)
+    write_geotiff(db, pos, tif)
+    write_region_geojson(db, pos, region)
+    write_qml(region_qml, ["region"])
+    write_points_geojson(pos, points, truth)
+    write_qml(points_qml, ["estimate", "truth"])
+    return tif, region, region_qml, points, points_qml
+
+
+def overview_factors(n_rows: int, n_cols: int) -> list[int]:
+    """Halvings (2, 4, 8, ...) down to about :data:`OVERVIEW_MIN_PX` pixels a side; at least one."""
+    factors = [2]
+    while max(n_rows, n_cols) / (factors[-1] * 2) >= OVERVIEW_MIN_PX:
+        factors.append(factors[-1] * 2)
+    return factors
+
+
 def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
     """Two float32 bands, log10 of the lower and upper posterior of each node (its best heading); NaN is
-    nodata (a posterior of zero), so no finite value, however small, is mistaken for nodata."""
+    nodata (a posterior of zero), so no finite value, however small, is mistaken for nodata.  Tiled,
+    DEFLATE-compressed with the floating-point predictor, with internal overviews (the average of the
+    cells' log10 posteriors) for :func:`overview_factors`."""
     p = Path(path)
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
     bands = np.where(np.isfinite(bands), bands, np.nan).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
+    factors = overview_factors(g.n_rows, g.n_cols)
     with atomic_output(p) as tmp:
         with _stderr_captured() as printed:
             try:
                 with rasterio.open(tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2,
                                    dtype="float32", crs=g.crs.to_wkt(), transform=g.transform,
-                                   nodata=float("nan")) as ds:
+                                   nodata=float("nan"), tiled=True, blockxsize=TIFF_BLOCK_PX,
+                                   blockysize=TIFF_BLOCK_PX, compress="deflate", predictor=3) as ds:
                     ds.write(bands)
                     ds.set_band_description(1, "log10 lower posterior")
                     ds.set_band_description(2, "log10 upper posterior")
-                ok = _reads_back(tmp, bands)
+                    ds.build_overviews(factors, Resampling.average)
+                    ds.update_tags(ns="rio_overview", resampling="average")
+                ok = _reads_back(tmp, bands, len(factors))
             except (RasterioError, OSError):
                 ok = False
         if not ok:
@@ -74,14 +116,19 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
         sys.stderr.write(printed[0])  # what the library printed about a file that is whole
 
 
-def _reads_back(path: Path, bands: np.ndarray) -> bool:
-    """Whether the GeoTIFF at ``path`` holds ``bands`` exactly (NaN where NaN)."""
+def _reads_back(path: Path, bands: np.ndarray, n_overviews: int) -> bool:
+    """Whether the GeoTIFF at ``path`` holds ``bands`` exactly (NaN where NaN), and every band its
+    ``n_overviews`` overviews, whose smallest reads."""
     try:
         with rasterio.open(path) as ds:
             back = ds.read()
+            overviews = [ds.overviews(b) for b in ds.indexes]
+            smallest = max(overviews[0]) if overviews[0] else 1
+            ds.read(1, out_shape=(max(1, ds.height // smallest), max(1, ds.width // smallest)))
     except Exception:  # noqa: BLE001 - whatever GDAL raises on reading it, the file is not whole
         return False
-    return back.shape == bands.shape and bool(np.array_equal(back, bands, equal_nan=True))
+    return (back.shape == bands.shape and bool(np.array_equal(back, bands, equal_nan=True))
+            and all(len(o) == n_overviews for o in overviews))
 
 
 def _write_failure(printed: list[str], tmp: Path, expected: int) -> str:
