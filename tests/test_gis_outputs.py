@@ -83,10 +83,10 @@ def check_qml(path: Path, colours: dict[str, str]) -> list[str]:
     symbols = {s.get("name"): s for s in renderer.iter("symbol")}
     values = []
     for category in renderer.iter("category"):
-        kind, symbol = category.get("value"), symbols[category.get("symbol")]
+        kind, symbol = category.get("value", ""), symbols[category.get("symbol")]
         values.append(kind)
-        options = {o.get("name"): o.get("value") for o in symbol.iter("Option") if o.get("name")}
-        props = {p.get("k"): p.get("v") for p in symbol.iter("prop")}
+        options = {o.get("name"): o.get("value", "") for o in symbol.iter("Option") if o.get("name")}
+        props = {p.get("k"): p.get("v", "") for p in symbol.iter("prop")}
         assert options == props  # the same options for QGIS's readers old and new
         want = colours.get(kind)
         if want is not None:

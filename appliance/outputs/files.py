@@ -7,8 +7,10 @@ of one estimate, as every command does (``viper estimate --report``, ``demo``, `
 :func:`save_png` saves any figure the reports show.
 
 GDAL does not always report a failed write (a full disk can leave a GeoTIFF cut short with no
-exception), and its TIFF library prints its errors on stderr itself: :func:`write_geotiff` reads the
-file back before it takes its final name, and turns what the library printed into the one error line.
+exception, or crash the process while it writes compressed tiles), and its TIFF library prints its
+errors on stderr itself: :func:`write_geotiff` has GDAL make the file in memory, writes its bytes itself,
+reads the file back before it takes its final name, and turns what the library printed on reading into
+the one error line.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import rasterio
 from rasterio.enums import Resampling
-from rasterio.errors import RasterioError
+from rasterio.io import MemoryFile
 
 from appliance.atomic import atomic_output, describe_os_error, write_text_atomic
 from appliance.errors import OutputError
@@ -90,30 +92,43 @@ def write_geotiff(db: SkylineDatabase, pos: Position, path: str | Path) -> None:
     """Two float32 bands, log10 of the lower and upper posterior of each node (its best heading); NaN is
     nodata (a posterior of zero), so no finite value, however small, is mistaken for nodata.  Tiled,
     DEFLATE-compressed with the floating-point predictor, with internal overviews (the average of the
-    cells' log10 posteriors) for :func:`overview_factors`."""
+    cells' log10 posteriors) for :func:`overview_factors`.
+
+    GDAL builds the file in memory; its bytes are written here, so a full disk is an ``OSError`` of our
+    own write (the TIFF library, writing compressed tiles onto a disk that fills, can crash the
+    process), and the written file is read back before it takes its name."""
     p = Path(path)
     g = db.grid
     bands = np.stack([pos.result.log_lower_map, pos.result.log_upper_map]) / np.log(10.0)
     bands = np.where(np.isfinite(bands), bands, np.nan).astype(np.float32).reshape(2, g.n_rows, g.n_cols)
     factors = overview_factors(g.n_rows, g.n_cols)
+    data = _geotiff_bytes(db, bands, factors)
     with atomic_output(p) as tmp:
+        try:
+            with open(tmp, "wb") as f:
+                f.write(data)
+        except OSError as exc:
+            raise OutputError(f"{p}: cannot write: {describe_os_error(exc)} ({_written(tmp, len(data))})") from None
         with _stderr_captured() as printed:
-            try:
-                with rasterio.open(tmp, "w", driver="GTiff", width=g.n_cols, height=g.n_rows, count=2,
-                                   dtype="float32", crs=g.crs.to_wkt(), transform=g.transform,
-                                   nodata=float("nan"), tiled=True, blockxsize=TIFF_BLOCK_PX,
-                                   blockysize=TIFF_BLOCK_PX, compress="deflate", predictor=3) as ds:
-                    ds.write(bands)
-                    ds.set_band_description(1, "log10 lower posterior")
-                    ds.set_band_description(2, "log10 upper posterior")
-                    ds.build_overviews(factors, Resampling.average)
-                    ds.update_tags(ns="rio_overview", resampling="average")
-                ok = _reads_back(tmp, bands, len(factors))
-            except (RasterioError, OSError):
-                ok = False
+            ok = _reads_back(tmp, bands, len(factors))
         if not ok:
-            raise OutputError(f"{p}: cannot write: {_write_failure(printed, tmp, bands.nbytes)}")
+            raise OutputError(f"{p}: cannot write: {_write_failure(printed, tmp, len(data))}")
         sys.stderr.write(printed[0])  # what the library printed about a file that is whole
+
+
+def _geotiff_bytes(db: SkylineDatabase, bands: np.ndarray, factors: list[int]) -> bytes:
+    """The GeoTIFF of :func:`write_geotiff`, made in memory."""
+    g = db.grid
+    with MemoryFile() as mem:
+        with mem.open(driver="GTiff", width=g.n_cols, height=g.n_rows, count=2, dtype="float32",
+                      crs=g.crs.to_wkt(), transform=g.transform, nodata=float("nan"), tiled=True,
+                      blockxsize=TIFF_BLOCK_PX, blockysize=TIFF_BLOCK_PX, compress="deflate", predictor=3) as ds:
+            ds.write(bands)
+            ds.set_band_description(1, "log10 lower posterior")
+            ds.set_band_description(2, "log10 upper posterior")
+            ds.build_overviews(factors, Resampling.average)
+            ds.update_tags(ns="rio_overview", resampling="average")
+        return bytes(mem.getbuffer())
 
 
 def _reads_back(path: Path, bands: np.ndarray, n_overviews: int) -> bool:
@@ -131,12 +146,16 @@ def _reads_back(path: Path, bands: np.ndarray, n_overviews: int) -> bool:
             and all(len(o) == n_overviews for o in overviews))
 
 
+def _written(tmp: Path, expected: int) -> str:
+    try:
+        return f"{os.path.getsize(tmp)} bytes written, at least {expected} expected"
+    except OSError:
+        return "nothing written"
+
+
 def _write_failure(printed: list[str], tmp: Path, expected: int) -> str:
     """Why a GeoTIFF is not whole: the system's reason the TIFF library printed, and how much was written."""
-    try:
-        size = f"{os.path.getsize(tmp)} bytes written, at least {expected} expected"
-    except OSError:
-        size = "nothing written"
+    size = _written(tmp, expected)
     for code in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EIO, errno.EROFS):
         if os.strerror(code) in printed[0]:
             return f"{describe_os_error(OSError(code, os.strerror(code)))} ({size})"
