@@ -245,3 +245,23 @@ def test_the_position_facts_read_the_record():
     assert facts["altitude"] == "702.5 m (the map's vertical datum)"
     moon = dict(position_facts({**record, "altitude_m": None}, "moon"))
     assert moon["UTM, MGRS"] == "none on the Moon" and moon["altitude"] == "off the map"
+
+
+def test_the_pictures_colour_scale_is_the_posterior_relative_to_the_best(window_db, dem):
+    from appliance import locate
+    from appliance.outputs.picture import POSTERIOR_DECADES, POSTERIOR_LABEL, estimate_figure
+    from appliance.skyline import Skyline
+    from appliance.terrain.horizon import render_skyline
+
+    sky = render_skyline(dem, 36.585, -84.26, height_m=1.5)
+    pos = locate(window_db, Skyline(sky.azimuth_deg, sky.elevation_deg), (0.2, 0.6), 5.0)
+    fig = estimate_figure(window_db, pos, sky)
+    (bar,) = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert bar.get_ylabel() == POSTERIOR_LABEL and "relative to the best" in POSTERIOR_LABEL
+    mesh = next(m for m in fig.axes[0].collections if m.get_cmap().name == "magma")
+    assert mesh.get_clim() == (-POSTERIOR_DECADES, 0.0)
+    shown = mesh.get_array()
+    # 0 at the cell of the highest lower posterior, nothing above it
+    assert float(shown.max()) == 0.0
+    lower = np.asarray(pos.result.log_lower_map)
+    assert int(np.argmax(np.where(np.isfinite(lower), lower, -np.inf))) == int(np.argmax(shown.filled(-np.inf)))
