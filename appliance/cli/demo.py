@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
               f"{360 - p.result.n_valid} of 360 azimuths missing")
         page = session_report(r, db, out, "Viper demo: a simulated field session on the jacksboro map")
         print(f"  report     {page}")
-        print(f"  layers     {', '.join(r.log_path.stem + e for e in MAP_LAYER_SUFFIXES)}  (in {out})")
+        print(f"  layers     {r.log_path.stem}{MAP_LAYER_SUFFIXES[0]}, {', '.join(MAP_LAYER_SUFFIXES[1:])}")
     print(f"  log        {r.log_path}  (open in Foxglove; 'viper log info', 'viper replay')")
     print(f"  time       {time.monotonic() - t1:.0f} s for the session after setup")
     return 0 if r.estimate is not None else 1
