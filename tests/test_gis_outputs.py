@@ -97,9 +97,27 @@ def check_qml(path: Path, colours: dict[str, str]) -> list[str]:
     return values
 
 
+def check_posterior_qml(path: Path, tif: Path) -> None:
+    """The GeoTIFF's QGIS style: band 1 as a pseudocolour ramp over the 20 decades below its best cell,
+    clipped (cells further down not drawn)."""
+    with rasterio.open(tif) as ds:
+        best = float(np.nanmax(ds.read(1)))
+    root = ET.fromstring(path.read_text().split("\n", 1)[1])
+    renderer = root.find("pipe/rasterrenderer")
+    assert renderer is not None and renderer.get("type") == "singlebandpseudocolor" and renderer.get("band") == "1"
+    shader = renderer.find("rastershader/colorrampshader")
+    assert shader is not None and shader.get("clip") == "1"
+    lo, hi = float(shader.get("minimumValue", "nan")), float(shader.get("maximumValue", "nan"))
+    assert hi == pytest.approx(best, abs=1e-4) and hi - lo == pytest.approx(20.0, abs=1e-4)
+    values = [float(item.get("value", "nan")) for item in shader.iter("item")]
+    assert values[0] == pytest.approx(lo, abs=1e-4) and values[-1] == pytest.approx(hi, abs=1e-4)
+    assert values == sorted(values) and len(values) == 5
+
+
 def check_layers(folder: Path, stem: str, db, with_truth: bool) -> None:
-    tif, region, region_qml, points, points_qml = (folder / f"{stem}{e}" for e in MAP_LAYER_SUFFIXES)
+    tif, tif_qml, region, region_qml, points, points_qml = (folder / f"{stem}{e}" for e in MAP_LAYER_SUFFIXES)
     check_geotiff(tif, db)
+    check_posterior_qml(tif_qml, tif)
     colours = check_geojson(region, points, with_truth)
     assert check_qml(region_qml, colours) == ["region"]
     assert check_qml(points_qml, colours) == ["estimate", "truth"]

@@ -35,7 +35,7 @@ from appliance.errors import OutputError
 from appliance.locating.position import Position
 from appliance.outputs.features import estimate_feature, region_feature, truth_feature
 from appliance.outputs.picture import estimate_figure
-from appliance.outputs.styles import write_qml
+from appliance.outputs.styles import posterior_qml_text, write_qml
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -43,9 +43,12 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
-#: the files of :func:`write_map_layers`, after the estimate's name: the posteriors, the region and its
-#: layer style, the points and theirs
-MAP_LAYER_SUFFIXES = ("-posterior.tif", "-region.geojson", "-region.qml", "-points.geojson", "-points.qml")
+#: the files of :func:`write_map_layers`, after the estimate's name: the posteriors and their layer style,
+#: the region and its, the points and theirs
+MAP_LAYER_SUFFIXES = ("-posterior.tif", "-posterior.qml", "-region.geojson", "-region.qml", "-points.geojson",
+                      "-points.qml")
+#: the posterior GeoTIFF's style draws this many decades below the best cell
+STYLE_DECADES = 20.0
 #: the GeoTIFF's tiles (pixels a side) and its overviews: halvings down to about this many pixels a side
 TIFF_BLOCK_PX = 256
 OVERVIEW_MIN_PX = 32
@@ -69,15 +72,18 @@ def write_map_layers(db: SkylineDatabase, pos: Position, folder: str | Path, ste
                      truth: tuple[float, float] | None = None) -> tuple[Path, ...]:
     """The map's layers of one estimate in ``folder``, named ``stem`` and :data:`MAP_LAYER_SUFFIXES`: the
     posteriors as GeoTIFF, the region and the points (estimate, and the truth (lat, lon) where known) as
-    GeoJSON, each GeoJSON with its QGIS style (``.qml`` of the same name, which QGIS loads with it);
-    returns their paths."""
-    tif, region, region_qml, points, points_qml = (Path(folder) / f"{stem}{e}" for e in MAP_LAYER_SUFFIXES)
+    GeoJSON, each with its QGIS style (``.qml`` of the same name, which QGIS loads with it); returns
+    their paths."""
+    tif, tif_qml, region, region_qml, points, points_qml = (Path(folder) / f"{stem}{e}" for e in MAP_LAYER_SUFFIXES)
     write_geotiff(db, pos, tif)
+    lower = np.asarray(pos.result.log_lower_map, float)
+    top = float(np.max(lower[np.isfinite(lower)], initial=-np.inf)) / np.log(10.0)
+    write_text_atomic(tif_qml, posterior_qml_text(top if np.isfinite(top) else 0.0, STYLE_DECADES))
     write_region_geojson(db, pos, region)
     write_qml(region_qml, ["region"])
     write_points_geojson(pos, points, truth)
     write_qml(points_qml, ["estimate", "truth"])
-    return tif, region, region_qml, points, points_qml
+    return tif, tif_qml, region, region_qml, points, points_qml
 
 
 def overview_factors(n_rows: int, n_cols: int) -> list[int]:

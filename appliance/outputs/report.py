@@ -26,9 +26,11 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from appliance.atomic import check_output_folder, write_text_atomic
+from appliance.bodies import BodyName
 from appliance.locating.position import Position, estimate_status, status_text, truth_error_m
 from appliance.outputs import html as rp
 from appliance.outputs.files import MAP_LAYER_SUFFIXES, save_png, write_map_layers, write_png
+from appliance.outputs.grid_refs import mgrs_ref
 from appliance.outputs.picture import TrackStop, panorama_figure, track_figure
 from appliance.outputs.status import position_facts, status_banner
 
@@ -58,11 +60,9 @@ def _write_page(db: SkylineDatabase, folder: Path, title: str, parts: Sequence[s
 def answer_banner(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None, name: str) -> str:
     """The status banner of one answer (:func:`appliance.outputs.status.status_banner` of its record),
     named ``name``, with its latitude, longitude and MGRS."""
-    record = pos.to_json(db, truth, max_cells=0)
-    b = status_banner(record)
-    facts = dict(position_facts(record, str(db.header["body"])))
-    mgrs = facts.get("MGRS", "")
-    where = f"{name}: {pos.lat:.6f}, {pos.lon:.6f}" + (f" · MGRS {mgrs}" if mgrs[:1].isdigit() else "")
+    b = status_banner(pos.to_json(db, truth, max_cells=0))
+    mgrs = mgrs_ref(pos.lat, pos.lon) if str(db.header["body"]) == BodyName.EARTH.value else None
+    where = f"{name}: {pos.lat:.6f}, {pos.lon:.6f}" + ("" if mgrs is None else f" · MGRS {mgrs}")
     return rp.banner(b.headline, b.ok, where, b.reasons)
 
 

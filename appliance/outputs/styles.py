@@ -4,7 +4,8 @@ same in the report's pictures, in the GeoJSON's own properties and in the QGIS l
 The GeoJSON features carry the simplestyle-spec properties (``stroke``, ``stroke-width``, ``fill``,
 ``fill-opacity``, ``marker-color``, ``marker-symbol``; geojson.io, GitHub's and many web maps' viewers
 draw them); QGIS draws a layer with the style of the ``.qml`` file of the same name beside it
-(:func:`qml_text`: a categorized renderer on the features' ``kind``).
+(:func:`qml_text`: a categorized renderer on the features' ``kind``; :func:`posterior_qml_text`: the
+posterior GeoTIFF's first band in the pictures' colour ramp, over the decades below its best cell).
 """
 
 from __future__ import annotations
@@ -102,3 +103,28 @@ def qml_text(kinds: list[str]) -> str:
 def write_qml(path: str | Path, kinds: list[str]) -> None:
     """The layer style of :func:`qml_text`, written atomically to ``path``."""
     write_text_atomic(Path(path), qml_text(kinds))
+
+
+#: matplotlib's magma at five even stops: the pictures' posterior ramp
+MAGMA = ("#000004", "#51127c", "#b73779", "#fc8961", "#fcfdbf")
+
+
+def posterior_qml_text(top: float, decades: float) -> str:
+    """A QGIS raster style for the posterior GeoTIFF: band 1 (log10 lower posterior) as a pseudocolour
+    ramp (:data:`MAGMA`) from ``top - decades`` to ``top`` (the best cell's value); cells below the ramp
+    are not drawn, nodata neither."""
+    lo = top - decades
+    root = ET.Element("qgis", {"version": "3.28.0-Firenze", "styleCategories": "Symbology"})
+    pipe = ET.SubElement(root, "pipe")
+    renderer = ET.SubElement(pipe, "rasterrenderer", {
+        "type": "singlebandpseudocolor", "band": "1", "opacity": "0.8", "alphaBand": "-1", "nodataColor": "",
+        "classificationMin": f"{lo:.6f}", "classificationMax": f"{top:.6f}"})
+    shader = ET.SubElement(ET.SubElement(renderer, "rastershader"), "colorrampshader", {
+        "colorRampType": "INTERPOLATED", "classificationMode": "1", "clip": "1", "labelPrecision": "1",
+        "minimumValue": f"{lo:.6f}", "maximumValue": f"{top:.6f}"})
+    for i, colour in enumerate(MAGMA):
+        value = lo + decades * i / (len(MAGMA) - 1)
+        ET.SubElement(shader, "item", {"alpha": "255", "value": f"{value:.6f}", "color": colour,
+                                       "label": f"{value - top:+.0f} decades" if i < len(MAGMA) - 1 else "best"})
+    ET.indent(root)
+    return "<!DOCTYPE qgis PUBLIC 'http://mrcc.com/qgis.dtd' 'SYSTEM'>\n" + ET.tostring(root, "unicode") + "\n"
