@@ -152,8 +152,10 @@ def test_force_replaces_an_existing_output_and_leaves_no_temporary(work, capsys)
 def test_a_report_leaves_only_its_own_files(work, capsys):
     report = work / "report_ok"
     assert main(["estimate", str(work / "map.viperdb"), str(work / "sky.csv"), "--report", str(report)]) == 0
-    assert sorted(p.name for p in report.iterdir()) == ["01-sky-points.geojson", "01-sky-posterior.tif",
-                                                        "01-sky-region.geojson", "01-sky.png", "report.html"]
+    assert sorted(p.name for p in report.iterdir()) == ["01-sky-points.geojson", "01-sky-points.qml",
+                                                        "01-sky-posterior.qml", "01-sky-posterior.tif",
+                                                        "01-sky-region.geojson", "01-sky-region.qml",
+                                                        "01-sky.png", "report.html"]
 
 
 def test_negative_values_are_taken_as_users_type_them(work, capsys):

@@ -18,8 +18,11 @@ from appliance.config import EstimatorConfig
 from appliance.logbook import topics as t
 from appliance.logbook.reader import LogReader
 from appliance.logbook.summary import summarize_log
+from appliance.outputs.files import MAP_LAYER_SUFFIXES
+from appliance.outputs.grid_refs import mgrs_ref
 from appliance.sim.field_session import run_field_session
 from tests.conftest import small_config
+from tests.test_gis_outputs import check_layers
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +85,14 @@ class Page(HTMLParser):
             self._in_cell = False
 
     def facts(self) -> list[dict[str, str]]:
-        """The two-column tables (a log's facts) as name -> value, in page order."""
+        """The two-column tables of a log's facts as name -> value, in page order."""
+        return [t for t in self.two_columns() if "frames" in t]
+
+    def positions(self) -> list[dict[str, str]]:
+        """The two-column tables of where an estimate is (lat/lon, UTM, MGRS, altitude), in page order."""
+        return [t for t in self.two_columns() if "MGRS" in t]
+
+    def two_columns(self) -> list[dict[str, str]]:
         return [{row[0]: row[1] for row in tab} for tab in self.tables if tab and len(tab[0]) == 2]
 
     def summary(self) -> list[dict[str, str]]:
@@ -139,6 +149,9 @@ def test_many_logs_give_a_table_and_a_page_and_bad_logs_a_reason(session_log, wi
     # the session's facts as the log holds them; the truncated log's as far as it goes; none of the junk
     full, part = html_page.facts()
     assert full["frames"] == "9" and full["level"] == "ok" and 0 < int(part["frames"]) < 9
+    # where each estimate is, as the summary places it: its MGRS grid reference
+    assert [p["MGRS"] for p in html_page.positions()] == [mgrs_ref(r.position.lat, r.position.lon) for r in (ok, cut)]
+    assert all(p["altitude"].endswith(" m (the map's vertical datum)") for p in html_page.positions())
 
 
 def test_the_demos_report_has_its_title_the_frames_and_the_sessions_facts(session_log, window_db, tmp_path):
@@ -168,8 +181,11 @@ def test_the_demos_report_has_its_title_the_frames_and_the_sessions_facts(sessio
     detected = next(m.decode() for m in msgs if m.topic == t.SKYLINE_DETECTED)
     n_valid = sum(v is not None for v in detected["elevation_deg"])
     assert facts["valid azimuths (on board)"] == f"{n_valid} of {len(detected['elevation_deg'])}"
+    stem = session_log.log_path.stem
+    check_layers(tmp_path, stem, window_db, with_truth=True)
     assert [link for link in doc.links if not link.startswith("#")] == [
-        "summary.csv", quote(session_log.log_path.name), quote(f"{session_log.log_path.stem}.map.png"),
+        "summary.csv", *(quote(stem + e) for e in MAP_LAYER_SUFFIXES),
+        quote(session_log.log_path.name), quote(f"{session_log.log_path.stem}.map.png"),
         quote(f"{session_log.log_path.stem}.map.png"), quote(f"{session_log.log_path.stem}.panorama.png"),
         quote(f"{session_log.log_path.stem}.panorama.png")]
 

@@ -29,6 +29,7 @@ from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
 from appliance.sim.pty_port import PtyPort
 from appliance.sim.world import SimClock
+from tests.test_gis_outputs import check_layers
 
 jsonschema = pytest.importorskip("jsonschema")
 
@@ -151,7 +152,13 @@ def test_the_report_shows_the_track_and_every_stop(traverse):
     assert 'src="track.png"' in html and (out / "report" / "track.png").stat().st_size > 10_000
     for s in r.stops:
         assert f'id="stop-{s.stop}"' in html and (out / "report" / f"stop-{s.stop:02d}.png").exists()
+        check_layers(out / "report", f"stop-{s.stop:02d}", db, with_truth=True)
     assert str(out) not in html  # no absolute paths
+    # the last stop's status first, before any table or picture
+    last = r.stops[-1]
+    banner = html.index('<div class="banner ')
+    assert banner < html.index("<table") and banner < html.index("<img")
+    assert f"stop {last.stop} (the last located): {last.position.lat:.6f}, {last.position.lon:.6f}" in html
 
 
 def test_the_report_gives_each_stop_its_own_session_facts(traverse):
@@ -163,6 +170,8 @@ def test_the_report_gives_each_stop_its_own_session_facts(traverse):
               if ch.topic == t.PROCEDURE and json.loads(m.data).get("procedure") == "truth"]
     rows = stop_rows(db, r.stops)
     assert len(truths) == len(rows) == STOPS
+    for row, s in zip(rows, r.stops, strict=True):  # where each stop's (fused) estimate is
+        assert (float(row["lat"]), float(row["lon"])) == pytest.approx((s.position.lat, s.position.lon), abs=1e-6)
     for row, p in zip(rows, truths, strict=True):
         assert row["truth"] == p["status"]
         assert row["GPS fixes averaged, σ (m)"] == f"{p['used']}, {p['sigma_m']:.1f}"

@@ -87,6 +87,8 @@ class SessionResult:
     # the system clock against the GPS time (s, positive: ahead), and the fault line when beyond the limit
     clock_offset_s: float | None = None
     clock_fault: str | None = None
+    # the skyline database ``estimate`` is on (its grid, for the map's layers written beside the log)
+    database: SkylineDatabase | None = None
 
 
 def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:
@@ -412,7 +414,7 @@ class Session:
             self.on_status("estimate: fusing with the previous stop")
             pos = onboard.locate_skyline(self.db, sky, self.cfg.estimator, source=self.result.session_id,
                                          log_prior=self.log_prior, position_prior=self.position_prior)
-        self.result.estimate = pos
+        self.result.estimate, self.result.database = pos, self.db
         rec = write_estimate_records(self.log, self.now(), self.db, pos, sky, where)
         self.result.error_m = rec.error_m
         flag = fix_status(pos)

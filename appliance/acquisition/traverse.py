@@ -406,6 +406,7 @@ class Traverse:
         if r.stops:
             last = r.stops[-1].session
             r.outcomes, r.truth, r.estimate, r.error_m = last.outcomes, last.truth, last.estimate, last.error_m
+            r.database = last.database
             r.panorama, r.skyline = last.panorama, last.skyline
             r.estimate_alone, r.error_alone_m = last.estimate_alone, last.error_alone_m
             off = next((s.session for s in r.stops if s.session.clock_fault is not None), last)  # the first flagged

@@ -106,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
     # the library (seconds of imports) loads only when a demo runs, and only what this demo needs
     from appliance.acquisition.replay import session_report
     from appliance.locating.position import area_text, fix_status, truth_error_m
+    from appliance.outputs.files import MAP_LAYER_SUFFIXES
     from appliance.sim.field_session import run_field_session
 
     out = check_output_folder(args.out)
@@ -142,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
               f"{360 - p.result.n_valid} of 360 azimuths missing")
         page = session_report(r, db, out, "Viper demo: a simulated field session on the jacksboro map")
         print(f"  report     {page}")
+        print(f"  layers     {r.log_path.stem}{MAP_LAYER_SUFFIXES[0]}, {', '.join(MAP_LAYER_SUFFIXES[1:])}")
     print(f"  log        {r.log_path}  (open in Foxglove; 'viper log info', 'viper replay')")
     print(f"  time       {time.monotonic() - t1:.0f} s for the session after setup")
     return 0 if r.estimate is not None else 1
@@ -169,6 +171,7 @@ def run_skyline_only(args: argparse.Namespace) -> int:
     for note in p.result.notes:
         print(f"  note       {note}")
     print(f"  picture    {r.picture_path}")
+    print(f"  layers     {', '.join(p.name for p in r.layer_paths)}  (GeoTIFF, GeoJSON; QGIS styles)")
     return 0
 
 

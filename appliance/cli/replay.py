@@ -24,11 +24,13 @@ from appliance.drivers.ulog_position import read_local_positions
 from appliance.errors import InputError, OutputError
 from appliance.locating.position import estimate_status
 from appliance.logsetup import ProgressCallback
+from appliance.outputs.files import MAP_LAYER_SUFFIXES
 
 if TYPE_CHECKING:
     from appliance.terrain.database import SkylineDatabase
 
-REPLAY_FILES = (".replay.mcap", ".map.png", ".panorama.png")
+#: what a replay writes per log, after the log's name: its results log, pictures and map layers
+REPLAY_FILES = (".replay.mcap", ".map.png", ".panorama.png", *MAP_LAYER_SUFFIXES)
 
 LOG = logging.getLogger(__name__)
 

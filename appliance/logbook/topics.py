@@ -298,17 +298,23 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
 #: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the
 #: report's layers (``-region.geojson``, ``-points.geojson``): each feature's ``properties`` by its
 #: ``kind``, strict like the JSON schemas above (every property declared, no other allowed).
+#: How a viewer draws a feature (the simplestyle-spec's names, :mod:`appliance.outputs.styles`): a polygon's
+#: outline and fill, a point's marker.
+_POLYGON_STYLE = {"stroke": _STR, "stroke-width": _NUM, "stroke-opacity": _NUM, "fill": _STR, "fill-opacity": _NUM}
+_MARKER_STYLE = {"marker-color": _STR, "marker-symbol": _STR, "marker-size": _STR}
 GEOJSON_FEATURE_PROPERTIES: dict[str, dict[str, Any]] = {
     "region": _nested(
-        {"name": _STR, "kind": {"const": "region"}, "area_m2": _NUM, "n_cells": _INT, "lower": _NUM, "upper": _NUM},
+        {"name": _STR, "kind": {"const": "region"}, "area_m2": _NUM, "n_cells": _INT, "lower": _NUM, "upper": _NUM,
+         **_POLYGON_STYLE},
         ("name", "kind", "area_m2", "n_cells", "lower", "upper"),
     ),
     "estimate": _nested(
         {"name": _STR, "kind": {"const": "estimate"}, "lower": _NUM, "upper": _NUM, "heading_correction_deg": _NUM,
-         "status": _STR, "covariance_m2": {"type": ["array", "null"], "items": _NUMBERS}, "radius95_m": _NUM},
+         "status": _STR, "covariance_m2": {"type": ["array", "null"], "items": _NUMBERS}, "radius95_m": _NUM,
+         **_MARKER_STYLE},
         ("name", "kind", "lower", "upper", "heading_correction_deg", "status"),
     ),
-    "truth": _nested({"name": _STR, "kind": {"const": "truth"}}, ("name", "kind")),
+    "truth": _nested({"name": _STR, "kind": {"const": "truth"}, **_MARKER_STYLE}, ("name", "kind")),
     # ``/traverse/track``: one line through the stops' estimates, one through their GPS truths
     "track": _nested({"name": {"enum": ["estimates", "truth"]}, "kind": {"const": "track"}, "stops": _INT},
                      ("name", "kind", "stops")),

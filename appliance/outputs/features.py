@@ -4,7 +4,8 @@ estimate.
 
 The region becomes GeoJSON in one place, :func:`region_polygons`; its features and their properties
 (:func:`region_feature`, :func:`estimate_feature`) are the same in the log's ``/region``
-(:mod:`appliance.outputs.records`) and in the files (:mod:`appliance.outputs.files`).
+(:mod:`appliance.outputs.records`) and in the files (:mod:`appliance.outputs.files`), the colours of each
+kind among them (:mod:`appliance.outputs.styles`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 import rasterio.features
 
 from appliance.locating.position import Position, covariance_json, fix_status, radius_json
+from appliance.outputs.styles import simplestyle
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -46,7 +48,8 @@ def region_feature(db: SkylineDatabase, pos: Position) -> dict[str, Any]:
     return {
         "type": "Feature",
         "properties": {"name": "region", "kind": "region", "area_m2": r.region_area_m2,
-                       "n_cells": int(r.region_nodes.size), "lower": r.lower, "upper": r.upper},
+                       "n_cells": int(r.region_nodes.size), "lower": r.lower, "upper": r.upper,
+                       **simplestyle("region")},
         "geometry": {"type": "MultiPolygon", "coordinates": region_polygons(db, pos)},
     }
 
@@ -59,14 +62,14 @@ def estimate_feature(pos: Position) -> dict[str, Any]:
         "properties": {"name": "estimate", "kind": "estimate", "lower": r.lower, "upper": r.upper,
                        "heading_correction_deg": r.heading_correction_deg, "status": fix_status(pos),
                        "covariance_m2": covariance_json(r.covariance_m2),
-                       "radius95_m": radius_json(r.covariance_m2)},
+                       "radius95_m": radius_json(r.covariance_m2), **simplestyle("estimate")},
         "geometry": {"type": "Point", "coordinates": [float(pos.lon), float(pos.lat)]},
     }
 
 
 def truth_feature(truth: tuple[float, float]) -> dict[str, Any]:
     """The truth (lat, lon) as one GeoJSON Point feature (lon/lat)."""
-    return {"type": "Feature", "properties": {"name": "truth", "kind": "truth"},
+    return {"type": "Feature", "properties": {"name": "truth", "kind": "truth", **simplestyle("truth")},
             "geometry": {"type": "Point", "coordinates": [float(truth[1]), float(truth[0])]}}
 
 

@@ -19,6 +19,9 @@ STYLE = (
     "td,th{border:1px solid #aaa;padding:3px 8px;text-align:right}"
     "th{background:#eee}table.facts td:first-child{text-align:left;font-weight:bold}"
     "img{max-width:100%;border:1px solid #ccc}h2{margin-top:2em;border-bottom:1px solid #ccc}"
+    "div.banner{color:#fff;padding:0.5em 1em;margin:0.4em 0;border-radius:4px;font-size:120%}"
+    "div.banner.ok{background:#1b7f2a}div.banner.ambiguous{background:#b3261e}"
+    "div.banner b{font-size:160%;margin-right:0.6em}div.banner ul{margin:0.3em 0 0;font-size:85%}"
 )
 
 
@@ -80,6 +83,14 @@ def table(rows: Sequence[Mapping[str, str]], links: Mapping[int, str] | None = N
         out.append("<tr>" + "".join(cells) + "</tr>")
     out.append("</table>")
     return "<div class=\"wide\">" + "\n".join(out) + "</div>"
+
+
+def banner(headline: str, ok: bool, where: str = "", reasons: Sequence[str] = ()) -> str:
+    """The status banner: ``headline`` large on green (``ok``) or red, then ``where`` (the answer's name
+    and place), then the ``reasons`` as a list."""
+    items = "".join(f"<li>{html.escape(r)}</li>" for r in reasons)
+    return (f"<div class=\"banner {'ok' if ok else 'ambiguous'}\"><b>{html.escape(headline)}</b>"
+            f"{html.escape(where)}{f'<ul>{items}</ul>' if items else ''}</div>")
 
 
 def facts_table(facts: Iterable[tuple[str, str]]) -> str:

@@ -22,6 +22,7 @@ from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import resample_to_grid
 from appliance.locating.position import Position, truth_error_m
 from appliance.outputs.features import region_mask, rendered_skyline
+from appliance.outputs.styles import KIND_STYLES
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -31,6 +32,10 @@ if TYPE_CHECKING:
     from appliance.terrain.database import SkylineDatabase
     from appliance.vision.panorama import Panorama
 
+#: the posterior's colour scale: log10 of the lower posterior per cell over the best cell's, down to this many
+#: decades below it
+POSTERIOR_DECADES = 20.0
+POSTERIOR_LABEL = "log10 posterior, relative to the best (0 = the most probable cell)"
 #: the zoom spans at least this much (m), so the cells around a small error show
 MIN_ZOOM_SPAN_M = 400.0
 #: and at least this many node spacings
@@ -174,14 +179,15 @@ def _new_figure(figsize: tuple[float, float]) -> Figure:
 def _draw_map_layers(ax: Axes, lon: np.ndarray, lat: np.ndarray, shade: np.ndarray, posterior: Any,
                      top: float) -> Any:
     ax.pcolormesh(lon, lat, shade, cmap="gray", shading="nearest", rasterized=True)
-    return ax.pcolormesh(lon, lat, posterior, cmap="magma", alpha=0.6, vmin=top - 20.0, vmax=top,
+    return ax.pcolormesh(lon, lat, posterior, cmap="magma", alpha=0.6, vmin=top - POSTERIOR_DECADES, vmax=top,
                          shading="nearest", rasterized=True)
 
 
 @dataclass(frozen=True)
 class _MapLayers:
     """What the map and the zoom of :func:`estimate_figure` both draw: the nodes' longitudes and
-    latitudes, the hillshade and the lower posterior (log10, masked 20 decades below its peak ``top``)."""
+    latitudes, the hillshade and the lower posterior (log10 relative to its peak, so ``top`` is 0, masked
+    :data:`POSTERIOR_DECADES` below it)."""
 
     lon: np.ndarray
     lat: np.ndarray
@@ -197,10 +203,10 @@ def _draw_map(fig: Figure, ax: Axes, db: SkylineDatabase, pos: Position, layers:
     r, lon, lat = pos.result, layers.lon, layers.lat
     mesh = _draw_map_layers(ax, lon, lat, layers.shade, layers.posterior, layers.top)
     ax.contour(lon, lat, region_mask(db, pos), levels=[0.5], colors="cyan", linewidths=1.0)
-    fig.colorbar(mesh, ax=ax, fraction=0.046, pad=0.02, label="log10 lower posterior")
-    ax.plot(pos.lon, pos.lat, "c+", ms=14, mew=2, label="estimate")
+    fig.colorbar(mesh, ax=ax, fraction=0.046, pad=0.02, label=POSTERIOR_LABEL)
+    ax.plot(pos.lon, pos.lat, "+", color=KIND_STYLES["estimate"].colour, ms=14, mew=2, label="estimate")
     if truth is not None:
-        ax.plot(truth[1], truth[0], "x", color="lime", ms=12, mew=2, label="truth")
+        ax.plot(truth[1], truth[0], "x", color=KIND_STYLES["truth"].colour, ms=12, mew=2, label="truth")
     ax.set_xlim(float(lon.min()), float(lon.max()))
     ax.set_ylim(float(lat.min()), float(lat.max()))
     geographic_axes(ax, layers.scale)
@@ -226,12 +232,12 @@ def _draw_zoom(ax: Axes, db: SkylineDatabase, pos: Position, layers: _MapLayers,
     ax.add_collection(PolyCollection(list(cell_polygons(db, r.region_nodes)), facecolors=fill,
                                      edgecolors="cyan", linewidths=1.0))
     handles: list[Any] = [Patch(facecolor=fill, edgecolor="cyan", label=f"region cells ({r.region_nodes.size})")]
-    handles += ax.plot(pos.lon, pos.lat, "+", color="blue", ms=18, mew=2.5, label="estimate")
+    handles += ax.plot(pos.lon, pos.lat, "+", color=KIND_STYLES["estimate"].colour, ms=18, mew=2.5, label="estimate")
     title = "zoom"
     if truth is not None:
         err = truth_error_m(db, pos, truth)
         ax.plot([pos.lon, truth[1]], [pos.lat, truth[0]], "-", color="yellow", lw=1.5)
-        handles += ax.plot(truth[1], truth[0], "x", color="lime", ms=14, mew=2.5, label="truth")
+        handles += ax.plot(truth[1], truth[0], "x", color=KIND_STYLES["truth"].colour, ms=14, mew=2.5, label="truth")
         title = f"zoom: estimate {err:.1f} m from the truth" if err < 100 else \
             f"zoom: estimate {err:.0f} m from the truth"
     ax.set_xlim(zx0, zx1)
@@ -272,9 +278,9 @@ def estimate_figure(db: SkylineDatabase, pos: Position, skyline: Skyline,
     lon, lat = _node_lonlat(db)
     shade = _hillshade(db)
     lower = np.asarray(pos.result.log_lower_map, float).reshape(g.n_rows, g.n_cols) / np.log(10.0)
-    top = float(np.nanmax(lower))
-    posterior = np.ma.masked_less(np.where(np.isfinite(lower), lower, -np.inf), top - 20.0)
-    layers = _MapLayers(lon, lat, shade, posterior, top, map_scale(db, float(np.mean(lat)), float(np.mean(lon))))
+    relative = np.where(np.isfinite(lower), lower - float(np.nanmax(lower)), -np.inf)
+    posterior = np.ma.masked_less(relative, -POSTERIOR_DECADES)
+    layers = _MapLayers(lon, lat, shade, posterior, 0.0, map_scale(db, float(np.mean(lat)), float(np.mean(lon))))
 
     fig = _new_figure((15, 12.5))
     grid = fig.add_gridspec(2, 2, height_ratios=[1.55, 1], width_ratios=[1, 1])

@@ -27,16 +27,13 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from appliance.atomic import check_output_folder, write_text_atomic
+from appliance.bodies import BodyName
 from appliance.locating.position import Position, estimate_status, status_text, truth_error_m
 from appliance.outputs import html as rp
-from appliance.outputs.files import (
-    save_png,
-    write_geotiff,
-    write_png,
-    write_points_geojson,
-    write_region_geojson,
-)
+from appliance.outputs.files import MAP_LAYER_SUFFIXES, save_png, write_map_layers, write_png
+from appliance.outputs.grid_refs import mgrs_ref
 from appliance.outputs.picture import TrackStop, panorama_figure, track_figure
+from appliance.outputs.status import position_facts, status_banner
 
 if TYPE_CHECKING:
     from appliance.skyline import Skyline
@@ -45,17 +42,38 @@ if TYPE_CHECKING:
 
 #: the page's name in its folder
 PAGE = "report.html"
-#: the files of each skyline of ``viper estimate --report``, after its number and name
-ESTIMATE_FILES = (".png", "-posterior.tif", "-region.geojson", "-points.geojson")
+#: the files of each skyline of ``viper estimate --report``, after its number and name: its picture and
+#: its map's layers
+ESTIMATE_FILES = (".png", *MAP_LAYER_SUFFIXES)
 
 
-def _write_page(db: SkylineDatabase, folder: Path, title: str, parts: Sequence[str], into: Path | None = None) -> Path:
-    """``report.html`` in ``folder``: ``title``, the skyline database, then ``parts``; returns its path.
-    ``into``: the folder it is written in instead (a staging folder that becomes ``folder``)."""
+def _write_page(db: SkylineDatabase, folder: Path, title: str, parts: Sequence[str], into: Path | None = None,
+                top: Sequence[str] = ()) -> Path:
+    """``report.html`` in ``folder``: ``title``, the ``top`` fragments (the status banners), the skyline
+    database, then ``parts``; returns its path.  ``into``: the folder it is written in instead (a staging
+    folder that becomes ``folder``)."""
     page = folder / PAGE
     db_line = rp.paragraph(rp.shown_path(db.path, folder), "Skyline database:")
-    write_text_atomic((into or folder) / PAGE, rp.page(title, [db_line, *parts]))
+    write_text_atomic((into or folder) / PAGE, rp.page(title, [*top, db_line, *parts]))
     return page
+
+
+def answer_banner(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None, name: str) -> str:
+    """The status banner of one answer (:func:`appliance.outputs.status.status_banner` of its record),
+    named ``name``, with its latitude, longitude and MGRS."""
+    b = status_banner(pos.to_json(db, truth, max_cells=0))
+    mgrs = mgrs_ref(pos.lat, pos.lon) if str(db.header["body"]) == BodyName.EARTH.value else None
+    where = f"{name}: {pos.lat:.6f}, {pos.lon:.6f}" + ("" if mgrs is None else f" · MGRS {mgrs}")
+    return rp.banner(b.headline, b.ok, where, b.reasons)
+
+
+def position_table(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None) -> str:
+    """Where the answer is (latitude and longitude, UTM, MGRS, altitude) as a facts table."""
+    return rp.facts_table(position_facts(pos.to_json(db, truth, max_cells=0), str(db.header["body"])))
+
+
+def _layer_links(files: Sequence[Path], folder: Path) -> str:
+    return "<p><b>map layers</b> " + " · ".join(rp.link(f, folder) for f in files) + "</p>"
 
 
 # ----------------------------------------------------------------------------------- viper estimate
@@ -82,13 +100,12 @@ def estimate_report_names(skylines: Sequence[str | Path]) -> list[str]:
 
 def write_estimate_files(db: SkylineDatabase, folder: Path, i: int, name: str, pos: Position, skyline: Skyline,
                          truth: tuple[float, float] | None) -> ReportEntry:
-    """The files of skyline number ``i`` (from 0) in ``folder``: its picture, posteriors and GeoJSON."""
-    files = tuple(folder / f"{_stem(i, name)}{e}" for e in ESTIMATE_FILES)
-    write_png(db, pos, skyline, files[0], truth)
-    write_geotiff(db, pos, files[1])
-    write_region_geojson(db, pos, files[2])
-    write_points_geojson(pos, files[3], truth)
-    return ReportEntry(Path(name).name, pos, skyline, truth, files[0], files)
+    """The files of skyline number ``i`` (from 0) in ``folder``: its picture and its map's layers
+    (posteriors, GeoJSON and their styles)."""
+    picture = folder / f"{_stem(i, name)}{ESTIMATE_FILES[0]}"
+    write_png(db, pos, skyline, picture, truth)
+    layers = write_map_layers(db, pos, folder, _stem(i, name), truth)
+    return ReportEntry(Path(name).name, pos, skyline, truth, picture, (picture, *layers))
 
 
 def _estimate_row(db: SkylineDatabase, e: ReportEntry, err: float | None, valid: str) -> dict[str, str]:
@@ -111,13 +128,14 @@ def write_estimate_report(db: SkylineDatabase, entries: Sequence[ReportEntry], f
                           title: str = "Viper estimate") -> Path:
     """``report.html`` in ``folder``: a table of the estimates, then per skyline its facts, picture and
     files; returns the page's path."""
-    rows, sections = [], []
+    rows, sections, banners = [], [], []
     for i, e in enumerate(entries):
         r = e.pos.result
         err = None if e.truth is None else truth_error_m(db, e.pos, e.truth)
         valid = f"{int(e.skyline.valid.sum())} of {e.skyline.elevation_deg.size}"
         rows.append(_estimate_row(db, e, err, valid))
-        facts = [("estimate", f"{e.pos.lat:.6f}, {e.pos.lon:.6f}"),
+        banners.append(answer_banner(db, e.pos, e.truth, e.name))
+        facts = [*position_facts(e.pos.to_json(db, e.truth, max_cells=0), str(db.header["body"])),
                  ("error", "no truth given" if err is None else f"{err:.1f} m from the truth"),
                  ("region", f"{r.region_area_m2 / 1e6:.4f} km², {r.region_nodes.size} cells"),
                  ("valid azimuths", valid),
@@ -126,7 +144,7 @@ def write_estimate_report(db: SkylineDatabase, entries: Sequence[ReportEntry], f
                      "<p>" + " · ".join(rp.link(f, folder) for f in e.files) + "</p>",
                      rp.image(e.picture, folder, e.picture.stem)]
     table = rp.table(rows, {i: f"#skyline-{i + 1}" for i in range(len(entries))})
-    return _write_page(db, folder, title, [table, *sections])
+    return _write_page(db, folder, title, [table, *sections], top=banners)
 
 
 # ----------------------------------------------------------------------- viper replay and viper demo
@@ -211,8 +229,10 @@ def _shown(text: str, r: ReplayedLog, db: SkylineDatabase, out_dir: Path) -> str
     return rp.without_folders(text, [r.data.path, db.path, *([r.results_log] if r.results_log else [])], out_dir)
 
 
-def _log_section(r: ReplayedLog, i: int, db: SkylineDatabase, out_dir: Path) -> list[str]:
-    """The log's heading, notes, failure, estimate, results log, facts and pictures."""
+def _log_section(r: ReplayedLog, i: int, db: SkylineDatabase, out_dir: Path,
+                 layers: Sequence[Path] = ()) -> list[str]:
+    """The log's heading, notes, failure, estimate (where it is, its map layers), results log, facts and
+    pictures."""
     parts = [rp.heading(r.name, anchor=f"log-{i + 1}")]
     for note in r.notes:
         parts.append(rp.paragraph(_shown(note, r, db, out_dir), "note:"))
@@ -222,6 +242,9 @@ def _log_section(r: ReplayedLog, i: int, db: SkylineDatabase, out_dir: Path) -> 
         err = "no GPS truth" if r.error_m is None else f"{r.error_m:.1f} m from the GPS truth"
         status = estimate_status(db, r.position, r.data.truth)
         parts.append(rp.paragraph(f"{r.position.lat:.6f}, {r.position.lon:.6f} {status}: {err}", "estimate"))
+        parts.append(position_table(db, r.position, r.data.truth))
+    if layers:
+        parts.append(_layer_links(layers, out_dir))
     if r.results_log is not None:
         parts.append(f"<p><b>results log</b> {rp.link(r.results_log, out_dir)}</p>")
     parts.append(rp.facts_table(r.data.facts.rows()))
@@ -232,12 +255,20 @@ def _log_section(r: ReplayedLog, i: int, db: SkylineDatabase, out_dir: Path) -> 
 
 def write_replay_report(results: Sequence[ReplayedLog], db: SkylineDatabase, out_dir: Path,
                         title: str | None = None, into: Path | None = None) -> Path:
-    """PNG pictures per log, ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay
-    of N logs"); returns the HTML page's path.  ``into``: the folder the files are written in instead of
-    ``out_dir`` (a staging folder that becomes ``out_dir``); the page names them as in ``out_dir``."""
+    """PNG pictures and the map's layers (:func:`appliance.outputs.files.write_map_layers`) per log,
+    ``summary.csv`` and ``report.html`` (titled ``title``, by default "Viper replay of N logs"); returns
+    the HTML page's path.  ``into``: the folder the files are written in instead of ``out_dir`` (a staging
+    folder that becomes ``out_dir``); the page names them as in ``out_dir``."""
     folder = check_output_folder(into or out_dir)
-    for r in results:
-        if r.position is None or r.skyline is None:
+    layers: dict[int, list[Path]] = {}
+    banners = []
+    for i, r in enumerate(results):
+        if r.position is None:
+            continue
+        written = write_map_layers(db, r.position, folder, r.name, r.data.truth)
+        layers[i] = [out_dir / p.name for p in written]
+        banners.append(answer_banner(db, r.position, r.data.truth, r.name))
+        if r.skyline is None:
             continue
         map_png = out_dir / f"{r.name}.map.png"
         write_png(db, r.position, r.skyline, folder / map_png.name, truth=r.data.truth)
@@ -260,8 +291,8 @@ def write_replay_report(results: Sequence[ReplayedLog], db: SkylineDatabase, out
                    for k, v in row.items()} for row, r in zip(rows, results, strict=True)]
     parts.append(rp.table(shown_rows, {i: f"#log-{i + 1}" for i in range(len(results))}))
     for i, r in enumerate(results):
-        parts += _log_section(r, i, db, out_dir)
-    return _write_page(db, out_dir, title, parts, into=folder)
+        parts += _log_section(r, i, db, out_dir, layers.get(i, []))
+    return _write_page(db, out_dir, title, parts, into=folder, top=banners)
 
 
 # ----------------------------------------------------------------------------- viper demo --traverse
@@ -430,13 +461,24 @@ def write_traverse_report(result: Traversed, db: SkylineDatabase, out_dir: Path,
     save_png(track_figure(db, track, f"traverse {result.session_id}: {len(result.stops)} stops"),
              folder / track_png.name, dpi=90)
     pictures: list[Path | None] = []
+    layers: dict[int, tuple[Path, ...]] = {}
     for s in result.stops:
+        if s.position is not None:
+            written = write_map_layers(db, s.position, folder, f"stop-{s.stop:02d}", s.truth)
+            layers[s.stop] = tuple(out_dir / q.name for q in written)
         if s.position is None or s.session.skyline is None:
             pictures.append(None)
             continue
         png = out_dir / f"stop-{s.stop:02d}.png"
         write_png(db, s.position, s.session.skyline, folder / png.name, s.truth)
         pictures.append(png)
+    located = [s for s in result.stops if s.position is not None]
+    top = []
+    if located:
+        last = located[-1]
+        assert last.position is not None
+        top = [answer_banner(db, last.position, last.truth, f"stop {last.stop} (the last located)"),
+               position_table(db, last.position, last.truth)]
     fused = sum(1 for s in result.stops if s.fused)
     parts = [rp.paragraph(f"a traverse of {len(result.stops)} stops in one log, {fused} of them fused with the "
                           "stop before through the rover's odometry", "Traverse:"),
@@ -453,6 +495,8 @@ def write_traverse_report(result: Traversed, db: SkylineDatabase, out_dir: Path,
         if s.position is not None:
             flag = estimate_flag_text(db, s)
             parts.append(rp.paragraph(f"{s.position.lat:.6f}, {s.position.lon:.6f} {flag}", "estimate"))
+            parts.append(position_table(db, s.position, s.truth))
+            parts.append(_layer_links(layers[s.stop], out_dir))
         if picture is not None:
             parts.append(rp.image(picture, out_dir, picture.stem))
-    return _write_page(db, out_dir, title, parts, into=folder)
+    return _write_page(db, out_dir, title, parts, into=folder, top=top)

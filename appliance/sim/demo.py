@@ -13,7 +13,7 @@ from appliance.bodies import geodesic_distance_m
 from appliance.config import EstimatorConfig
 from appliance.estimator import estimate
 from appliance.locating.position import Position, place, skyline_grid
-from appliance.outputs.files import write_png
+from appliance.outputs.files import write_map_layers, write_png
 from appliance.skyline import Skyline, write_skyline_csv
 from appliance.terrain.database import SkylineDatabase, build_database, load_database
 from appliance.terrain.dem import Dem, load_dem
@@ -33,6 +33,8 @@ class DemoResult:
     skyline_path: Path
     picture_path: Path
     db: SkylineDatabase
+    #: the map's layers beside the picture (:func:`appliance.outputs.files.write_map_layers`)
+    layer_paths: tuple[Path, ...] = ()
 
 
 def demo_database(dem: Dem, out_dir: Path) -> SkylineDatabase:
@@ -61,7 +63,8 @@ def sensor_reading(true_el: np.ndarray, rng: np.random.Generator, noise_deg: flo
 def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
              estimator: EstimatorConfig | None = None) -> DemoResult:
     """A synthetic noisy skyline at a random point of the demo map, located with ``estimator``
-    (default: the configuration's defaults); the skyline, a picture and the result in ``out_dir``."""
+    (default: the configuration's defaults); the skyline, a picture and the map's layers (``estimate-*``:
+    posteriors as GeoTIFF, region and points as GeoJSON with their QGIS styles) in ``out_dir``."""
     cfg = EstimatorConfig() if estimator is None else estimator
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -84,4 +87,5 @@ def run_demo(out_dir: str | Path = "viper-demo", seed: int | None = None,
     err = geodesic_distance_m(res_pos.lat, res_pos.lon, float(lat), float(lon), dem.body)
     pic = out / "estimate.png"
     write_png(db, res_pos, sky, pic, truth=(float(lat), float(lon)))
-    return DemoResult(res_pos, float(lat), float(lon), float(err), compass, sky_path, pic, db)
+    layers = write_map_layers(db, res_pos, out, "estimate", truth=(float(lat), float(lon)))
+    return DemoResult(res_pos, float(lat), float(lon), float(err), compass, sky_path, pic, db, layers)
