@@ -30,7 +30,7 @@ def _capture(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
-    with live_server(args.live) as live, StatusLine("capture") as status:
+    with live_server(args.live, args.live_linger) as live, StatusLine("capture") as status:
         result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status)
     print(f"log: {result.log_path}")
     print(f"session {result.session_id}: {result.status.value}; frames {result.frames}")
