@@ -93,3 +93,51 @@ def test_a_negative_linger_is_one_line_and_non_zero(capsys, tmp_path):
     assert code != 0
     assert err[-1].startswith("viper capture: error: --live-linger -1.0"), err
     assert not list(tmp_path.iterdir())
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_lines_differing_only_in_the_clients_address_are_counted_not_repeated(caplog):
+    clock = _Clock()
+    guard = ClientTextGuard(per_window=100, window_s=10.0, clock=clock, repeat_window_s=60.0)
+    sdk = logging.getLogger("foxglove.test-repeats")
+    sdk.propagate = False
+    sdk.addHandler(guard)
+    try:
+        with caplog.at_level(logging.INFO, logger="appliance.logbook.live"):
+            for i in range(5):
+                clock.now = float(i)
+                sdk.error("Dropping client 10.0.0.%d:%d: handshake failed", i, 40000 + i)
+            sdk.error("Invalid message from [::1]:5000: `x`")
+            clock.now = 61.0
+            sdk.error("Dropping client 10.0.0.9:1: handshake failed")
+            sdk.error("Invalid message from [::1]:5001: `x`")
+            guard.flush()
+            for i in range(live_mod.REPEAT_SHAPES + 10):  # lines a client makes all different
+                sdk.error("Invalid message from 10.0.0.1:1: `%d`", i)
+                sdk.error("Invalid message from 10.0.0.1:2: `%d`", i)
+            assert len(guard._repeats) == live_mod.REPEAT_SHAPES
+            guard.flush()
+    finally:
+        sdk.removeHandler(guard)
+    lines = [r.getMessage() for r in caplog.records]
+    hint = " (the server speaks the foxglove.sdk.v1 subprotocol only; a client offering only foxglove.websocket.v1 " \
+           "is refused)"
+    assert lines[:5] == [
+        "live view: Dropping client 10.0.0.0:40000: handshake failed" + hint,
+        "live view: Invalid message from [::1]:5000: `x`",
+        "live view: 4 more like 'Dropping client <client>: handshake failed' in 61 s",
+        "live view: Dropping client 10.0.0.9:1: handshake failed" + hint,
+        "live view: 1 more like 'Invalid message from <client>: `x`' in 57 s",  # within its window: counted
+    ]
+    distinct = lines[5:]
+    assert len([x for x in distinct if x.startswith("live view: Invalid message from 10.0.0.1:1: ")]) == \
+        live_mod.REPEAT_SHAPES + 10
+    assert len([x for x in distinct if "1 more like 'Invalid message from <client>: `" in x]) == \
+        live_mod.REPEAT_SHAPES + 10

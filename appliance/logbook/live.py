@@ -47,6 +47,8 @@ CLIENT_LINES_PER_WINDOW = 20
 CLIENT_WINDOW_S = 10.0
 #: a line repeated with only a client's address changed is passed on once per this many seconds
 REPEAT_WINDOW_S = 60.0
+#: the most distinct lines whose repeats are counted at once (a client controls what the lines quote)
+REPEAT_SHAPES = 64
 #: how long a closing server waits at most for its clients to receive what is queued (s)
 DEFAULT_LINGER_S = 2.0
 #: the subprotocol foxglove-sdk's server accepts (its handshake refuses any other with HTTP 400)
@@ -105,6 +107,11 @@ class ClientTextGuard(logging.Handler):
             self._repeats[shape] = (known[0], known[1] + 1)
             return
         self._say_repeats(shape)
+        self._repeats.pop(shape, None)
+        if len(self._repeats) >= REPEAT_SHAPES:  # the oldest goes (dicts keep insertion order)
+            oldest = next(iter(self._repeats))
+            self._say_repeats(oldest)
+            del self._repeats[oldest]
         self._repeats[shape] = (now, 0)
         if text.endswith("handshake failed"):
             text += _HANDSHAKE_HINT
