@@ -14,6 +14,7 @@ from appliance.cli.main import main
 from appliance.logbook import live as live_mod
 from appliance.logbook.live import SDK_LOGGERS, ClientTextGuard, LiveServer
 from appliance.logbook.live_drain import unsent_bytes, wait_drained
+from tests.live_client import StrictClient
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -141,3 +142,25 @@ def test_lines_differing_only_in_the_clients_address_are_counted_not_repeated(ca
         live_mod.REPEAT_SHAPES + 10
     assert len([x for x in distinct if "1 more like 'Invalid message from <client>: `" in x]) == \
         live_mod.REPEAT_SHAPES + 10
+
+
+def test_a_topic_that_comes_in_another_encoding_is_advertised_anew(tmp_path):
+    from appliance.logbook.live_channels import ChannelSpec, json_schema_data
+
+    spec = ChannelSpec("/session/info", "viper.Session", "jsonschema", json_schema_data("viper.Session"), "json")
+    with LiveServer("127.0.0.1", 0, linger_s=0.0, channels=[spec]) as server:
+        watching = StrictClient(server.port)
+        watching.start()
+        assert _wait(lambda: list(server.subscriptions().values()) == [{"/session/info"}])
+        # a ROS 2 log's String message: another schema and encoding on the same topic
+        server.publish("/session/info", "std_msgs/msg/String", "ros2msg", b"string data", "cdr", b"\x00\x01", 5)
+        late = StrictClient(server.port)
+        late.start()
+        assert _wait(lambda: late.counts()["/session/info"] == 1, 30.0)
+        assert _wait(lambda: any(ch["encoding"] == "cdr" for ch in watching.channels.values()), 30.0)
+    for client in (watching, late):
+        client.finish()
+        assert client.error is None, client.error
+    assert [(ch["topic"], ch["schemaName"], ch["encoding"]) for ch in late.channels.values()] == [
+        ("/session/info", "std_msgs/msg/String", "cdr")]
+    assert late.payloads("/session/info") == [b"\x00\x01"] and late.refused() == []

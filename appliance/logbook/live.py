@@ -181,7 +181,8 @@ class LiveServer:
     Every channel of ``channels`` (default: :func:`live_channels.session_channels`, every topic a
     session or a traverse writes) is created before the server listens and kept until :meth:`close`
     (the daemon runs many sessions on one server), so no client's subscription can be refused; a
-    topic outside them gets its channel on first use.  Port 0 picks a free port, read back from
+    topic outside them, or one that comes with another schema or encoding, gets its channel as it
+    appears (and a client subscribing at that moment may be refused).  Port 0 picks a free port, read back from
     :attr:`port`.  :meth:`close` first waits up to ``linger_s`` seconds for the subscribed clients
     to receive what is queued for them (:func:`live_drain.wait_drained`).
     """
@@ -193,7 +194,7 @@ class LiveServer:
         guard_sdk_logs()
         self._foxglove = foxglove
         self._context = foxglove.Context()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # closing a channel calls on_unsubscribe on this thread
         self._channels: dict[str, Any] = {}
         self._topic_of: dict[int, str] = {}
         self._latest: dict[str, dict[str, tuple[bytes, int]]] = {}
@@ -233,8 +234,13 @@ class LiveServer:
                 LOG.warning("live view: %s is not among the advertised topics; a client that subscribes to it "
                             "as it appears may be refused", printable(topic))
                 channel = self._create_channel(topic, schema_name, schema_encoding, schema_data, message_encoding)
-            elif channel.schema_name() != schema_name:
-                raise LogError(f"live view: {topic} carries {channel.schema_name()}, cannot send a {schema_name}")
+            elif (channel.schema_name(), channel.message_encoding) != (schema_name, message_encoding):
+                # another encoding of the log (ROS 2 messages): the topic is advertised anew, as it appears
+                LOG.info("live view: %s carries %s (%s), advertised anew", topic, schema_name, message_encoding)
+                self._topic_of.pop(int(channel.id()), None)
+                self._latest.pop(topic, None)
+                channel.close()
+                channel = self._create_channel(topic, schema_name, schema_encoding, schema_data, message_encoding)
             self._latest.setdefault(topic, {})[_latch_key(schema_name, data)] = (bytes(data), int(log_time_ns))
             channel.log(data, log_time=int(log_time_ns))
 
