@@ -1,15 +1,19 @@
-"""The live view during a whole simulated session, seen by a real WebSocket client speaking the Foxglove
-protocol; the session's log read back by the independent ``mcap`` reader: every JSON message against its
-channel's schema, and the Foxglove frames (camera_optical, the posterior grid placed in world)."""
+"""The live view during a whole simulated session, seen by real WebSocket clients speaking the Foxglove
+protocol; the session's log read back by the independent ``mcap`` reader: every message of the log
+received once by a client connected from the start, none twice when a second one joins, every JSON
+message against its channel's schema, and the Foxglove frames (camera_optical, the posterior grid
+placed in world)."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
-import struct
 import threading
 import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -23,105 +27,116 @@ from appliance.cli.main import main
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.live import LiveServer, parse_address
+from appliance.logbook.live_channels import session_channels
 from appliance.sim.field_session import run_field_session
 from tests.conftest import small_config
+from tests.live_client import StrictClient
 
 jsonschema = pytest.importorskip("jsonschema")
-SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+#: every topic a session may write, advertised from the start
+ALL_TOPICS = {spec.topic for spec in session_channels()}
+#: the second client joins once the first has received this many camera frames
+JOIN_AFTER_FRAMES = 3
 
 
-class FoxgloveClient(threading.Thread):
-    """Connects, subscribes to every advertised channel and keeps (topic, schema, payload) of each message.
+@dataclass
+class LiveRun:
+    result: Any
+    db: Any
+    first: StrictClient  # connected before the session's first message
+    second: StrictClient  # joined mid-session
+    logged: dict[str, list[bytes]]  # the log's payloads per topic, in the order written
 
-    The server latches (a subscription gets the topic's latest message at once), so a channel silent
-    half a second after its subscription was not subscribed (the server can receive the subscription
-    before it knows the channel it just advertised): the client subscribes again."""
 
-    def __init__(self, port: int) -> None:
-        super().__init__(daemon=True)
-        self.url = f"ws://127.0.0.1:{port}"
-        self.connected = threading.Event()
-        self.stop = threading.Event()
-        self.server_info: dict = {}
-        self.channels: dict[int, dict] = {}
-        self.messages: list[tuple[str, str, bytes]] = []
-        self.error: BaseException | None = None
+def _wait(condition: Callable[[], bool], timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return condition()
 
-    def run(self) -> None:
-        try:
-            asyncio.run(self._run())
-        except BaseException as exc:  # surfaced by the test
-            self.error = exc
-            self.connected.set()
 
-    async def _run(self) -> None:
-        import websockets
-
-        async with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None) as ws:
-            assert ws.subprotocol in SUBPROTOCOLS
-            subscriptions: dict[int, int] = {}
-            pending: dict[int, float] = {}  # channel id -> when it was (re)subscribed
-
-            async def subscribe(channel_ids: list[int]) -> None:
-                subs = []
-                for cid in channel_ids:
-                    sub_id = len(subscriptions) + 1
-                    subscriptions[sub_id] = cid
-                    subs.append({"id": sub_id, "channelId": cid})
-                    pending[cid] = time.monotonic()
-                await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-
-            while not self.stop.is_set():
-                silent = [cid for cid, since in pending.items() if time.monotonic() - since > 0.5]
-                if silent:
-                    await subscribe(silent)
-                try:
-                    raw = await asyncio.wait_for(ws.recv(), 0.2)
-                except TimeoutError:
-                    continue
-                if isinstance(raw, str):
-                    msg = json.loads(raw)
-                    if msg["op"] == "serverInfo":
-                        self.server_info = msg
-                        self.connected.set()
-                    elif msg["op"] == "advertise":
-                        for ch in msg["channels"]:
-                            self.channels[ch["id"]] = ch
-                        await subscribe([ch["id"] for ch in msg["channels"]])
-                elif raw[0] == 1:  # message data: opcode, subscription id (u32), log time (u64), payload
-                    sub_id, _ = struct.unpack_from("<IQ", raw, 1)
-                    ch = self.channels[subscriptions[sub_id]]
-                    pending.pop(ch["id"], None)
-                    self.messages.append((ch["topic"], ch["schemaName"], bytes(raw[13:])))
-
-    def payloads(self, topic: str) -> list[bytes]:
-        return [data for tp, _, data in list(self.messages) if tp == topic]
+def _by_topic(pairs) -> dict[str, list[bytes]]:
+    payloads: dict[str, list[bytes]] = {}
+    for topic, data in pairs:
+        payloads.setdefault(topic, []).append(bytes(data))
+    return payloads
 
 
 @pytest.fixture(scope="module")
-def live_session(tmp_path_factory, dem, window_db):
-    db = window_db
+def live_run(tmp_path_factory, dem, window_db):
+    """A whole simulated session served live: one strict client (it subscribes once to each channel as
+    advertised, never again) connected and subscribed before the first message, a second one joining
+    after the third camera frame; the server closed as the commands close it, right after the session."""
     out = tmp_path_factory.mktemp("live")
-    with LiveServer("127.0.0.1", 0) as server:
-        client = FoxgloveClient(server.port)
-        client.start()
-        assert client.connected.wait(30.0)
+    server = LiveServer("127.0.0.1", 0, linger_s=30.0)
+    first, second = StrictClient(server.port), StrictClient(server.port)
+    first.start()
+    assert _wait(lambda: any(topics == ALL_TOPICS for topics in server.subscriptions().values()), 60.0)
+
+    def join_later() -> None:
+        if _wait(lambda: first.counts()[t.IMAGE] >= JOIN_AFTER_FRAMES, 600.0):
+            second.start()
+
+    joiner = threading.Thread(target=join_later, daemon=True)
+    joiner.start()
+    try:
+        result, _ = run_field_session(small_config(), out, seed=5, dem=dem, db=window_db, publisher=server)
+    finally:
+        server.close()  # lingers until both clients have received everything
+    for client in (first, second):
+        assert client.closed.wait(30.0)  # the server closed the connection
+        client.finish()
         assert client.error is None, client.error
-        result, _ = run_field_session(small_config(), out, seed=5, dem=dem, db=db, publisher=server)
+    joiner.join(1.0)
+    logged = _by_topic((channel.topic, message.data) for _s, channel, message in _log_messages(result.log_path))
+    return LiveRun(result, window_db, first, second, logged)
 
-        def estimate_seen() -> bool:
-            return any(json.loads(p).get("procedure") == "estimate" for p in client.payloads(t.PROCEDURE))
 
-        def everything_seen() -> bool:  # a busy machine can deliver a latched topic late
-            return estimate_seen() and all(client.payloads(topic) for topic in (t.PANORAMA, t.ESTIMATE_FIX, t.REGION))
+@pytest.fixture(scope="module")
+def live_session(live_run):
+    return live_run.result, live_run.first, live_run.db
 
-        deadline = time.monotonic() + 60.0
-        while not everything_seen() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        client.stop.set()
-        client.join(10.0)
-    assert client.error is None, client.error
-    return result, client, db
+
+def test_a_client_connected_from_the_start_receives_every_message_once(live_run):
+    first, logged = live_run.first, live_run.logged
+    received = _by_topic((topic, data) for topic, _, data in first.messages)
+    assert first.refused() == [] and first.statuses == []
+    assert {k: len(v) for k, v in received.items()} == {k: len(v) for k, v in logged.items()}
+    assert received == logged  # the same bytes, in the order written, none twice
+    # the topics written last (the estimate, its region and posterior, the rendered skyline, the
+    # procedures' ends, the log's last lines) are among them: nothing was cut off at the close
+    for topic in (t.ESTIMATE_FIX, t.ESTIMATE_RECORD, t.POSTERIOR, t.REGION, t.SKYLINE_DETECTED,
+                  t.SKYLINE_RENDERED, t.SESSION, t.PROCEDURE, t.LOG):
+        assert logged.get(topic), topic
+    assert b'"procedure":"estimate"' in logged[t.PROCEDURE][-1]
+    assert f"session {live_run.result.session_id} finished".encode() in logged[t.LOG][-1]
+
+
+def test_every_channel_is_advertised_once_with_the_schema_of_the_log(live_run):
+    advertised = Counter(ch["topic"] for ch in live_run.first.channels.values())
+    assert advertised == Counter(ALL_TOPICS)
+    specs = {spec.topic: spec for spec in session_channels()}
+    with open(live_run.result.log_path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and len(summary.channels) == len(live_run.logged)
+    for channel in summary.channels.values():
+        schema = summary.schemas[channel.schema_id]
+        spec = specs[channel.topic]
+        assert (schema.name, schema.encoding, bytes(schema.data), channel.message_encoding) == (
+            spec.schema_name, spec.schema_encoding, spec.schema_data, spec.message_encoding), channel.topic
+
+
+def test_a_client_joining_mid_session_gets_the_latest_once_then_everything(live_run):
+    second, logged = live_run.second, live_run.logged
+    received = _by_topic((topic, data) for topic, _, data in second.messages)
+    assert second.refused() == [] and second.statuses == []
+    # it joined after the third frame: the latest frame then and every later one, no earlier one
+    assert 0 < len(received[t.IMAGE]) <= len(logged[t.IMAGE]) - JOIN_AFTER_FRAMES + 1
+    for topic, payloads in received.items():
+        if topic != t.TF:  # /tf is latched per child frame: the latest of each, then every later one
+            assert payloads == logged[topic][-len(payloads):], topic
+    assert received[t.CALIBRATION] == logged[t.CALIBRATION]  # written once, before it joined: latched
+    assert set(received) == set(logged) and set(received[t.TF]) <= set(logged[t.TF])
 
 
 def test_live_client_receives_the_panorama_the_estimate_and_the_status(live_session):

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from viper_calibration.device_file import load_device_calibration
 
 from appliance.config import Config, PlatformKind, read_config_toml
-from appliance.errors import ConfigError
+from appliance.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
     from appliance.acquisition.session import SessionResult
@@ -54,23 +54,28 @@ def add_live_option(parser: argparse.ArgumentParser) -> None:
         "--live", metavar="[HOST:]PORT",
         help="serve the session live to Foxglove (WebSocket) on PORT, bound to 127.0.0.1 unless HOST is given "
              "(off by default)")
+    parser.add_argument(
+        "--live-linger", metavar="SECONDS", type=float, default=2.0,
+        help="with --live, wait at most this long at the end for the clients to receive everything sent "
+             "(default 2; 0: exit at once)")
 
 
 @contextmanager
-def live_server(address: str | None) -> Iterator[LiveServer | None]:
-    """The live view of ``--live`` (None when the option was not given), stopped on exit."""
+def live_server(address: str | None, linger_s: float = 2.0) -> Iterator[LiveServer | None]:
+    """The live view of ``--live`` (None when the option was not given), stopped on exit: after a
+    normal exit once its clients have received everything (at most ``linger_s`` seconds), at once
+    after an error."""
     if address is None:
         yield None
         return
+    if not linger_s >= 0:
+        raise InputError(f"--live-linger {linger_s}: expected a number of seconds >= 0")
     # the live view's SDK loads only when --live is given
     from appliance.logbook.live import LiveServer, parse_address
 
     host, port = parse_address(address)
-    server = LiveServer(host, port)
-    try:
+    with LiveServer(host, port, linger_s=linger_s) as server:
         yield server
-    finally:
-        server.close()
 
 
 def open_devices(config: Config) -> Devices:

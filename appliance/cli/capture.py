@@ -53,7 +53,7 @@ def _capture(args: argparse.Namespace) -> int:
     warn_if_simulated("capture", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     check_retention(config.logbook, log_dir)
-    with live_server(args.live) as live, StatusLine("capture") as status:
+    with live_server(args.live, args.live_linger) as live, StatusLine("capture") as status:
         result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status,
                                  logbook=config.logbook)
     layers = _write_layers(result)

@@ -27,7 +27,7 @@ def _session(args: argparse.Namespace) -> int:
     warn_if_simulated("daemon session", config, args.config)
     log_dir = Path(args.log_dir) if args.log_dir else config.logbook.log_dir
     check_retention(config.logbook, log_dir)
-    with live_server(args.live) as live:
+    with live_server(args.live, args.live_linger) as live:
         daemon = SessionDaemon(config, log_dir, Notifier.from_environment(), session_runner(config, publisher=live))
         daemon.install_signal_handlers()
         return daemon.run()

@@ -7,6 +7,8 @@
 - :mod:`appliance.logbook.reader`: reading a log, complete or truncated, with an error policy.
 - :mod:`appliance.logbook.recover`: rewriting a truncated log into a valid one.
 - :mod:`appliance.logbook.summary`: what ``viper log info`` prints.
+- :mod:`appliance.logbook.live`: the live view (Foxglove WebSocket), with its channels
+  (:mod:`appliance.logbook.live_channels`) and its drain at close (:mod:`appliance.logbook.live_drain`).
 """
 
 from appliance.errors import ErrorPolicy

@@ -295,6 +295,26 @@ JSON_TOPIC_SCHEMAS: dict[str, str] = {
     CLOCK: "viper.Clock",
 }
 
+#: The Foxglove (protobuf) schema of each topic written with ``Logbook.write_proto``: with
+#: :data:`JSON_TOPIC_SCHEMAS`, every topic a session or a traverse writes, so the live view can
+#: advertise them all before its first client connects (:mod:`appliance.logbook.live_channels`).
+PROTO_TOPIC_SCHEMAS: dict[str, str] = {
+    IMAGE: "foxglove.CompressedImage",
+    PANORAMA: "foxglove.CompressedImage",
+    PANORAMA_SKYLINE: "foxglove.ImageAnnotations",
+    CALIBRATION: "foxglove.CameraCalibration",
+    GPS_FIX: "foxglove.LocationFix",
+    GPS_TRUTH: "foxglove.LocationFix",
+    ESTIMATE_FIX: "foxglove.LocationFix",
+    ESTIMATE_ALONE_FIX: "foxglove.LocationFix",
+    ESTIMATE_POSE: "foxglove.PoseInFrame",
+    TF: "foxglove.FrameTransform",
+    LOG: "foxglove.Log",
+    REGION: "foxglove.GeoJSON",
+    TRAVERSE_TRACK: "foxglove.GeoJSON",
+    POSTERIOR: "foxglove.Grid",
+}
+
 #: The GeoJSON features of ``/region`` (a foxglove.GeoJSON, so no JSON schema of its own) and of the
 #: report's layers (``-region.geojson``, ``-points.geojson``): each feature's ``properties`` by its
 #: ``kind``, strict like the JSON schemas above (every property declared, no other allowed).
