@@ -209,14 +209,14 @@ def test_a_reboot_mid_leg_is_a_logged_fault_and_breaks_the_fusion(tmp_path, udp_
     try:
         twin.drive(0.0, 150.0)
         assert trav.next_odometry(head).stop_id == 1 and trav.moved is not None
-        trav.belief = object()  # an estimate at stop 1, whose posterior stop 2 would move
-        trav.moved = Move(0.0, 0.0, 0.0)
+        trav.chain.belief = object()  # an estimate at stop 1, whose posterior stop 2 would move
+        trav.chain.moved = Move(0.0, 0.0, 0.0)
         twin.drive(200.0, 0.0)
         _until(lambda: twin.driving and twin.state(world.clock.monotonic_s())[0][1] > 20.0, "the rover under way")
         twin.reboot()
         rep = trav.next_odometry(head)
         assert rep.stop_id == 2 and rep.reset
-        assert trav.belief is None and trav.moved is None and "reset" in trav.note
+        assert trav.chain.belief is None and trav.moved is None and "reset" in trav.note
         stop = trav.prepare_stop(2, rep)
         assert not stop.fused and "not fused across it" in stop.fusion_note
         assert any("autopilot reboot" in p for p in head.result.problems)
@@ -225,7 +225,7 @@ def test_a_reboot_mid_leg_is_a_logged_fault_and_breaks_the_fusion(tmp_path, udp_
         rep = trav.next_odometry(head)
         assert rep.stop_id == 3 and not rep.reset and rep.north_m == pytest.approx(-100.0, abs=10.0)
         # the move from stop 2 is taken whole; what it moves is stop 2's own estimate (none here)
-        assert trav.belief is None and trav.moved == Move(rep.east_m, rep.north_m, rep.sigma_m)
+        assert trav.chain.belief is None and trav.moved == Move(rep.east_m, rep.north_m, rep.sigma_m)
     finally:
         log.close()
     # the log, read back: the fault as a warning, the odometry of stop 2 marked reset, both schema-valid
