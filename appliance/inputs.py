@@ -188,3 +188,14 @@ def read_image_bytes(path: str | Path) -> bytes:
     check_image_pixels(data, path)
     return data
 
+
+def read_image_buffer(path: str | Path) -> bytes:
+    """:func:`read_image_bytes`, a missing or unreadable file refused in one :class:`InputError` line:
+    the buffer a decoder (``cv2.imdecode``) takes."""
+    try:
+        return read_image_bytes(path)
+    except FileNotFoundError:
+        raise InputError(f"{path}: image file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the image: {exc.strerror or exc}") from None
+

@@ -19,7 +19,7 @@ import numpy as np
 from viper_calibration.config_edit import update_toml_table
 
 from appliance.errors import CalibrationError, ConfigError, InputError
-from appliance.inputs import read_image_bytes
+from appliance.inputs import read_image_buffer
 from appliance.vision.intrinsics import CameraIntrinsics
 
 MIN_BOARDS_FLOOR = 3  # calibrateCamera's own minimum for a 9-parameter fit from planar views
@@ -76,12 +76,7 @@ def find_board(gray: np.ndarray, pattern_size: tuple[int, int]) -> np.ndarray | 
 
 def read_grey(path: str | Path) -> np.ndarray:
     p = Path(path)
-    try:
-        data = np.frombuffer(read_image_bytes(p), dtype=np.uint8)
-    except FileNotFoundError:
-        raise InputError(f"{p}: image file not found") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read the image: {exc.strerror or exc}") from None
+    data = np.frombuffer(read_image_buffer(p), dtype=np.uint8)
     image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
     if image is None:
         raise InputError(f"{p}: not a readable image")

@@ -73,6 +73,16 @@ def field_traverse(tmp_path_factory, dem, window_db):
     return result, truths, out
 
 
+def rover_config_text(db_path: Path, stops: int = 2) -> str:
+    """A configuration (TOML) of a rover's traverse on the simulated platform: ``stops`` stops on the
+    database ``db_path``, small frames and fast simulated time."""
+    return ('[platform]\nkind = "sim"\n'
+            f'[session]\ndatabase = "{db_path}"\ntruth_duration_s = 10.0\nsettle_s = 0.2\n'
+            "[devices.camera]\nwidth = 320\nheight = 240\n"
+            f"[traverse]\nstops = {stops}\n"
+            "[sim]\ntime_rate = 50.0\n")
+
+
 def small_config(time_rate: float = 50.0) -> Config:
     """A quick simulated session: short GPS averaging, short settling, a 320x240 camera."""
     return Config(

@@ -27,6 +27,7 @@ from appliance.errors import ConfigError
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
+from tests.conftest import rover_config_text
 
 rosbags_highlevel = pytest.importorskip("rosbags.highlevel")
 
@@ -41,13 +42,7 @@ def ros2_log(tmp_path_factory, window_db):
     """A two-stop traverse on the simulated platform, logged with ROS 2 messages."""
     folder = tmp_path_factory.mktemp("ros2")
     cfg = folder / "rover.toml"
-    cfg.write_text(
-        '[platform]\nkind = "sim"\n'
-        f'[session]\ndatabase = "{window_db.path}"\ntruth_duration_s = 10.0\nsettle_s = 0.2\n'
-        "[devices.camera]\nwidth = 320\nheight = 240\n"
-        "[traverse]\nstops = 2\n"
-        "[sim]\ntime_rate = 50.0\n"
-    )
+    cfg.write_text(rover_config_text(window_db.path))
     logs = folder / "logs"
     code = main(["capture", "--config", str(cfg), "--log-dir", str(logs), "--seed", "3", "--log-encoding", "ros2"])
     assert code == 0

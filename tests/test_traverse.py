@@ -29,6 +29,7 @@ from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
 from appliance.sim.pty_port import PtyPort
 from appliance.sim.world import SimClock
+from tests.conftest import rover_config_text
 from tests.test_gis_outputs import check_layers
 
 jsonschema = pytest.importorskip("jsonschema")
@@ -245,13 +246,7 @@ def test_capture_runs_a_rovers_traverse_from_the_command_line(tmp_path, capsys, 
     """`viper capture` with `[traverse] stops = 2` on the simulated platform: one log holding both
     stops, the second fused with the first, as the daemon's sessions run it."""
     cfg = tmp_path / "rover.toml"
-    cfg.write_text(
-        '[platform]\nkind = "sim"\n'
-        f'[session]\ndatabase = "{window_db.path}"\ntruth_duration_s = 10.0\nsettle_s = 0.2\n'
-        "[devices.camera]\nwidth = 320\nheight = 240\n"
-        "[traverse]\nstops = 2\n"
-        "[sim]\ntime_rate = 50.0\n"
-    )
+    cfg.write_text(rover_config_text(window_db.path))
     logs = tmp_path / "logs"
     code = main(["capture", "--config", str(cfg), "--log-dir", str(logs), "--seed", "3"])
     out = capsys.readouterr().out

@@ -30,7 +30,7 @@ import numpy as np
 
 from appliance.atomic import atomic_output
 from appliance.errors import InputError
-from appliance.inputs import read_image_bytes, read_json_bounded
+from appliance.inputs import read_image_buffer, read_json_bounded
 from appliance.native import native_messages
 
 SIDECAR_SUFFIX = ".json"
@@ -159,12 +159,7 @@ def sidecar_path(image_path: str | Path) -> Path:
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file as HxWx3 uint8 BGR; an unreadable file raises :class:`InputError`."""
     p = Path(path)
-    try:
-        data = np.frombuffer(read_image_bytes(p), dtype=np.uint8)
-    except FileNotFoundError:
-        raise InputError(f"{p}: image file not found") from None
-    except OSError as exc:
-        raise InputError(f"{p}: cannot read the image: {exc.strerror or exc}") from None
+    data = np.frombuffer(read_image_buffer(p), dtype=np.uint8)
     with native_messages() as said:
         img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if img is None:
