@@ -32,13 +32,14 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from appliance.errors import InputError
 from appliance.vision.camera import CameraPose, directions_to_pixels, pixels_to_directions
 from appliance.vision.intrinsics import CameraIntrinsics
+from appliance.vision.panorama import Panorama, Projection, full_circle_width
 from appliance.vision.synth import SkylineFn, fbm, finish, render_directions, skyline_at, value_noise
 
 HIDDEN_OPACITY = 0.3
@@ -96,31 +97,30 @@ def draw_weather(condition: SkyCondition | str, seed: int, skyline_fn: SkylineFn
     r = np.random.default_rng([seed, 7_000_003])
     sun_az = float(r.uniform(0.0, 360.0))
     sun_el = float(r.uniform(10.0, 45.0))
-    base = dict(condition=c, seed=int(seed), sun_azimuth_deg=sun_az, sun_elevation_deg=sun_el)
+    base = WeatherScene(condition=c, seed=int(seed), sun_azimuth_deg=sun_az, sun_elevation_deg=sun_el)
     drift = float(r.uniform(0.2, 1.0)) * float(r.choice([-1.0, 1.0]))
     if c is SkyCondition.CUMULUS:
-        return WeatherScene(**base, cloud_cover=float(r.uniform(0.3, 0.6)), drift_deg_per_frame=drift,
-                            visibility_m=float(r.uniform(30_000, 80_000)))
+        return replace(base, cloud_cover=float(r.uniform(0.3, 0.6)), drift_deg_per_frame=drift,
+                       visibility_m=float(r.uniform(30_000, 80_000)))
     if c is SkyCondition.OVERCAST:
-        return WeatherScene(**base, sky_grey=float(r.uniform(0.55, 0.85)), bank_fraction=float(r.uniform(0.15, 0.45)),
-                            bank_depth_deg=float(r.uniform(1.5, 4.0)), bank_soft_deg=float(r.uniform(1.0, 2.5)),
-                            drift_deg_per_frame=drift, visibility_m=float(r.uniform(15_000, 40_000)))
+        return replace(base, sky_grey=float(r.uniform(0.55, 0.85)), bank_fraction=float(r.uniform(0.15, 0.45)),
+                       bank_depth_deg=float(r.uniform(1.5, 4.0)), bank_soft_deg=float(r.uniform(1.0, 2.5)),
+                       drift_deg_per_frame=drift, visibility_m=float(r.uniform(15_000, 40_000)))
     if c is SkyCondition.HAZE:
-        return WeatherScene(**base, visibility_m=float(r.uniform(6_000, 20_000)),
-                            fog_fraction=float(r.uniform(0.3, 0.8)), fog_gap_deg=float(r.uniform(0.6, 2.5)))
+        return replace(base, visibility_m=float(r.uniform(6_000, 20_000)), fog_fraction=float(r.uniform(0.3, 0.8)),
+                       fog_gap_deg=float(r.uniform(0.6, 2.5)))
     if c is SkyCondition.LOW_SUN:
         el, _ = skyline_fn(np.array([sun_az]))
         ridge = float(el[0]) if np.isfinite(el[0]) else 0.0
-        return WeatherScene(**(base | {"sun_elevation_deg": ridge + float(r.uniform(0.3, 4.0))}),
-                            visibility_m=float(r.uniform(20_000, 60_000)))
+        return replace(base, sun_elevation_deg=ridge + float(r.uniform(0.3, 4.0)),
+                       visibility_m=float(r.uniform(20_000, 60_000)))
     if c is SkyCondition.SNOW:
-        return WeatherScene(**base, cloud_cover=float(r.uniform(0.1, 0.4)), drift_deg_per_frame=drift,
-                            visibility_m=float(r.uniform(25_000, 80_000)))
+        return replace(base, cloud_cover=float(r.uniform(0.1, 0.4)), drift_deg_per_frame=drift,
+                       visibility_m=float(r.uniform(25_000, 80_000)))
     if c is SkyCondition.DUSK:
-        return WeatherScene(**(base | {"sun_elevation_deg": -float(r.uniform(2.0, 7.0))}),
-                            dusk_level=float(r.uniform(0.35, 0.9)), noise_sigma=0.02,
-                            visibility_m=float(r.uniform(30_000, 80_000)))
-    return WeatherScene(**base)
+        return replace(base, sun_elevation_deg=-float(r.uniform(2.0, 7.0)), dusk_level=float(r.uniform(0.35, 0.9)),
+                       noise_sigma=0.02, visibility_m=float(r.uniform(30_000, 80_000)))
+    return base
 
 
 # ----------------------------------------------------------------------------- geometry of the weather
@@ -325,3 +325,23 @@ def render_weather_photo(skyline_fn: SkylineFn, pose: CameraPose, intrinsics: Ca
     if scene.noise_sigma != 0.01:
         rgb = np.clip(rgb + rng.normal(0.0, math.sqrt(scene.noise_sigma**2 - 0.01**2), rgb.shape), 0.0, 1.0)
     return finish(rgb, rng)
+
+
+def render_weather_panorama(skyline_fn: SkylineFn, scene: WeatherScene, rng: np.random.Generator,
+                            width_px: int, height_px: int = 240, px_per_deg: float = 9.67,
+                            azimuth0_deg: float = 0.0) -> tuple[Panorama, np.ndarray, np.ndarray]:
+    """A cylindrical panorama ``width_px`` columns wide (``px_per_deg`` at its horizon row, the
+    capture ring's scale by default) under ``scene``'s weather, with the true skyline (deg) and its
+    visibility at every column."""
+    px_per_rad = px_per_deg * 180.0 / math.pi
+    full = full_circle_width(px_per_rad)
+    width = min(width_px, full)
+    geom = Panorama(np.zeros((1, width, 3), np.uint8), Projection.CYLINDRICAL, px_per_rad, azimuth0_deg,
+                    (height_px - 1) / 2.0, width == full)
+    az_col = geom.column_azimuth_deg(np.arange(width, dtype=np.float64))
+    el_row = geom.row_elevation_deg(np.arange(height_px, dtype=np.float64))
+    az, el = np.meshgrid(az_col, el_row)
+    img = finish(render_weather_directions(az, el, skyline_fn, scene), rng)
+    true_el, visible = weather_truth(scene, skyline_fn, az_col)
+    pano = Panorama(img, Projection.CYLINDRICAL, px_per_rad, azimuth0_deg, (height_px - 1) / 2.0, width == full)
+    return pano, true_el, visible

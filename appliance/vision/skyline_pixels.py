@@ -49,7 +49,6 @@ def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
     Smooth is relative to the image's own noise floor (its 10th percentile of texture, usually
     sky, over the pixels that have any), so the prior adapts to sensor noise and compression.
     Colour is left to the models learnt per image: hazy terrain may be bluer than the sky above it.
-    Bright is relative to the image's 99th percentile when that is dim (dusk).
     """
     sample = texture[::4, ::4]
     # pixels without any texture (black padding where no photo reached, a clipped sky) carry no
@@ -59,9 +58,7 @@ def _sky_prior(bgr: np.ndarray, texture: np.ndarray) -> np.ndarray:
     floor = min(max(floor, 1e-4), MAX_NOISE_TEXTURE)
     smooth = np.clip(1.0 - (texture - 1.5 * floor) / (3.0 * floor), 0.0, 1.0)
     v = np.maximum(np.maximum(bgr[..., 0], bgr[..., 1]), bgr[..., 2])
-    # bright relative to the image's brightest: a dusk sky is dim, yet the brightest part of the view
-    scale = float(np.clip(np.percentile(v[::4, ::4], 99) / 0.6, 0.3, 1.0))
-    bright = np.clip((v - 0.3 * scale) / (0.25 * scale), 0.0, 1.0)
+    bright = np.clip((v - 0.3) / 0.25, 0.0, 1.0)
     return np.asarray(2.0 * smooth * bright - 1.0, dtype=np.float32)
 
 
