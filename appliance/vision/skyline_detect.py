@@ -41,9 +41,11 @@ from appliance.vision.panorama import Panorama
 from appliance.vision.skyline_edges import (
     VOID_MARGIN_PX,
     bright_sharp_step,
+    colour_edge,
     fill_void,
     horizontal_luma,
     near_rows,
+    running_max,
     sharpness_confidence,
 )
 from appliance.vision.skyline_pixels import (
@@ -281,7 +283,7 @@ def _dp_rows(
     # (bilinear upsampling and transposition commute: the full-size prior is made transposed, WxH)
     prior_full_t = cv2.resize(cv2.transpose(prior), (h, w), interpolation=cv2.INTER_LINEAR)
     lum_h = horizontal_luma(img8)
-    edge = _edge_for_confidence(img8, drop, cfg)
+    edge = colour_edge(img8, drop, cfg.chroma_weight, cfg.smooth_sigma_px)
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
     sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
@@ -303,20 +305,10 @@ def _dp_rows(
         conf = np.where(take, conf2, conf)
     else:
         rows_first = rows
+    # (with its neighbours: a column at the side of a post or a person is not vouched for alone)
+    vouched = -np.asarray(running_max(-vouched, 5))
     rescue = (conf < cfg.min_confidence) & (vouched >= cfg.min_confidence)
     return np.where(rescue, rows_first, rows), np.where(rescue, vouched, conf)
-
-
-def _edge_for_confidence(img8: np.ndarray, drop: np.ndarray, cfg: DetectionConfig) -> np.ndarray:
-    """The edge a column's confidence asks for: the intensity drop, or the drop of blue minus red
-    (weighted by ``cfg.chroma_weight``) where that is larger: white snow under a pale sky is brighter
-    than the sky, yet less blue.  (The path itself follows the intensity drop: the top of a white
-    cloud on blue sky is such a colour edge too.)"""
-    if cfg.chroma_weight <= 0:
-        return drop
-    chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
-    chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=cfg.smooth_sigma_px)
-    return np.maximum(drop, np.float32(cfg.chroma_weight) * _downward_drop(chroma))
 
 
 def _bridge(

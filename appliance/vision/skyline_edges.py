@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from appliance.vision.skyline_pixels import _luma, _to_float
+from appliance.vision.skyline_pixels import _downward_drop, _luma, _to_float
 
 
 def horizontal_luma(img8: np.ndarray) -> np.ndarray:
@@ -126,3 +126,20 @@ def near_rows(mask: np.ndarray, rows: np.ndarray, margin_px: int) -> np.ndarray:
         out |= inside & mask[np.clip(rk, 0, h - 1), cols]
     return out
 
+
+
+def colour_edge(img8: np.ndarray, drop: np.ndarray, chroma_weight: float, smooth_sigma_px: float) -> np.ndarray:
+    """The edge a column's confidence asks for: the intensity ``drop``, or the drop of blue minus red
+    (times ``chroma_weight``, smoothed as the intensity was) where that is larger: white snow under a
+    pale sky is brighter than the sky, yet less blue.  (The path itself follows the intensity drop:
+    the top of a white cloud on blue sky is such a colour edge too.)"""
+    if chroma_weight <= 0:
+        return drop
+    chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
+    chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px)
+    return np.asarray(np.maximum(drop, np.float32(chroma_weight) * _downward_drop(chroma)))
+
+
+def running_max(x: np.ndarray, n: int) -> np.ndarray:
+    """The largest value over a window of ``n`` columns centred on each (ends reflected)."""
+    return _running(np.asarray(x, dtype=np.float64), n, np.max)
