@@ -125,7 +125,8 @@ class StubCamera:
 
 
 def grey(n):
-    return np.full((48, 64, 3), 120, np.uint8)
+    """A plain frame with some structure (a vertical gradient): not black, saturated or featureless."""
+    return np.repeat(np.linspace(100, 140, 48).astype(np.uint8)[:, None, None], 64, axis=1).repeat(3, axis=2)
 
 
 def test_capture_ring_skips_stalled_steps_and_black_frames():
@@ -144,6 +145,21 @@ def test_capture_ring_skips_stalled_steps_and_black_frames():
     assert frames[1].heading_deg == pytest.approx(140.0, abs=0.02) and seen == frames
     roll, pitch = frames[1].roll_deg, frames[1].pitch_deg
     assert abs(roll) < 0.2 and abs(pitch) < 0.2  # a level tripod
+
+
+def test_capture_ring_skips_over_exposed_and_featureless_frames_twice_and_says_why():
+    with open_sim_platform(sim_config(), with_camera=False) as d:
+        p = platform_of(d)
+        white = {0, 1}  # the first step: over-exposed twice
+        flat = {3, 4}  # the second step's frames: featureless (a fogged lens) twice
+        cam = StubCamera(lambda n: np.full((48, 64, 3), 255, np.uint8) if n in white else
+                         np.full((48, 64, 3), 128, np.uint8) if n in flat else grey(n))
+        frames, probs = pr.capture_ring(p.stage, cam, p.tilt, p.clock, SessionConfig(settle_s=0.1), 0.0,
+                                        lambda f: None, lambda pb: None)
+    assert [pb.index for pb in probs] == [0, 2]
+    assert probs[0].reason == "over-exposed frame (100% of pixels saturated) twice"
+    assert probs[1].reason == "featureless frame (grey level std 0.00) twice"
+    assert [f.index for f in frames] == [1, 3, 4, 5, 6, 7, 8]
 
 
 def test_capture_ring_unplugged_camera_raises_after_delivering_frames():

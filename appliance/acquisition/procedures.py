@@ -280,6 +280,25 @@ def is_black(image: np.ndarray, max_mean: float) -> bool:
     return float(np.mean(image)) < max_mean
 
 
+#: A frame with more than this share of its pixels at full scale in every channel is over-exposed.
+MAX_SATURATED_SHARE = 0.9
+#: A frame whose grey levels vary less than this (standard deviation) shows nothing: no sky, no ground.
+MIN_FRAME_STD = 1.0
+
+
+def frame_problem(image: np.ndarray, black_max_mean: float) -> str | None:
+    """Why a frame holds no skyline to find (black, over-exposed, featureless), or None."""
+    if is_black(image, black_max_mean):
+        return f"black frame (mean {np.mean(image):.1f})"
+    saturated = float(np.mean(np.all(image >= 250, axis=-1))) if image.ndim == 3 else float(np.mean(image >= 250))
+    if saturated > MAX_SATURATED_SHARE:
+        return f"over-exposed frame ({saturated:.0%} of pixels saturated)"
+    std = float(np.std(image))
+    if std < MIN_FRAME_STD:
+        return f"featureless frame (grey level std {std:.2f})"
+    return None
+
+
 def capture_ring(
     stage: Stage,
     camera: Camera,
@@ -290,7 +309,8 @@ def capture_ring(
     on_frame: Callable[[TaggedFrame], None],
     on_problem: Callable[[CaptureProblem], None],
 ) -> tuple[list[TaggedFrame], list[CaptureProblem]]:
-    """Rotate in steps, settle, capture and tag; a stalled step or a black frame is skipped, not fatal.
+    """Rotate in steps, settle, capture and tag; a stalled step or a frame that is black, over-exposed or
+    featureless twice is skipped (and reported), not fatal.
 
     A device that disappears (unplugged camera) raises :class:`DeviceError` to the session, which
     keeps the frames already written.
@@ -307,10 +327,11 @@ def capture_ring(
             continue
         clock.sleep(cfg.settle_s)
         frame = camera.capture()
-        if is_black(frame.image, cfg.black_frame_max_mean):
+        if frame_problem(frame.image, cfg.black_frame_max_mean) is not None:
             frame = camera.capture()
-            if is_black(frame.image, cfg.black_frame_max_mean):
-                p = CaptureProblem(i, float(target), f"black frame (mean {np.mean(frame.image):.1f}) twice")
+            why = frame_problem(frame.image, cfg.black_frame_max_mean)
+            if why is not None:
+                p = CaptureProblem(i, float(target), f"{why} twice")
                 problems.append(p)
                 on_problem(p)
                 continue

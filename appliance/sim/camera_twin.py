@@ -6,7 +6,8 @@ position (followed when the platform moves, as a rover does between stops) and t
 and height must equal the intrinsics' (other sizes are refused), exposure scales the brightness.
 Faults: ``unplug()`` makes ``grab``/``read`` fail; ``refuse`` lists properties whose ``set`` fails;
 ``unplug_after`` unplugs after that many frames read; ``black_frames`` lists read numbers (from 0)
-that return a black frame (lens cap, dead sensor).
+that return a black frame (lens cap, dead sensor).  ``weather`` (:mod:`appliance.sim.weather`) renders the frames
+under that weather instead of the plain scene, its clouds drifting from one frame read to the next.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from appliance.sim.weather import WeatherScene, render_weather_photo
 from appliance.sim.world import SimWorld
 from appliance.vision.camera import CameraPose
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -35,6 +37,7 @@ class SimVideoCapture:
         refuse: frozenset[int] = frozenset(),
         unplug_after: int | None = None,
         black_frames: frozenset[int] = frozenset(),
+        weather: WeatherScene | None = None,
     ) -> None:
         if skyline_fn is None and dem is None:
             raise ValueError("SimVideoCapture needs a DEM or a skyline function")
@@ -46,6 +49,7 @@ class SimVideoCapture:
         self.seed = seed
         self.refuse = set(refuse)
         self.unplug_after, self.black_frames = unplug_after, frozenset(black_frames)
+        self.weather = weather
         self.opened = True
         self.frames = 0
         self.props: dict[int, float] = {
@@ -98,7 +102,10 @@ class SimVideoCapture:
             return True, np.zeros((self.intrinsics.height, self.intrinsics.width, 3), np.uint8)
         pitch, roll = self.world.head_tilt()
         pose = CameraPose(self.world.head_heading_deg, pitch, roll)
-        img = render_photo_from(self.skyline_fn, pose, self.intrinsics, self.rng, scene_seed=self.seed)
+        if self.weather is not None:
+            img = render_weather_photo(self.skyline_fn, pose, self.intrinsics, self.rng, self.weather, self.frames)
+        else:
+            img = render_photo_from(self.skyline_fn, pose, self.intrinsics, self.rng, scene_seed=self.seed)
         gain = self.props[cv2.CAP_PROP_EXPOSURE] / NOMINAL_EXPOSURE
         if gain != 1.0:
             img = np.clip(img.astype(np.float32) * gain, 0, 255).astype(np.uint8)

@@ -38,6 +38,16 @@ import numpy as np
 from appliance.errors import ConfigError, InputError
 from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
+from appliance.vision.skyline_edges import (
+    VOID_MARGIN_PX,
+    bright_sharp_step,
+    colour_edge,
+    fill_void,
+    horizontal_luma,
+    near_rows,
+    running_max,
+    sharpness_confidence,
+)
 from appliance.vision.skyline_pixels import (
     _best_mean_above_t,
     _cost_columns,
@@ -73,6 +83,9 @@ class DetectionConfig:
     edge_weight: float = 3.0  # dp: weight of the edge term against the region term
     min_edge: float = 0.02  # confidence: weakest acceptable downward drop (0..1 intensity)
     min_confidence: float = 0.5  # columns below this confidence are missing
+    chroma_weight: float = 0.7  # dp: weight of the blue-minus-red drop beside the intensity drop (0: off)
+    edge_far_px: int = 6  # sharpness: the fall per row above the line is measured from 3 to this many rows up
+    max_slope_ratio: float = 0.3  # sharpness: fall per row above the line over that across it, at zero confidence
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
     def __post_init__(self) -> None:
@@ -203,7 +216,12 @@ def detect_columns(
     masked = in_mask(az, mask or [])
     if pano.empty_columns is not None:
         masked = masked | pano.empty_columns
-    rows_local, conf = detect_rows(np.ascontiguousarray(pano.image[top:bot]), cfg, masked, wrap=pano.full_circle)
+    image, void = fill_void(np.ascontiguousarray(pano.image[top:bot]))
+    rows_local, conf = detect_rows(image, cfg, masked, wrap=pano.full_circle)
+    # a line at the border of the area no photo reached (the padding) is that border's edge
+    near_void = near_rows(void, rows_local, VOID_MARGIN_PX)
+    rows_local = np.where(near_void, np.nan, rows_local)
+    conf = np.where(near_void, 0.0, conf)
     valid = np.isfinite(rows_local)
     rows = np.where(valid, rows_local + top, np.nan)
     el = np.where(valid, pano.row_elevation_deg(np.where(valid, rows, 0.0)), np.nan)
@@ -264,17 +282,33 @@ def _dp_rows(
     # through a gap the column shows the sky the learnt model was taught on
     # (bilinear upsampling and transposition commute: the full-size prior is made transposed, WxH)
     prior_full_t = cv2.resize(cv2.transpose(prior), (h, w), interpolation=cv2.INTER_LINEAR)
-    conf = _confidence(drop, llr, path, cfg, prior_full_t)
+    lum_h = horizontal_luma(img8)
+    edge = colour_edge(img8, drop, cfg.chroma_weight, cfg.smooth_sigma_px)
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
     sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
-    conf = np.minimum(conf, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
-    bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t)
+    sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
+    cap = np.minimum(np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0), sharp)
+    conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
+    # a ridge under a white cloud: vouched for by its sharp bright-over-dark step, after the second
+    # path (the vouched columns are not its anchors)
+    vouched = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t,
+                                     vouch=bright_sharp_step(lum_h, path, cfg.edge_far_px)), cap)
+    bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t, edge)
     if bridged is not None:
         path2, conf2 = bridged
+        rows2 = _refine(drop, path2)
+        conf2 = np.minimum(conf2, sharpness_confidence(lum_h, rows2, cfg.edge_far_px, cfg.min_edge,
+                                                       cfg.max_slope_ratio))
         take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
-        rows = np.where(take, _refine(drop, path2), rows)
+        rows_first = rows
+        rows = np.where(take, rows2, rows)
         conf = np.where(take, conf2, conf)
-    return rows, conf
+    else:
+        rows_first = rows
+    # (with its neighbours: a column at the side of a post or a person is not vouched for alone)
+    vouched = -np.asarray(running_max(-vouched, 5))
+    rescue = (conf < cfg.min_confidence) & (vouched >= cfg.min_confidence)
+    return np.where(rescue, rows_first, rows), np.where(rescue, vouched, conf)
 
 
 def _bridge(
@@ -286,6 +320,7 @@ def _bridge(
     masked: np.ndarray,
     wrap: bool,
     prior_t: np.ndarray,
+    edge: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """A second path through the columns the first one left unconfident, kept within ``2 band_px``
     rows of the line joining the confident columns on either side, and its confidence.
@@ -316,7 +351,7 @@ def _bridge(
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
     cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
     path2 = _run_dp(np.ascontiguousarray(cost_t), cfg, wrap)
-    conf2 = _confidence(drop, llr, path2, cfg, prior_t, haze_below=True)
+    conf2 = _confidence(edge, llr, path2, cfg, prior_t, haze_below=True)
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
@@ -348,6 +383,7 @@ def _confidence(
     cfg: DetectionConfig,
     prior_t: np.ndarray,
     haze_below: bool = False,
+    vouch: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
 
@@ -376,6 +412,8 @@ def _confidence(
     smooth_above = np.clip(prior_t[cols[None, :], far], -1, 1).mean(axis=0)
     strong = np.clip((edge - 2 * cfg.min_edge) / (4 * cfg.min_edge), 0.0, 1.0) * (ground_below > 0.6)
     strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
+    if vouch is not None:
+        strong = np.maximum(strong, vouch * (ground_below > 0.6))
     c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     if haze_below:

@@ -241,6 +241,12 @@ def _skyline_at(az: np.ndarray, el: np.ndarray, fn: SkylineFn) -> tuple[np.ndarr
     return e, d
 
 
+def skyline_at(az: np.ndarray, el: np.ndarray, fn: SkylineFn) -> tuple[np.ndarray, np.ndarray]:
+    """Skyline elevation (deg) and distance (m) at each pixel's azimuth (HxW arrays of the pixels'
+    azimuth and elevation), from a dense sampling of ``fn``; NaN elevation where there is no terrain."""
+    return _skyline_at(az, el, fn)
+
+
 def finish(rgb: np.ndarray, rng: np.random.Generator, jpeg_quality: int | None = JPEG_QUALITY) -> np.ndarray:
     """Sensor noise then JPEG compression: RGB floats in [0, 1] -> HxWx3 uint8 BGR."""
     noisy = rgb + rng.normal(0.0, SENSOR_NOISE_SIGMA, rgb.shape)

@@ -1,0 +1,145 @@
+"""Edge shape at a skyline candidate: how sharp the step is, and whether it is a bright-over-dark
+step onto ground; per column, on plain arrays (a panorama's rows, no settings object).
+
+A ridge against the sky is a silhouette: its step is made within a pixel or two.  The lower edge of
+a cloud bank resting on a ridge fades over a degree or more, and a line drawn there lies below the
+hidden skyline (false evidence for the estimator: "nothing above this elevation").  These measures
+let the detector leave such columns out.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from appliance.vision.skyline_pixels import _downward_drop, _luma, _to_float
+
+
+def horizontal_luma(img8: np.ndarray) -> np.ndarray:
+    """The blue-weighted intensity averaged over a few columns but not across rows (0..1)."""
+    return np.asarray(cv2.blur(_luma(_to_float(img8)), (7, 1)), dtype=np.float32)
+
+
+def bright_sharp_step(lum_h: np.ndarray, rows: np.ndarray, far_px: int) -> np.ndarray:
+    """Per column in [0, 1]: a sharp step from clearly brighter pixels above ``rows`` to darker ones
+    below (a ridge under a white cloud, which the learnt sky model, taught mostly on blue sky,
+    does not recognise as sky)."""
+    h, w = lum_h.shape
+    cols = np.arange(w)
+    r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
+    above = np.mean([lum_h[np.clip(r - k, 0, h - 1), cols] for k in range(3, 9)], axis=0)
+    below = np.mean([lum_h[np.clip(r + k, 0, h - 1), cols] for k in range(3, 9)], axis=0)
+    bright = np.clip((above - below - 0.12) / 0.1, 0.0, 1.0)
+    sharp = np.clip((0.25 - np.nan_to_num(slope_ratio(lum_h, rows, far_px), nan=1.0)) / 0.1, 0.0, 1.0)
+    return np.asarray(bright * sharp)
+
+
+def slope_ratio(lum_h: np.ndarray, rows: np.ndarray, far_px: int) -> np.ndarray:
+    """Per column: the intensity's mean fall per row over the rows 3 to ``far_px`` above ``rows``,
+    over its fall per row across the line (rows -1 to +1).  About 0.1 or less at a silhouette (the
+    sky above it is flat beside the step, even under a shaded cloud); 0.4 and more at an edge that
+    fades over ten rows or more.  NaN where there is no fall across the line."""
+    h, w = lum_h.shape
+    cols = np.arange(w)
+    r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
+
+    def at(k: int) -> np.ndarray:
+        return lum_h[np.clip(r + k, 0, h - 1), cols].astype(np.float64)
+
+    edge = (at(-1) - at(1)) / 2.0
+    above = (at(-far_px) - at(-3)) / (far_px - 3)
+    return np.asarray(np.where(edge > 1e-4, above / np.where(edge > 1e-4, edge, 1.0), np.nan))
+
+
+def sharpness_confidence(lum_h: np.ndarray, rows: np.ndarray, far_px: int, min_edge: float,
+                         max_slope_ratio: float) -> np.ndarray:
+    """Per column in [0, 1]: how sharp the intensity step at ``rows`` is.
+
+    A ridge against the sky is a step a pixel or two wide; the lower edge of a cloud resting on a
+    ridge (the ridge hidden behind it) fades over a degree or more: the intensity still falls in the
+    rows above the line nearly as fast as across it (:func:`slope_ratio`).  Confidence is 1 for a
+    ratio below ``max_slope_ratio - 0.15`` and 0 above ``max_slope_ratio``.  A weak step (below
+    ``2 min_edge``) is not judged (its column stands or falls on its edge strength).
+    """
+    h, w = lum_h.shape
+    cols = np.arange(w)
+    r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
+    above_far = lum_h[np.clip(r - far_px, 0, h - 1), cols]
+    judged = above_far - lum_h[np.clip(r + 2, 0, h - 1), cols] >= 2 * min_edge
+    ratio = np.where(judged, np.nan_to_num(slope_ratio(lum_h, rows, far_px), nan=0.0), 0.0)
+    # a cloud's base runs along the azimuths: the ratio is averaged over neighbouring columns, and a
+    # column near a diffuse stretch is not trusted either
+    ratio = _running(ratio, SHARPNESS_AVERAGE_COLUMNS, np.mean)
+    c = np.clip((max_slope_ratio - ratio) / 0.15, 0.0, 1.0)
+    return _running(c, SHARPNESS_SPREAD_COLUMNS, np.min)
+
+
+#: Columns over which the sharpness share is averaged, and over which a diffuse edge spreads distrust.
+SHARPNESS_AVERAGE_COLUMNS = 9
+SHARPNESS_SPREAD_COLUMNS = 1
+
+
+def _running(x: np.ndarray, n: int, reduce) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """``reduce`` (np.mean or np.min) over a window of ``n`` columns centred on each (ends reflected)."""
+    half = n // 2
+    if x.size <= half:
+        return x
+    p = np.pad(x, half, mode="reflect")
+    return np.asarray(reduce(np.lib.stride_tricks.sliding_window_view(p, n), axis=-1))
+
+
+#: A line within this many rows of the padding (no photo reached there) is the padding's edge.
+VOID_MARGIN_PX = 4
+
+
+def fill_void(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The image with its padding (pixels exactly black in every channel from the top or bottom edge
+    of a column, where no photo reached)
+    replaced by the nearest covered pixel above it in the column (below it at the top), and the
+    padding's mask.  Without it the padding's border is the strongest edge of a bright scene."""
+    black = np.all(image == 0, axis=-1)
+    # only black reaching the image's top or bottom edge: black shadows inside a photo are scene
+    void = np.logical_and.accumulate(black, axis=0) | np.logical_and.accumulate(black[::-1], axis=0)[::-1]
+    if not void.any():
+        return image, void
+    h = image.shape[0]
+    idx = np.where(~void, np.arange(h)[:, None], -1)
+    down = np.maximum.accumulate(idx, axis=0)  # the last covered row at or above each pixel
+    up_idx = np.where(~void, np.arange(h)[:, None], h)
+    up = np.minimum.accumulate(up_idx[::-1], axis=0)[::-1]  # the first covered row at or below
+    src = np.where(down >= 0, down, np.where(up < h, up, np.arange(h)[:, None]))
+    cols = np.broadcast_to(np.arange(image.shape[1])[None, :], src.shape)
+    return np.ascontiguousarray(image[src, cols]), void
+
+
+def near_rows(mask: np.ndarray, rows: np.ndarray, margin_px: int) -> np.ndarray:
+    """Per column: whether ``mask`` (HxW) is set within ``margin_px`` rows of ``rows`` (NaN: False)."""
+    h, w = mask.shape
+    if not mask.any():
+        return np.zeros(w, dtype=bool)
+    cols = np.arange(w)
+    r = np.round(np.nan_to_num(rows, nan=-10 * h)).astype(np.int64)
+    out = np.zeros(w, dtype=bool)
+    for k in range(-margin_px, margin_px + 1):
+        rk = r + k
+        inside = (rk >= 0) & (rk < h)
+        out |= inside & mask[np.clip(rk, 0, h - 1), cols]
+    return out
+
+
+
+def colour_edge(img8: np.ndarray, drop: np.ndarray, chroma_weight: float, smooth_sigma_px: float) -> np.ndarray:
+    """The edge a column's confidence asks for: the intensity ``drop``, or the drop of blue minus red
+    (times ``chroma_weight``, smoothed as the intensity was) where that is larger: white snow under a
+    pale sky is brighter than the sky, yet less blue.  (The path itself follows the intensity drop:
+    the top of a white cloud on blue sky is such a colour edge too.)"""
+    if chroma_weight <= 0:
+        return drop
+    chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
+    chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px)
+    return np.asarray(np.maximum(drop, np.float32(chroma_weight) * _downward_drop(chroma)))
+
+
+def running_max(x: np.ndarray, n: int) -> np.ndarray:
+    """The largest value over a window of ``n`` columns centred on each (ends reflected)."""
+    return _running(np.asarray(x, dtype=np.float64), n, np.max)
