@@ -40,12 +40,10 @@ from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
 from appliance.vision.skyline_edges import (
     VOID_MARGIN_PX,
-    bright_sharp_step,
     colour_edge,
     fill_void,
     horizontal_luma,
     near_rows,
-    running_max,
     sharpness_confidence,
 )
 from appliance.vision.skyline_pixels import (
@@ -289,10 +287,6 @@ def _dp_rows(
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
     cap = np.minimum(np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0), sharp)
     conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
-    # a ridge under a white cloud: vouched for by its sharp bright-over-dark step, after the second
-    # path (the vouched columns are not its anchors)
-    vouched = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t,
-                                     vouch=bright_sharp_step(lum_h, path, cfg.edge_far_px)), cap)
     bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t, edge)
     if bridged is not None:
         path2, conf2 = bridged
@@ -300,15 +294,9 @@ def _dp_rows(
         conf2 = np.minimum(conf2, sharpness_confidence(lum_h, rows2, cfg.edge_far_px, cfg.min_edge,
                                                        cfg.max_slope_ratio))
         take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
-        rows_first = rows
         rows = np.where(take, rows2, rows)
         conf = np.where(take, conf2, conf)
-    else:
-        rows_first = rows
-    # (with its neighbours: a column at the side of a post or a person is not vouched for alone)
-    vouched = -np.asarray(running_max(-vouched, 5))
-    rescue = (conf < cfg.min_confidence) & (vouched >= cfg.min_confidence)
-    return np.where(rescue, rows_first, rows), np.where(rescue, vouched, conf)
+    return rows, conf
 
 
 def _bridge(
@@ -383,7 +371,6 @@ def _confidence(
     cfg: DetectionConfig,
     prior_t: np.ndarray,
     haze_below: bool = False,
-    vouch: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
 
@@ -412,8 +399,6 @@ def _confidence(
     smooth_above = np.clip(prior_t[cols[None, :], far], -1, 1).mean(axis=0)
     strong = np.clip((edge - 2 * cfg.min_edge) / (4 * cfg.min_edge), 0.0, 1.0) * (ground_below > 0.6)
     strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
-    if vouch is not None:
-        strong = np.maximum(strong, vouch * (ground_below > 0.6))
     c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     if haze_below:

@@ -20,20 +20,6 @@ def horizontal_luma(img8: np.ndarray) -> np.ndarray:
     return np.asarray(cv2.blur(_luma(_to_float(img8)), (7, 1)), dtype=np.float32)
 
 
-def bright_sharp_step(lum_h: np.ndarray, rows: np.ndarray, far_px: int) -> np.ndarray:
-    """Per column in [0, 1]: a sharp step from clearly brighter pixels above ``rows`` to darker ones
-    below (a ridge under a white cloud, which the learnt sky model, taught mostly on blue sky,
-    does not recognise as sky)."""
-    h, w = lum_h.shape
-    cols = np.arange(w)
-    r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
-    above = np.mean([lum_h[np.clip(r - k, 0, h - 1), cols] for k in range(3, 9)], axis=0)
-    below = np.mean([lum_h[np.clip(r + k, 0, h - 1), cols] for k in range(3, 9)], axis=0)
-    bright = np.clip((above - below - 0.12) / 0.1, 0.0, 1.0)
-    sharp = np.clip((0.25 - np.nan_to_num(slope_ratio(lum_h, rows, far_px), nan=1.0)) / 0.1, 0.0, 1.0)
-    return np.asarray(bright * sharp)
-
-
 def slope_ratio(lum_h: np.ndarray, rows: np.ndarray, far_px: int) -> np.ndarray:
     """Per column: the intensity's mean fall per row over the rows 3 to ``far_px`` above ``rows``,
     over its fall per row across the line (rows -1 to +1).  About 0.1 or less at a silhouette (the
@@ -138,8 +124,3 @@ def colour_edge(img8: np.ndarray, drop: np.ndarray, chroma_weight: float, smooth
     chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
     chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px)
     return np.asarray(np.maximum(drop, np.float32(chroma_weight) * _downward_drop(chroma)))
-
-
-def running_max(x: np.ndarray, n: int) -> np.ndarray:
-    """The largest value over a window of ``n`` columns centred on each (ends reflected)."""
-    return _running(np.asarray(x, dtype=np.float64), n, np.max)
