@@ -166,7 +166,8 @@ def test_on_a_full_disk_capture_and_the_daemon_leave_no_file_and_say_so(tmp_path
 
 def test_a_disk_that_fills_during_the_session_leaves_a_sealed_log_and_one_stderr_line(tmp_path, small_disk):
     (tmp_path / "viper.toml").write_text(NO_DEVICES)
-    with open(small_disk / "filler", "r+b") as f:  # room for the reserve and two pages of log (the metadata records take most of one)
+    # room for the reserve and two pages of log (the metadata records take most of one)
+    with open(small_disk / "filler", "r+b") as f:
         f.truncate(os.fstat(f.fileno()).st_size - 65536 - 8192)
     r = viper(["capture", "--config", "viper.toml", "--log-dir", str(small_disk / "logs")], tmp_path)
     (log,) = (small_disk / "logs").glob("viper-*.mcap")
