@@ -15,6 +15,7 @@ from appliance.locating.position import altitude_m, fix_status, locate, truth_in
 from appliance.logbook.messages import LocationFix
 from appliance.skyline import Skyline
 from appliance.terrain.horizon import render_skyline
+from tests.conftest import data_file
 
 
 def test_white_residuals_are_all_independent_and_smooth_ones_are_not():
@@ -135,3 +136,34 @@ def test_the_fix_carries_the_covariance_and_the_altitude(dem, window_db):
     rec = pos.to_json(window_db, truth=(lat, lon))
     assert np.array(rec["covariance_m2"]) == pytest.approx(pos.result.covariance_m2, abs=1e-3)
     assert rec["status"] == "ok" and rec["truth"]["error_m"] < rec["radius95_m"] + 5.0
+
+
+def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_place(tmp_path):
+    """A camera in a forest clearing sees treetops over much of its skyline; fitted as terrain, the
+    skyline matches a place 280 m away with the compass's error at its bound.  Searched again with half of
+    the skyline allowed to stand above the map, the best place moves: the answer is ambiguous, never ok."""
+    from pathlib import Path
+
+    from appliance.estimator import estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m
+    from appliance.terrain.database import build_database, load_database
+    from appliance.terrain.dem import load_dem
+
+    tile = load_dem(data_file("dem_srtm_hgt/N44W072.hgt"))
+    path = tmp_path / "forest.viperdb"
+    build_database(tile, path, search_bounds=(-71.35, 44.20, -71.20, 44.35), progress=None)
+    db = load_database(path, tile)
+    rows = np.loadtxt(Path(__file__).parent / "data" / "forest_clearing_skyline.csv", delimiter=",", comments="#",
+                      skiprows=4)
+    az = np.arange(360.0)
+    el = np.full(360, np.nan)
+    el[np.round(rows[:, 0]).astype(int) % 360] = rows[:, 1]
+    res = estimate(skyline_grid(db), az, el)
+    truth = (44.21750349, -71.27563203)
+    pos = place(db, res)
+    cells = truth_error_m(db, pos, truth) / math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert res.ambiguous or cells <= 2.0
+    assert res.ambiguous and any("what the map lacks decides" in n for n in res.notes)
+    # the same skyline with a forest's share of occluders as the prior: the place the trees allow
+    hidden = estimate(skyline_grid(db), az, el, occlusion_weight=0.5)
+    assert math.hypot(hidden.row - res.row, hidden.col - res.col) > 2.0

@@ -70,6 +70,10 @@ OCCLUSION_AGAIN_RATIO = 2.0
 #: A search whose heading correction reached the compass's tolerance is made again with a tolerance
 #: this much (deg) wider.
 HEADING_WIDEN_DEG = 3.0
+#: A best fit left with an RMS residual above this share of the search's lower sigma is searched again
+#: with the occluders' share at its most (MAX_OCCLUDED_SHARE): a skyline raised by trees the map lacks
+#: can be fitted, poorly, as terrain somewhere else.
+OCCLUSION_CHECK_RATIO = 1.0
 
 
 @dataclass(frozen=True)
@@ -204,7 +208,26 @@ def estimate(
     if again and res.heading_at_limit and heading_tolerance_deg is not None:
         res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
             heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
+    if (again and not res.ambiguous and search.occlusion_weight < MAX_OCCLUDED_SHARE
+            and res.rms_residual_deg > OCCLUSION_CHECK_RATIO * float(sigma_deg[0])):
+        res = _occluders_checked(grid, azimuth_deg, elevation_deg, res,
+                                 replace(search, occlusion_weight=MAX_OCCLUDED_SHARE))
     return replace(res, elapsed_s=time.perf_counter() - t0)
+
+
+def _occluders_checked(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
+                       search: _Search) -> EstimateResult:
+    """``res``, whose best fit stays above the noise the search assumed, checked against the search
+    that leaves as much of the skyline to occluders as ``search`` allows: the same place
+    (SAME_ANSWER_CELLS) keeps ``res``; another place means what the map lacks (a forest's edge, a
+    building) decides where the skyline was seen, and ``res`` is given, ambiguous."""
+    hidden = _estimate_once(grid, azimuth_deg, elevation_deg, res.sigma_deg_searched, search)
+    moved = math.hypot(hidden.row - res.row, hidden.col - res.col)
+    if moved <= SAME_ANSWER_CELLS:
+        return res
+    note = (f"ambiguous: with {100 * search.occlusion_weight:.0f} % of the skyline allowed to stand above the map "
+            f"(trees, buildings) the best place moves {moved:.0f} cells; what the map lacks decides where it is")
+    return replace(res, ambiguous=True, notes=[*res.notes, note])
 
 
 def _widened(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
