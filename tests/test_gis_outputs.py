@@ -8,6 +8,9 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from html.parser import HTMLParser
 from pathlib import Path
@@ -22,6 +25,7 @@ from appliance.cli.main import main
 from appliance.outputs.files import MAP_LAYER_SUFFIXES
 from appliance.outputs.grid_refs import mgrs_ref, utm_ref, utm_zone
 from appliance.outputs.status import TRUTH_OUTSIDE, position_facts, status_banner
+from tests.conftest import REPO
 
 HEX = "0123456789abcdef"
 
@@ -169,6 +173,25 @@ def captured(tmp_path_factory, window_db):
 def test_capture_writes_the_map_layers_beside_its_log(captured, window_db, capsys):
     code, logs = captured
     assert code == 0
+    (log,) = logs.glob("*.mcap")
+    names = sorted(p.name for p in logs.iterdir() if not p.name.startswith("."))
+    assert names == sorted([log.name, *(log.stem + e for e in MAP_LAYER_SUFFIXES)])
+    check_layers(logs, log.stem, window_db, with_truth=True)
+
+
+def test_the_session_daemon_writes_the_map_layers_beside_each_log(tmp_path, window_db):
+    """The unattended path: `viper daemon session` (its own process, as the service runs it) leaves
+    the same layers beside every log it writes as `viper capture` does."""
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text('[platform]\nkind = "sim"\n'
+                   f'[session]\ndatabase = "{window_db.path}"\ntruth_duration_s = 10.0\nsettle_s = 0.2\n'
+                   "interval_s = 0.05\nmax_sessions = 1\n"
+                   "[devices.camera]\nwidth = 320\nheight = 240\n[sim]\ntime_rate = 50.0\n")
+    logs = tmp_path / "logs"
+    env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC")}
+    out = subprocess.run([sys.executable, "-m", "appliance.cli.main", "daemon", "session", "--config", str(cfg),
+                          "--log-dir", str(logs)], env=env, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
     (log,) = logs.glob("*.mcap")
     names = sorted(p.name for p in logs.iterdir() if not p.name.startswith("."))
     assert names == sorted([log.name, *(log.stem + e for e in MAP_LAYER_SUFFIXES)])

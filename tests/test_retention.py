@@ -20,6 +20,7 @@ from appliance.config import Compression, Config, LogbookConfig, SessionConfig, 
 from appliance.errors import ConfigError
 from appliance.logbook import topics as t
 from appliance.logbook.writer import Logbook
+from appliance.outputs.styles import MAP_LAYER_SUFFIXES
 
 
 def write_log(folder: Path, name: str, mtime_s: float, payload_bytes: int = 8000) -> Path:
@@ -81,6 +82,23 @@ def test_keep_unreplayed_removes_only_the_replayed_logs(tmp_path):
     assert [f.path for f in out.removed] == [logs[0]] and out.holds and logs[2].exists()
 
 
+def test_a_logs_map_layers_count_with_it_and_go_with_it(tmp_path):
+    logs = folder_of_logs(tmp_path, 3)
+    # the layers a session writes beside its log: bytes the cap must count, files retention must not orphan
+    for p in logs:
+        for suffix in MAP_LAYER_SUFFIXES:
+            p.with_name(p.stem + suffix).write_bytes(b"x" * 3000)
+    other = tmp_path / "jacksboro.viperdb"
+    other.write_bytes(b"y" * 50_000)  # not a log's: neither counted nor removed
+    per_log = [p.stat().st_size + 3000 * len(MAP_LAYER_SUFFIXES) for p in logs]
+    assert retention.logs_total_bytes(tmp_path) == sum(per_log)
+    out = retention.enforce(tmp_path, LogbookConfig(reserve_bytes=1024, max_total_bytes=sum(per_log[1:])))
+    assert [f.path for f in out.removed] == [logs[0]] and out.holds
+    assert not any(n.name.startswith(logs[0].stem) for n in tmp_path.iterdir())
+    assert sorted(n.name for n in tmp_path.iterdir()) == sorted(
+        [other.name] + [q.stem + e for q in logs[1:] for e in (*MAP_LAYER_SUFFIXES, ".mcap")])
+
+
 def test_keep_free_bytes_counts_the_disk(tmp_path):
     logs = folder_of_logs(tmp_path, 3)
     free = retention.disk_free_bytes(tmp_path)
@@ -131,7 +149,8 @@ def test_a_session_refused_for_room_is_in_status_and_the_daemon_tries_again(tmp_
     logs = folder_of_logs(tmp_path, 3)  # about 8 kB each, none replayed
     size = max(p.stat().st_size for p in logs)
     logbook = LogbookConfig(log_dir=tmp_path, reserve_bytes=1024, compression=Compression.NONE,
-                            max_total_bytes=2 * size + LogbookConfig(reserve_bytes=1024).least_log_bytes,
+                            # two logs, their replayed markers (counted with them) and the least log
+                            max_total_bytes=2 * size + 64 + LogbookConfig(reserve_bytes=1024).least_log_bytes,
                             keep_unreplayed=True)
     config = Config(logbook=logbook, session=SessionConfig(interval_s=0.05, max_sessions=1))
 

@@ -37,7 +37,7 @@ from appliance.acquisition import retention
 from appliance.acquisition.notify import Notifier
 from appliance.acquisition.session import SessionResult, earlier_faults
 from appliance.config import Config, LogbookConfig
-from appliance.errors import DeviceError, LogError, ProtocolError
+from appliance.errors import DeviceError, LogError, OutputError, ProtocolError
 
 LOG = logging.getLogger(__name__)
 #: the wait before the daemon opens devices that did not answer again (s); it doubles at every
@@ -75,15 +75,37 @@ def run_one_session(
     on_status: Callable[[str], None] = lambda s: None,
     logbook: LogbookConfig | None = None,
 ) -> SessionResult:
-    """One session under the session lock; with ``logbook``, its retention limits enforced before the
-    session (room for its log, else :class:`appliance.acquisition.retention.NoRoomError`) and after."""
+    """One session under the session lock, and the map's layers of its estimate written beside its log
+    (:func:`write_session_layers`); with ``logbook``, its retention limits enforced before the session
+    (room for its log, else :class:`appliance.acquisition.retention.NoRoomError`) and after."""
     with session_lock(log_dir):
         if logbook is not None:
             retention.make_room(log_dir, logbook)
         result = run_session(log_dir, should_stop, on_status)
+        write_session_layers(result)
         if logbook is not None:
             retention.enforce(log_dir, logbook, open_log=result.log_path)
         return result
+
+
+def write_session_layers(result: SessionResult) -> None:
+    """The map's layers of ``result``'s estimate beside its log, named after it (none without an
+    estimate, its database or a sealed log); a failure to write them is the result's
+    ``layers_error`` and a problem, not the session's end: the log is what matters."""
+    if result.estimate is None or result.database is None or result.log_error is not None:
+        return
+    # the writers (rasterio, matplotlib) load only once a session has estimated: the daemon starts without them
+    from appliance.outputs.files import write_map_layers
+
+    t = result.truth
+    truth = None if t is None or t.lat_deg is None or t.lon_deg is None else (t.lat_deg, t.lon_deg)
+    try:
+        result.map_layers = write_map_layers(result.database, result.estimate, result.log_path.parent,
+                                             result.log_path.stem, truth)
+    except OutputError as exc:
+        result.layers_error = str(exc)
+        result.problems.append(f"map layers: {exc}")
+        LOG.error("%s", exc)
 
 
 class NoRoom(enum.Enum):

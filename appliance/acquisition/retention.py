@@ -1,10 +1,12 @@
 """Retention of the session logs: the oldest complete logs are removed so that the disk keeps
 ``[logbook] keep_free_bytes`` free and the logs take at most ``[logbook] max_total_bytes``.
 
-What counts: the session logs of the log folder (``viper-*.mcap``) and the reserve files beside the
-logs being written (``.viper-*.mcap.reserve``); other files there (a skyline database, the lock) are
-neither counted nor removed.  Sizes are the files' lengths; free space is what ``statvfs`` gives an
-unprivileged writer (``f_bavail``).
+What counts: the session logs of the log folder (``viper-*.mcap``), the reserve files beside the
+logs being written (``.viper-*.mcap.reserve``) and each log's companions: the map's layers a session
+writes beside its log (``LOG-posterior.tif`` and the others of
+:data:`appliance.outputs.styles.MAP_LAYER_SUFFIXES`) and its replayed marker.  Other files there (a
+skyline database, the lock) are neither counted nor removed.  Sizes are the files' lengths; free
+space is what ``statvfs`` gives an unprivileged writer (``f_bavail``).
 
 What may be removed: a *complete* log (it ends with the MCAP magic: sealed, footer written), oldest
 first by its modification time (the simulated platform's clock names logs by a simulated time, so
@@ -12,7 +14,7 @@ names do not order them), never the log a session has open (it has no footer yet
 names it), never a log cut short by a power cut (``viper log recover`` needs it), and with
 ``[logbook] keep_unreplayed = true`` never a log that was not replayed.  A log is *replayed* when a
 marker ``LOG.mcap.replayed`` stands beside it: ``viper replay`` writes it after it has written the
-log's results; an operator who copied the logs elsewhere may ``touch`` it.  Its marker goes with a
+log's results; an operator who copied the logs elsewhere may ``touch`` it.  Its companions go with a
 removed log.
 
 Before a session the daemon makes room for one more log (:func:`make_room`): the limits must still
@@ -33,6 +35,7 @@ from pathlib import Path
 from appliance.atomic import write_text_atomic
 from appliance.config import LogbookConfig
 from appliance.errors import ConfigError, LogError
+from appliance.outputs.styles import MAP_LAYER_SUFFIXES
 
 LOG = logging.getLogger(__name__)
 
@@ -81,6 +84,20 @@ def mark_replayed(log: Path, note: str) -> None:
     write_text_atomic(replayed_marker(log), note.rstrip("\n") + "\n")
 
 
+def companions(log: Path) -> list[Path]:
+    """The files that belong to ``log`` and go with it: its map's layers and its replayed marker
+    (those that may exist; :func:`_size` reads 0 for one that does not)."""
+    return [log.with_name(log.stem + suffix) for suffix in MAP_LAYER_SUFFIXES] + [replayed_marker(log)]
+
+
+def _size(path: Path) -> int:
+    """``path``'s length in bytes, 0 when it is not there."""
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
 def is_complete(path: Path) -> bool:
     """Whether ``path`` starts and ends with the MCAP magic (a sealed log with its footer)."""
     try:
@@ -108,14 +125,10 @@ def session_logs(log_dir: Path) -> list[LogFile]:
 
 
 def logs_total_bytes(log_dir: Path) -> int:
-    """The bytes the session logs and their reserve files take in ``log_dir``."""
-    total = 0
-    for pattern in (LOG_GLOB, RESERVE_GLOB):
-        for p in Path(log_dir).glob(pattern):
-            try:
-                total += p.stat().st_size
-            except OSError:
-                continue
+    """The bytes the session logs, their companions and the reserve files take in ``log_dir``."""
+    total = sum(_size(p) for p in Path(log_dir).glob(RESERVE_GLOB))
+    for log in Path(log_dir).glob(LOG_GLOB):
+        total += _size(log) + sum(_size(c) for c in companions(log))
     return total
 
 
@@ -174,7 +187,11 @@ def enforce(log_dir: Path, cfg: LogbookConfig, room_bytes: int = 0, open_log: Pa
             continue
         except OSError as exc:
             raise LogError(f"{f.path}: retention cannot remove it: {exc.strerror}") from None
-        replayed_marker(f.path).unlink(missing_ok=True)
+        for c in companions(f.path):
+            try:
+                c.unlink(missing_ok=True)
+            except OSError as exc:
+                raise LogError(f"{c}: retention cannot remove it with its log: {exc.strerror}") from None
         out.removed.append(f)
         say(f"retention: removed {f.path} ({f.size_bytes} bytes, the oldest complete log"
             f"{', replayed' if f.replayed else ''}): {out.reason}")

@@ -89,6 +89,10 @@ class SessionResult:
     clock_fault: str | None = None
     # the skyline database ``estimate`` is on (its grid, for the map's layers written beside the log)
     database: SkylineDatabase | None = None
+    # the map's layers written beside the log (:func:`appliance.acquisition.daemon.run_one_session`), and
+    # why they could not be written
+    map_layers: tuple[Path, ...] = ()
+    layers_error: str | None = None
 
 
 def magnetic_declination_deg(lat_deg: float, lon_deg: float, when: dt.datetime) -> float:

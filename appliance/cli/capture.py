@@ -56,7 +56,7 @@ def _capture(args: argparse.Namespace) -> int:
     with live_server(args.live, args.live_linger) as live, StatusLine("capture") as status:
         result = run_one_session(session_runner(config, args.seed, publisher=live), log_dir, on_status=status,
                                  logbook=config.logbook)
-    layers = _write_layers(result)
+    layers = result.map_layers
     if args.json:
         print(dumps({**capture_json(result), "map_layers": [str(p) for p in layers]}))
     else:
@@ -65,6 +65,8 @@ def _capture(args: argparse.Namespace) -> int:
             print(f"map layers: {', '.join(str(p) for p in layers)}")
     if result.log_error is not None:
         LOG.error("%s", result.log_error)
+        return 1
+    if result.layers_error is not None:
         return 1
     if result.frames == 0:
         LOG.error("no frame captured: the session measured nothing")
@@ -84,15 +86,3 @@ def _print_result(result: SessionResult) -> None:
         err = "no GPS truth" if result.error_m is None else f"{result.error_m:.0f} m from the GPS truth"
         area = e.result.region_area_m2 / 1e6
         print(f"estimate: lat {e.lat:.6f} lon {e.lon:.6f} (region {area:.3f} km^2), {err}")
-
-
-def _write_layers(result: SessionResult) -> tuple[Path, ...]:
-    """The map's layers of the session's estimate beside its log (none without the estimate's database)."""
-    if result.estimate is None or result.database is None or result.log_error is not None:
-        return ()
-    # the writers (rasterio, pyproj) load only once a session has estimated
-    from appliance.outputs.files import write_map_layers
-
-    t = result.truth
-    truth = None if t is None or t.lat_deg is None or t.lon_deg is None else (t.lat_deg, t.lon_deg)
-    return write_map_layers(result.database, result.estimate, result.log_path.parent, result.log_path.stem, truth)

@@ -35,7 +35,7 @@ from appliance.errors import OutputError
 from appliance.locating.position import Position
 from appliance.outputs.features import estimate_feature, region_feature, truth_feature
 from appliance.outputs.picture import estimate_figure
-from appliance.outputs.styles import posterior_qml_text, write_qml
+from appliance.outputs.styles import MAP_LAYER_SUFFIXES, posterior_qml_text, write_qml
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
 
@@ -43,10 +43,6 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 
-#: the files of :func:`write_map_layers`, after the estimate's name: the posteriors and their layer style,
-#: the region and its, the points and theirs
-MAP_LAYER_SUFFIXES = ("-posterior.tif", "-posterior.qml", "-region.geojson", "-region.qml", "-points.geojson",
-                      "-points.qml")
 #: the posterior GeoTIFF's style draws this many decades below the best cell
 STYLE_DECADES = 20.0
 #: the GeoTIFF's tiles (pixels a side) and its overviews: halvings down to about this many pixels a side

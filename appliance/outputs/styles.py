@@ -17,6 +17,11 @@ from typing import Any
 
 from appliance.atomic import write_text_atomic
 
+#: the files of :func:`appliance.outputs.files.write_map_layers`, after the estimate's name: the posteriors
+#: and their layer style, the region and its, the points and theirs
+MAP_LAYER_SUFFIXES = ("-posterior.tif", "-posterior.qml", "-region.geojson", "-region.qml", "-points.geojson",
+                      "-points.qml")
+
 
 @dataclass(frozen=True)
 class KindStyle:
