@@ -212,14 +212,22 @@ def jacobian(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float,
     metre), from the parallax of each horizon point of the skyline rendered at (row, col)."""
     step = 360.0 / grid_azimuth_deg.size
     s = np.asarray(elevation_deg, dtype=float)
-    slope = (np.roll(s, -1) - np.roll(s, 1)) / (2.0 * step)
+    # the central difference around the circle
+    ahead = np.empty_like(s)
+    ahead[:-1] = s[1:]
+    ahead[-1] = s[0]
+    behind = np.empty_like(s)
+    behind[1:] = s[:-1]
+    behind[0] = s[-1]
+    slope = (ahead - behind) / (2.0 * step)
     slope = np.where(np.isfinite(slope), slope, 0.0)
     beta = np.radians(grid_azimuth_deg)
     e = np.radians(np.where(np.isfinite(s), s, 0.0))
     ge, gn = _gradient(terrain, row, col, dx_m, dy_m)
-    se, ce2 = np.sin(e) * np.cos(e), np.cos(e) ** 2
+    cos_e = np.cos(e)
+    se, ce2 = np.sin(e) * cos_e, cos_e**2
     ue, un = np.sin(beta), np.cos(beta)
-    te, tn = np.cos(beta), -np.sin(beta)
+    te, tn = un, -ue
     d_east = DEG * (se * ue - ce2 * ge + slope * te) / distance_m
     d_north = DEG * (se * un - ce2 * gn + slope * tn) / distance_m
     d_eye = -DEG * ce2 / distance_m
