@@ -349,7 +349,8 @@ def _with_learned_noise(grid: SkylineGrid, found: _Found, search: _Search) -> _F
         best_fit = polished
         answer = Answer(polished.row, polished.col, polished.heading_deg, polished.rms_deg, polished.covariance_cells)
         meas, temper = learned_measurement(searched, best_fit, floor)
-    lo, up, scored = first_pass_bounds(found.first.scores, meas)
+    # made between the search's parallel steps and the next search's, on this thread alone
+    lo, up, scored = first_pass_bounds(found.first.scores, meas, serial=True)
     plausible = Plausible(found.plausible.nodes, lo * temper + lp, up * temper + lp, scored)
     post = posteriors(meas, lp, plausible, found.rescored, temper)
     return replace(found, meas=meas, plausible=plausible, post=post, answer=answer, best_fit=best_fit,
