@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from appliance.estimator.likelihood import kernel_cap, occluded_mask, variance_weighted
@@ -185,8 +186,7 @@ def screen(
     trial = trial[(trial >= lo) & (trial <= hi)]
     if trial.size == 0:
         trial = np.array([min(max(heading_deg, lo), hi)])
-    pos = (np.arange(n_az)[None, :] + (trial[:, None] - heading_deg) / step) % n_az
-    sky = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
+    sky = turned_interp((trial - heading_deg) / step, n_az, az, filled, 360.0)
     r = np.where(valid[None, :], measured[None, :] - sky, 0.0)
     d_all = d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0)
     u = mdl.weights(valid, d_all, sigma_deg)
@@ -204,6 +204,106 @@ def screen(
     cost = mdl.cost(r, u) + prior * h * h + log_var
     k = int(np.argmin(cost))
     return float(cost[k]), float(trial[k])
+
+
+def _periodic_knots(xp: np.ndarray, fp: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The knots as ``np.interp(..., period=period)`` makes them: wrapped into the period, sorted,
+    and extended by one period each way."""
+    xp = np.asarray(xp, dtype=np.float64) % period
+    order = np.argsort(xp)
+    xp, fp = xp[order], np.asarray(fp, dtype=np.float64)[order]
+    return np.concatenate((xp[-1:] - period, xp, xp[0:1] + period)), np.concatenate((fp[-1:], fp, fp[0:1]))
+
+
+def periodic_interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
+    """``np.interp(x, xp, fp, period=period)`` for any shape of ``x``: the same numbers, compiled
+    (:func:`_interp_points`), without the temporaries of ``x``'s size."""
+    xk, fk = _periodic_knots(xp, fp, period)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    out = np.empty_like(x)
+    _interp_points(x.ravel(), xk, fk, float(period), out.ravel())
+    return out
+
+
+def turned_interp(turn: np.ndarray, n: int, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
+    """``np.interp(((np.arange(n)[None, :] + turn[:, None]) % n) * (period / n), xp, fp,
+    period=period)``: the same numbers (one row per turn, in steps of the ``n`` azimuths), compiled."""
+    xk, fk = _periodic_knots(xp, fp, period)
+    x = np.empty((turn.size, n))
+    _turned_points(np.ascontiguousarray(turn, dtype=np.float64), n, period / n, x)
+    out = np.empty_like(x)
+    _interp_points(x.ravel(), xk, fk, float(period), out.ravel())
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _wrapped(x: float, period: float) -> float:
+    """``x % period`` (Python's float remainder, as numpy's) for a positive period, without fmod one
+    period either side: fmod is exact, so there the remainder is x itself, x + period rounded (x in
+    (-period, 0)), or x - period (exact for x in [period, 2 period))."""
+    if 0.0 < x < period:
+        return x
+    if -period < x < 0.0:
+        return x + period
+    if period <= x < 2.0 * period:
+        return x - period
+    return x % period
+
+
+@numba.njit(cache=True, nogil=True)
+def _turned_points(turn: np.ndarray, n: int, step: float, out: np.ndarray) -> None:
+    """((a + turn[k]) % n) * step for every azimuth index a and turn k, as numpy rounds it."""
+    nf = float(n)
+    for k in range(turn.size):
+        for a in range(n):
+            out[k, a] = _wrapped(float(a) + turn[k], nf) * step
+
+
+@numba.njit(cache=True, nogil=True)
+def _interp_points(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, period: float, out: np.ndarray) -> None:
+    """numpy's periodic interpolation of each ``x`` on ascending knots ``xp`` holding ``fp`` (a
+    positive period), in its operations: ``x % period``, its slopes, its ends, the knot itself, and
+    its NaN rules."""
+    n = xp.size
+    slopes = np.empty(n - 1)
+    for i in range(n - 1):
+        slopes[i] = (fp[i + 1] - fp[i]) / (xp[i + 1] - xp[i])
+    j = 0
+    for i in range(x.size):
+        v = _wrapped(x[i], period)
+        if math.isnan(v):
+            out[i] = v
+            continue
+        if v < xp[0]:
+            out[i] = fp[0]
+            continue
+        if v > xp[n - 1]:
+            out[i] = fp[n - 1]
+            continue
+        # the last knot at or below v: the last point's or its next (the points mostly ascend), else searched
+        if xp[j] <= v and (j == n - 1 or v < xp[j + 1]):
+            pass
+        elif j + 1 < n and xp[j + 1] <= v and (j + 1 == n - 1 or v < xp[j + 2]):
+            j += 1
+        else:
+            lo, hi = 0, n - 1
+            while hi - lo > 1:
+                mid = (lo + hi) >> 1
+                if xp[mid] <= v:
+                    lo = mid
+                else:
+                    hi = mid
+            j = hi if xp[hi] <= v else lo
+        if j == n - 1 or xp[j] == v:
+            out[i] = fp[j]
+            continue
+        slope = slopes[j]
+        y = slope * (v - xp[j]) + fp[j]
+        if math.isnan(y):
+            y = slope * (v - xp[j + 1]) + fp[j + 1]
+            if math.isnan(y) and fp[j] == fp[j + 1]:
+                y = fp[j]
+        out[i] = y
 
 
 def jacobian(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
