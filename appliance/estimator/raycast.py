@@ -19,6 +19,7 @@ distance.  In a valley the walls close most rays within a few kilometres.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -245,12 +246,22 @@ class Terrain:
         return np.ascontiguousarray(self.heights_m, dtype=np.float64)
 
     def distances(self, cell_m: float) -> np.ndarray:
-        return ray_distances(cell_m, self.reach_m)
+        """The fits' schedule (:func:`ray_distances`), read-only."""
+        return _schedule(float(cell_m), float(self.reach_m), RELATIVE_STEP, COARSE_STEP_CELLS)
 
     def look_distances(self, cell_m: float) -> np.ndarray:
         """A coarser schedule for looks (two per cent of the distance, a cell at most): a quarter
-        of the samples on a large map, angular errors of a few hundredths of a degree."""
-        return ray_distances(cell_m, self.reach_m, relative=LOOK_RELATIVE_STEP, coarse_cells=LOOK_COARSE_CELLS)
+        of the samples on a large map, angular errors of a few hundredths of a degree.  Read-only."""
+        return _schedule(float(cell_m), float(self.reach_m), LOOK_RELATIVE_STEP, LOOK_COARSE_CELLS)
+
+
+@functools.lru_cache(maxsize=64)
+def _schedule(cell_m: float, reach_m: float, relative: float, coarse_cells: float) -> np.ndarray:
+    """:func:`ray_distances` made once per cell size, reach and steps (every look and fit of an
+    estimate marches on the same one), read-only."""
+    d = ray_distances(cell_m, reach_m, relative=relative, coarse_cells=coarse_cells)
+    d.flags.writeable = False
+    return d
 
 
 def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
