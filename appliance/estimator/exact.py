@@ -25,6 +25,8 @@ from appliance.estimator.likelihood import kernel_cap, occluded_mask, variance_w
 from appliance.estimator.raycast import Terrain, bilinear, render
 
 DEG = 180.0 / math.pi
+#: np.radians's factor
+RAD = math.pi / 180.0
 MAX_ITERATIONS = 10
 #: Trial steps per iteration before giving up, and the relative reduction of the residual sum
 #: below which the fit has converged.
@@ -310,28 +312,40 @@ def jacobian(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float,
              elevation_deg: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
     """d(elevation)/d(row, col, heading, eye height) per azimuth (deg per cell, deg per deg, deg per
     metre), from the parallax of each horizon point of the skyline rendered at (row, col)."""
-    step = 360.0 / grid_azimuth_deg.size
-    s = np.asarray(elevation_deg, dtype=float)
-    # the central difference around the circle
-    ahead = np.empty_like(s)
-    ahead[:-1] = s[1:]
-    ahead[-1] = s[0]
-    behind = np.empty_like(s)
-    behind[1:] = s[:-1]
-    behind[0] = s[-1]
-    slope = (ahead - behind) / (2.0 * step)
-    slope = np.where(np.isfinite(slope), slope, 0.0)
-    beta = np.radians(grid_azimuth_deg)
-    e = np.radians(np.where(np.isfinite(s), s, 0.0))
     ge, gn = _gradient(terrain, row, col, dx_m, dy_m)
-    cos_e = np.cos(e)
-    se, ce2 = np.sin(e) * cos_e, cos_e**2
-    ue, un = np.sin(beta), np.cos(beta)
-    te, tn = un, -ue
-    d_east = DEG * (se * ue - ce2 * ge + slope * te) / distance_m
-    d_north = DEG * (se * un - ce2 * gn + slope * tn) / distance_m
-    d_eye = -DEG * ce2 / distance_m
-    return np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1)
+    az = np.asarray(grid_azimuth_deg, dtype=np.float64)
+    out = np.empty((az.size, 4))
+    _parallax_rows(az, np.asarray(elevation_deg, dtype=np.float64), np.asarray(distance_m, dtype=np.float64),
+                   float(ge), float(gn), float(dx_m), float(dy_m), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _parallax_rows(az: np.ndarray, s: np.ndarray, dist: np.ndarray, ge: float, gn: float, dx_m: float, dy_m: float,
+                   out: np.ndarray) -> None:
+    """:func:`jacobian`'s rows, azimuth by azimuth: for range d, elevation e (0 where missing),
+    ground gradient g and skyline slope s' (the central difference around the circle, 0 where it
+    is not finite), the move's [sin e cos e (u . delta) - cos^2 e (g . delta) + s' (t . delta)] / d."""
+    n = az.size
+    step = 360.0 / n
+    for i in range(n):
+        ahead = s[i + 1] if i + 1 < n else s[0]
+        behind = s[i - 1] if i > 0 else s[n - 1]
+        slope = (ahead - behind) / (2.0 * step)
+        if not math.isfinite(slope):
+            slope = 0.0
+        beta = az[i] * RAD
+        e = (s[i] if math.isfinite(s[i]) else 0.0) * RAD
+        cos_e = math.cos(e)
+        se = math.sin(e) * cos_e
+        ce2 = cos_e * cos_e
+        ue = math.sin(beta)
+        un = math.cos(beta)
+        d = dist[i]
+        out[i, 0] = -dy_m * (DEG * (se * un - ce2 * gn + slope * -ue) / d)
+        out[i, 1] = dx_m * (DEG * (se * ue - ce2 * ge + slope * un) / d)
+        out[i, 2] = slope
+        out[i, 3] = -DEG * ce2 / d
 
 
 def refine(
