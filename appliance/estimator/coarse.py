@@ -136,18 +136,18 @@ def _compass_first_pass(grid: SkylineGrid, meas: Measurement, heading_tolerance_
 
 
 
-def first_pass_bounds(first: CoarseScores, meas: Measurement,
-                       lp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+def first_pass_bounds(first: CoarseScores, meas: Measurement, lp: np.ndarray | None = None,
+                      serial: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
     """Each node's first-pass lower and upper log-likelihood (nats, normaliser included; plus the
     log prior ``lp`` when given) and the count of nodes scored.  Both likelihood bounds fall as the
     residual grows, so each node's best first-pass shift decides for the node (an occluded
-    measurement counting the cap there)."""
+    measurement counting the cap there).  ``serial``: on the caller's thread alone (the same numbers)."""
     n_nodes = first.ssd.shape[0]
     prior = np.zeros(1) if lp is None else lp
     if lp is None:
         prior = np.broadcast_to(prior, (n_nodes,))
     return best_column_bounds(first.ssd, first.occluded, first.penalty, prior, meas.cap_deg2, meas.n_eff,
-                              meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight)
+                              meas.sigma_lo_deg, meas.sigma_hi_deg, meas.occlusion_weight, serial)
 
 
 

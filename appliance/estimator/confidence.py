@@ -63,19 +63,24 @@ def independent_azimuths(residual_deg: np.ndarray) -> float:
     var = float(np.sum(x * x)) / n
     if not var > 0.0:
         return float(n)
-    rho = []
-    for lag in range(1, r.size // 4):
-        pairs = int(np.sum(valid & np.roll(valid, -lag)))
-        if pairs < 8:
-            break
-        rho.append(float(np.sum(x * np.roll(x, -lag))) / pairs / var)
+    # the lags in pairs, each made only when the sum has come to it (the sequence ends at the first
+    # pair not positive, at the first lag with fewer than 8 pairs of azimuths, or at a quarter turn)
     total = 0.0
-    for k in range(0, len(rho) - 1, 2):
-        pair = rho[k] + rho[k + 1]
-        if pair <= 0.0:
+    for lag in range(1, r.size // 4 - 1, 2):
+        pair = _autocorrelation(x, valid, lag, var) + _autocorrelation(x, valid, lag + 1, var)
+        if not pair > 0.0:
             break
         total += pair
     return float(min(n, max(MIN_INDEPENDENT, n / (1.0 + 2.0 * total))))
+
+
+def _autocorrelation(x: np.ndarray, valid: np.ndarray, lag: int, var: float) -> float:
+    """The autocorrelation of ``x`` (zero where not ``valid``) at ``lag`` around the circle, over the
+    pairs of valid azimuths; NaN with fewer than 8 such pairs."""
+    pairs = int(np.count_nonzero(valid[lag:] & valid[:-lag])) + int(np.count_nonzero(valid[:lag] & valid[-lag:]))
+    if pairs < 8:
+        return math.nan
+    return float(np.sum(x * np.concatenate((x[lag:], x[:lag])))) / pairs / var
 
 
 def _chi2_quantile(dof: float, z: float) -> float:

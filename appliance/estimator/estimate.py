@@ -360,18 +360,20 @@ def _with_learned_noise(grid: SkylineGrid, found: _Found, search: _Search) -> _F
     polished at the sigma learned, and the posteriors made again at that sigma, tempered."""
     floor, searched, lp, position_prior = search.floor_deg, found.meas, found.lp, search.position_prior
     assert found.best_fit is not None
-    meas, _ = learned_measurement(searched, found.best_fit, floor)
+    meas, temper = learned_measurement(searched, found.best_fit, floor)
     # the fits ranked again at the noise the skyline has: under the search's wide interval a
     # place that fits to the noise and one that fits ten times worse can look alike
     best_fit = most_likely_fit(found.fits, grid, lp, meas, position_prior)
-    meas, _ = learned_measurement(searched, best_fit, floor)
+    if best_fit is not found.best_fit:
+        meas, temper = learned_measurement(searched, best_fit, floor)
     polished = polished_fit(grid, meas, best_fit, search.heading_tolerance_deg, search.height_m, position_prior)
     answer = found.answer
     if polished is not None:
         best_fit = polished
         answer = Answer(polished.row, polished.col, polished.heading_deg, polished.rms_deg, polished.covariance_cells)
-    meas, temper = learned_measurement(searched, best_fit, floor)
-    lo, up, scored = first_pass_bounds(found.first.scores, meas)
+        meas, temper = learned_measurement(searched, best_fit, floor)
+    # made between the search's parallel steps and the next search's, on this thread alone
+    lo, up, scored = first_pass_bounds(found.first.scores, meas, serial=True)
     plausible = Plausible(found.plausible.nodes, lo * temper + lp, up * temper + lp, scored)
     post = posteriors(meas, lp, plausible, found.rescored, temper)
     return replace(found, meas=meas, plausible=plausible, post=post, answer=answer, best_fit=best_fit,

@@ -18,12 +18,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from appliance.estimator.likelihood import kernel_cap, occluded_mask, variance_weighted
 from appliance.estimator.raycast import Terrain, bilinear, render
 
 DEG = 180.0 / math.pi
+#: np.radians's factor
+RAD = math.pi / 180.0
 MAX_ITERATIONS = 10
 #: Trial steps per iteration before giving up, and the relative reduction of the residual sum
 #: below which the fit has converged.
@@ -185,8 +188,7 @@ def screen(
     trial = trial[(trial >= lo) & (trial <= hi)]
     if trial.size == 0:
         trial = np.array([min(max(heading_deg, lo), hi)])
-    pos = (np.arange(n_az)[None, :] + (trial[:, None] - heading_deg) / step) % n_az
-    sky = np.interp(pos.ravel() * step, az, filled, period=360.0).reshape(pos.shape)
+    sky = turned_interp((trial - heading_deg) / step, n_az, az, filled, 360.0)
     r = np.where(valid[None, :], measured[None, :] - sky, 0.0)
     d_all = d if ok_s.all() else np.interp(az, az[ok_s], d[ok_s], period=360.0)
     u = mdl.weights(valid, d_all, sigma_deg)
@@ -206,24 +208,144 @@ def screen(
     return float(cost[k]), float(trial[k])
 
 
+def _periodic_knots(xp: np.ndarray, fp: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The knots as ``np.interp(..., period=period)`` makes them: wrapped into the period, sorted,
+    and extended by one period each way."""
+    xp = np.asarray(xp, dtype=np.float64) % period
+    order = np.argsort(xp)
+    xp, fp = xp[order], np.asarray(fp, dtype=np.float64)[order]
+    return np.concatenate((xp[-1:] - period, xp, xp[0:1] + period)), np.concatenate((fp[-1:], fp, fp[0:1]))
+
+
+def periodic_interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
+    """``np.interp(x, xp, fp, period=period)`` for any shape of ``x``: the same numbers, compiled
+    (:func:`_interp_points`), without the temporaries of ``x``'s size."""
+    xk, fk = _periodic_knots(xp, fp, period)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    out = np.empty_like(x)
+    _interp_points(x.ravel(), xk, fk, float(period), out.ravel())
+    return out
+
+
+def turned_interp(turn: np.ndarray, n: int, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
+    """``np.interp(((np.arange(n)[None, :] + turn[:, None]) % n) * (period / n), xp, fp,
+    period=period)``: the same numbers (one row per turn, in steps of the ``n`` azimuths), compiled."""
+    xk, fk = _periodic_knots(xp, fp, period)
+    x = np.empty((turn.size, n))
+    _turned_points(np.ascontiguousarray(turn, dtype=np.float64), n, period / n, x)
+    out = np.empty_like(x)
+    _interp_points(x.ravel(), xk, fk, float(period), out.ravel())
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _wrapped(x: float, period: float) -> float:
+    """``x % period`` (Python's float remainder, as numpy's) for a positive period, without fmod one
+    period either side: fmod is exact, so there the remainder is x itself, x + period rounded (x in
+    (-period, 0)), or x - period (exact for x in [period, 2 period))."""
+    if 0.0 < x < period:
+        return x
+    if -period < x < 0.0:
+        return x + period
+    if period <= x < 2.0 * period:
+        return x - period
+    return x % period
+
+
+@numba.njit(cache=True, nogil=True)
+def _turned_points(turn: np.ndarray, n: int, step: float, out: np.ndarray) -> None:
+    """((a + turn[k]) % n) * step for every azimuth index a and turn k, as numpy rounds it."""
+    nf = float(n)
+    for k in range(turn.size):
+        for a in range(n):
+            out[k, a] = _wrapped(float(a) + turn[k], nf) * step
+
+
+@numba.njit(cache=True, nogil=True)
+def _interp_points(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, period: float, out: np.ndarray) -> None:
+    """numpy's periodic interpolation of each ``x`` on ascending knots ``xp`` holding ``fp`` (a
+    positive period), in its operations: ``x % period``, its slopes, its ends, the knot itself, and
+    its NaN rules."""
+    n = xp.size
+    slopes = np.empty(n - 1)
+    for i in range(n - 1):
+        slopes[i] = (fp[i + 1] - fp[i]) / (xp[i + 1] - xp[i])
+    j = 0
+    for i in range(x.size):
+        v = _wrapped(x[i], period)
+        if math.isnan(v):
+            out[i] = v
+            continue
+        if v < xp[0]:
+            out[i] = fp[0]
+            continue
+        if v > xp[n - 1]:
+            out[i] = fp[n - 1]
+            continue
+        # the last knot at or below v: the last point's or its next (the points mostly ascend), else searched
+        if xp[j] <= v and (j == n - 1 or v < xp[j + 1]):
+            pass
+        elif j + 1 < n and xp[j + 1] <= v and (j + 1 == n - 1 or v < xp[j + 2]):
+            j += 1
+        else:
+            lo, hi = 0, n - 1
+            while hi - lo > 1:
+                mid = (lo + hi) >> 1
+                if xp[mid] <= v:
+                    lo = mid
+                else:
+                    hi = mid
+            j = hi if xp[hi] <= v else lo
+        if j == n - 1 or xp[j] == v:
+            out[i] = fp[j]
+            continue
+        slope = slopes[j]
+        y = slope * (v - xp[j]) + fp[j]
+        if math.isnan(y):
+            y = slope * (v - xp[j + 1]) + fp[j + 1]
+            if math.isnan(y) and fp[j] == fp[j + 1]:
+                y = fp[j]
+        out[i] = y
+
+
 def jacobian(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
              elevation_deg: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
     """d(elevation)/d(row, col, heading, eye height) per azimuth (deg per cell, deg per deg, deg per
     metre), from the parallax of each horizon point of the skyline rendered at (row, col)."""
-    step = 360.0 / grid_azimuth_deg.size
-    s = np.asarray(elevation_deg, dtype=float)
-    slope = (np.roll(s, -1) - np.roll(s, 1)) / (2.0 * step)
-    slope = np.where(np.isfinite(slope), slope, 0.0)
-    beta = np.radians(grid_azimuth_deg)
-    e = np.radians(np.where(np.isfinite(s), s, 0.0))
     ge, gn = _gradient(terrain, row, col, dx_m, dy_m)
-    se, ce2 = np.sin(e) * np.cos(e), np.cos(e) ** 2
-    ue, un = np.sin(beta), np.cos(beta)
-    te, tn = np.cos(beta), -np.sin(beta)
-    d_east = DEG * (se * ue - ce2 * ge + slope * te) / distance_m
-    d_north = DEG * (se * un - ce2 * gn + slope * tn) / distance_m
-    d_eye = -DEG * ce2 / distance_m
-    return np.stack([-dy_m * d_north, dx_m * d_east, slope, d_eye], axis=1)
+    az = np.asarray(grid_azimuth_deg, dtype=np.float64)
+    out = np.empty((az.size, 4))
+    _parallax_rows(az, np.asarray(elevation_deg, dtype=np.float64), np.asarray(distance_m, dtype=np.float64),
+                   float(ge), float(gn), float(dx_m), float(dy_m), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _parallax_rows(az: np.ndarray, s: np.ndarray, dist: np.ndarray, ge: float, gn: float, dx_m: float, dy_m: float,
+                   out: np.ndarray) -> None:
+    """:func:`jacobian`'s rows, azimuth by azimuth: for range d, elevation e (0 where missing),
+    ground gradient g and skyline slope s' (the central difference around the circle, 0 where it
+    is not finite), the move's [sin e cos e (u . delta) - cos^2 e (g . delta) + s' (t . delta)] / d."""
+    n = az.size
+    step = 360.0 / n
+    for i in range(n):
+        ahead = s[i + 1] if i + 1 < n else s[0]
+        behind = s[i - 1] if i > 0 else s[n - 1]
+        slope = (ahead - behind) / (2.0 * step)
+        if not math.isfinite(slope):
+            slope = 0.0
+        beta = az[i] * RAD
+        e = (s[i] if math.isfinite(s[i]) else 0.0) * RAD
+        cos_e = math.cos(e)
+        se = math.sin(e) * cos_e
+        ce2 = cos_e * cos_e
+        ue = math.sin(beta)
+        un = math.cos(beta)
+        d = dist[i]
+        out[i, 0] = -dy_m * (DEG * (se * un - ce2 * gn + slope * -ue) / d)
+        out[i, 1] = dx_m * (DEG * (se * ue - ce2 * ge + slope * un) / d)
+        out[i, 2] = slope
+        out[i, 3] = -DEG * ce2 / d
 
 
 def refine(

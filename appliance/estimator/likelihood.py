@@ -317,14 +317,17 @@ def _best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarr
 
 def best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarray, log_prior: np.ndarray,
                        cap_deg2: float, n: float, sigma_lo: float, sigma_hi: float,
-                       weight: float) -> tuple[np.ndarray, np.ndarray, int]:
+                       weight: float, serial: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
     """For each row of residual sums ``ssd`` (deg^2, float32, one column per heading) and occluded
     weights: the column of least ``ssd + cap_deg2 * occluded`` (the first of equal ones; the sum
     alone when the cap is infinite), and that column's lower and upper log-likelihood over sigma in
     [sigma_lo, sigma_hi] deg (:func:`mixture_log_likelihood_bounds`, ``n`` samples, occlusion
     ``weight``), less half the row's log-normaliser ``penalty``, plus its ``log_prior`` (nats).
     Also the count of rows whose chosen sum is finite.  Rounds as the numpy form does: one pass
-    over the rows, no temporaries of their size."""
+    over the rows, no temporaries of their size.  ``serial`` runs the loop on the caller's thread
+    alone (the same operations row by row: the same numbers): between the parallel steps of two
+    searches a parallel loop costs more CPU than it saves, as its idle threads spin-wait (OpenMP's
+    active wait) through the serial work that follows it."""
     if not valid_sigma_interval(sigma_lo, sigma_hi):
         raise ValueError(f"sigma interval [{sigma_lo}, {sigma_hi}] must satisfy 0 < lo <= hi")
     rows = ssd.shape[0]
@@ -333,8 +336,14 @@ def best_column_bounds(ssd: np.ndarray, occluded: np.ndarray, penalty: np.ndarra
     mixture = weight > 0.0
     log_occ = math.log(weight / OCCLUDER_SPAN_DEG) if mixture else 0.0
     log_clear = math.log1p(-weight) if mixture else 0.0
-    scored = _best_column_bounds(ssd, occluded, np.asarray(penalty, dtype=np.float64),
-                                 np.asarray(log_prior, dtype=np.float64), np.float32(cap_deg2),
-                                 math.isfinite(cap_deg2), float(n), float(sigma_lo), float(sigma_hi), log_occ,
-                                 log_clear, mixture, lower, upper)
+    threads = numba.get_num_threads()
+    if serial:
+        numba.set_num_threads(1)
+    try:
+        scored = _best_column_bounds(ssd, occluded, np.asarray(penalty, dtype=np.float64),
+                                     np.asarray(log_prior, dtype=np.float64), np.float32(cap_deg2),
+                                     math.isfinite(cap_deg2), float(n), float(sigma_lo), float(sigma_hi), log_occ,
+                                     log_clear, mixture, lower, upper)
+    finally:
+        numba.set_num_threads(threads)
     return lower, upper, int(scored)

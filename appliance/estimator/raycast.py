@@ -19,6 +19,7 @@ distance.  In a valley the walls close most rays within a few kilometres.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -94,10 +95,11 @@ def _block_exit(row: float, col: float, dr: float, dc: float, bi: int, bj: int, 
 
 @numba.njit(cache=True, inline="always", fastmath=FAST_FINITE)
 def _ray(Z: np.ndarray, row: float, col: float, eye_m: float, dr: float, dc: float, dist_m: np.ndarray,
-         inv2r: float, rise: float, block_max: np.ndarray, block: int) -> tuple[float, float]:
+         inv2r: float, rise: float, block_max: np.ndarray, block: int, shift: int) -> tuple[float, float]:
     """The horizon tangent along one ray from (row, col) moving (``dr``, ``dc``) cells per metre and
     its distance (-inf and NaN where it meets no terrain); ``rise`` is the map's highest point above
-    the eye, ``inv2r`` the curvature's 1 / (2 R_eff)."""
+    the eye, ``inv2r`` the curvature's 1 / (2 R_eff), ``shift`` log2 of ``block`` when that is a power
+    of two (else -1)."""
     n_rows, n_cols = Z.shape
     n_d = dist_m.size
     best = -np.inf
@@ -114,8 +116,13 @@ def _ray(Z: np.ndarray, row: float, col: float, eye_m: float, dr: float, dc: flo
             break
         r0 = min(int(r), n_rows - 2)
         c0 = min(int(c), n_cols - 2)
-        bi = r0 // block
-        bj = c0 // block
+        # r0, c0 >= 0: a power-of-two block is a shift, not an integer division at every sample
+        if shift >= 0:
+            bi = r0 >> shift
+            bj = c0 >> shift
+        else:
+            bi = r0 // block
+            bj = c0 // block
         zb = block_max[bi, bj] - eye_m
         if zb / d - d * inv2r <= best:
             # leave the block: the distance at which the ray crosses its far edges
@@ -167,10 +174,15 @@ def march(
         for j in range(nb_c):
             z_top = max(z_top, block_max[i, j])
     rise = z_top - eye_m
+    shift = -1
+    if block > 0 and block & (block - 1) == 0:
+        shift = 0
+        while (1 << shift) < block:
+            shift += 1
     for j in range(grid_azimuth_rad.size):
         a = grid_azimuth_rad[j]
         best, bd = _ray(Z, row, col, eye_m, -math.cos(a) / dy_m, math.sin(a) / dx_m, dist_m, inv2r, rise, block_max,
-                        block)
+                        block, shift)
         if best == -np.inf:
             tan_out[j] = np.nan
             dist_out[j] = np.nan
@@ -234,12 +246,22 @@ class Terrain:
         return np.ascontiguousarray(self.heights_m, dtype=np.float64)
 
     def distances(self, cell_m: float) -> np.ndarray:
-        return ray_distances(cell_m, self.reach_m)
+        """The fits' schedule (:func:`ray_distances`), read-only."""
+        return _schedule(float(cell_m), float(self.reach_m), RELATIVE_STEP, COARSE_STEP_CELLS)
 
     def look_distances(self, cell_m: float) -> np.ndarray:
         """A coarser schedule for looks (two per cent of the distance, a cell at most): a quarter
-        of the samples on a large map, angular errors of a few hundredths of a degree."""
-        return ray_distances(cell_m, self.reach_m, relative=LOOK_RELATIVE_STEP, coarse_cells=LOOK_COARSE_CELLS)
+        of the samples on a large map, angular errors of a few hundredths of a degree.  Read-only."""
+        return _schedule(float(cell_m), float(self.reach_m), LOOK_RELATIVE_STEP, LOOK_COARSE_CELLS)
+
+
+@functools.lru_cache(maxsize=64)
+def _schedule(cell_m: float, reach_m: float, relative: float, coarse_cells: float) -> np.ndarray:
+    """:func:`ray_distances` made once per cell size, reach and steps (every look and fit of an
+    estimate marches on the same one), read-only."""
+    d = ray_distances(cell_m, reach_m, relative=relative, coarse_cells=coarse_cells)
+    d.flags.writeable = False
+    return d
 
 
 def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
