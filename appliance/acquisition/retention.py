@@ -34,7 +34,7 @@ from pathlib import Path
 
 from appliance.atomic import write_text_atomic
 from appliance.config import LogbookConfig
-from appliance.errors import ConfigError, LogError
+from appliance.errors import ConfigError, LogError, OutputError
 from appliance.outputs.styles import MAP_LAYER_SUFFIXES
 
 LOG = logging.getLogger(__name__)
@@ -82,6 +82,15 @@ def replayed_marker(log: Path) -> Path:
 def mark_replayed(log: Path, note: str) -> None:
     """Write the replayed marker of ``log`` (``note``: where the results went)."""
     write_text_atomic(replayed_marker(log), note.rstrip("\n") + "\n")
+
+
+def mark_replayed_into(log: Path, out: Path) -> None:
+    """After a replay into ``out``: ``log``'s replayed marker (retention's ``keep_unreplayed`` may now
+    remove it), or a warning that it could not be written; the replay's results stand either way."""
+    try:
+        mark_replayed(log, f"replayed into {out.absolute()}")
+    except OutputError as exc:
+        LOG.warning("%s: not marked replayed: %s", log, exc)
 
 
 def companions(log: Path) -> list[Path]:

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -15,10 +14,10 @@ from appliance.acquisition.replay_traverse import (
     stop_times_ns,
 )
 from appliance.acquisition.result_json import dumps, traverse_replay_json
-from appliance.acquisition.retention import mark_replayed
+from appliance.acquisition.retention import mark_replayed_into
 from appliance.config import EstimatorConfig
 from appliance.drivers.ulog_position import LocalPositions, displacements
-from appliance.errors import InputError, OutputError
+from appliance.errors import InputError
 from appliance.locating.position import estimate_status
 from appliance.logsetup import ProgressCallback
 
@@ -26,7 +25,6 @@ if TYPE_CHECKING:
     from appliance.acquisition.traverse import StopResult
     from appliance.terrain.database import SkylineDatabase
 
-LOG = logging.getLogger(__name__)
 
 
 def boot_utc_ns(positions: LocalPositions, offset_s: float | None) -> int:
@@ -77,8 +75,5 @@ def replay_traverse_command(args: argparse.Namespace, db: SkylineDatabase, est: 
         print(dumps(traverse_replay_json(db, replay)))
     else:
         print(f"report: {replay.page}  table: {replay.table}  results log: {replay.results_log}")
-    try:  # retention's keep_unreplayed may now remove the log
-        mark_replayed(Path(path), f"replayed into {Path(args.out).absolute()}")
-    except OutputError as exc:
-        LOG.warning("%s: not marked replayed: %s", path, exc)
+    mark_replayed_into(Path(path), Path(args.out))
     return 0 if any(s.position is not None for s in replay.result.stops) else 1

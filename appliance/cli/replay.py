@@ -16,12 +16,12 @@ from appliance.acquisition.onboard import load_session_database
 from appliance.acquisition.replay import ReplayResult, replay_logs
 from appliance.acquisition.replay_traverse import is_traverse_log
 from appliance.acquisition.result_json import dumps, replay_json
-from appliance.acquisition.retention import mark_replayed
+from appliance.acquisition.retention import mark_replayed_into
 from appliance.atomic import check_output_folder
 from appliance.cli._replay_traverse import replay_traverse_command
 from appliance.config import Config, EstimatorConfig, load_config, override
 from appliance.drivers.ulog_position import read_local_positions
-from appliance.errors import InputError, OutputError
+from appliance.errors import InputError
 from appliance.locating.position import estimate_status
 from appliance.logsetup import ProgressCallback
 from appliance.outputs.files import MAP_LAYER_SUFFIXES
@@ -138,10 +138,7 @@ def run(args: argparse.Namespace) -> int:
     for r in results:  # retention's keep_unreplayed may now remove the logs that were read
         if r.data.problem is not None and not r.data.frames:
             continue
-        try:
-            mark_replayed(r.data.path, f"replayed into {out.absolute()}")
-        except OutputError as exc:
-            LOG.warning("%s: not marked replayed: %s", r.data.path, exc)
+        mark_replayed_into(r.data.path, out)
     if elsewhere:
         raise InputError(f"{len(elsewhere)} of {len(results)} logs were taken outside the database {db.path} "
                          f"(a database of another map?): {', '.join(elsewhere)}")
