@@ -20,7 +20,9 @@ yields nothing, while a cloud sitting on a ridge, textured itself, does not drop
 clear sky shows above it.  Masked azimuth ranges are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
-:mod:`appliance.vision.skyline_pixels`.
+:mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
+then at the rocks below the skyline) is handled by a second path on the sky/snow colour boundary
+(:mod:`appliance.vision.skyline_snow`).
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.

@@ -6,18 +6,25 @@ strong false evidence for the estimator ("nothing above this elevation").  The s
 a step of colour instead (the sky's blue above, neutral white below: blue minus red falls) with the
 brightness rising or level, and nothing as blue as the sky anywhere below it.
 
-Per column, on plain arrays (an image's rows and the detector's line and confidence):
+On plain arrays (an image's rows, the detector's line and confidence); the path itself is run by
+:func:`appliance.vision.skyline_detect._snow_rows`:
 
-- the image is judged snowy when most of the ground below the detector's line is bright and neutral
-  (:func:`snowy_ground_share`); otherwise nothing changes;
-- a candidate is the row with the strongest colour step onto ground not darker than the sky, with
-  no sky-blue pixel below it (:func:`snow_candidates`); it must agree with its neighbours' and is
-  placed where the brightness first departs from the sky's by half its step (a silhouette; a dark
-  rock on the skyline is found at its top);
-- a column whose line has such a step above it lies below the skyline: it takes the candidate, or
-  is left out where the candidate is not trusted (a cloud resting on the snow, no step);
-- with enough trusted candidates, sky and snow colour models are learnt from both sides of them, and
-  a line with snow-coloured pixels just above it is left out (a slope without sky above the line).
+- the image is snowy when at least 30 % of the ground below the detector's line is bright and
+  neutral (:func:`snowy_ground_share`); otherwise nothing changes;
+- per pixel, a sky/snow boundary scores by its colour step onto ground not darker than the sky, with
+  no sky-blue pixel below it, times its brightness rise (:func:`snow_score`); each column's best
+  row is a candidate, trusted where it agrees with its neighbours' and lies above the detector's
+  line (or the line was not found there);
+- with a quarter of the columns trusted (a snowy image whose snow is darker than its sky, as in the
+  Finse photos, has a few candidates on cloud tops only and is left alone), sky and snow models are
+  learnt on both sides of the trusted rows (:func:`snow_evidence`); the path is run again with the
+  boundary's score beside the brightness drop as its edge and those models as its regions, and
+  placed where the brightness first departs from the sky's (:func:`place_rows`: a rise onto snow,
+  a drop onto a rock standing on the skyline);
+- a line is left out where a boundary lies above it, where the pixels just above it have the snow's
+  colour rather than the sky's (the top of a rock a few rows below the skyline) or where it dips
+  well below its neighbours (:func:`snow_checks`).  Where a white cloud stands behind the ridge
+  the snow has nearly its colour and brightness: those azimuths are mostly left out.
 """
 
 from __future__ import annotations
@@ -61,11 +68,13 @@ MIN_TRUSTED = 20
 TRUSTED_SHARE = 0.25
 SKY_ROWS = (3, 12)
 SNOW_ROWS = (3, 30)
+#: The colour 2-3 rows above a line must lie above this share of the way from the snow's to the sky's.
+CHROMA_CUT = 0.35
 #: A boundary this many rows or more above a line puts the line below the skyline.
 STEP_ABOVE_PX = 3.0
 #: A line more than DIP_PX rows below the highest line within DIP_COLUMNS columns is left out.
 DIP_COLUMNS = 5
-DIP_PX = 5.0
+DIP_PX = 8.0
 
 
 def _band_mean(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
@@ -178,9 +187,10 @@ class SnowEvidence:
     """What a snowy image shows of its sky/snow boundary (HxW maps, per-column rows)."""
 
     score: np.ndarray  # per pixel: the boundary's score in [0, 1] (:func:`snow_score`)
-    ok: np.ndarray  # per pixel: the colour conditions of a boundary hold
     llr: np.ndarray  # per pixel: sky-vs-snow log-likelihood ratio of models learnt at the trusted rows
     lum: np.ndarray  # the blue-weighted intensity
+    chroma: np.ndarray  # blue minus red, smoothed
+    chroma_cut: float  # CHROMA_CUT of the way from the snow's blue minus red to the sky's, at the trusted rows
 
 
 def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: bool) -> SnowEvidence | None:
@@ -192,10 +202,10 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     h, w = img8.shape[:2]
     if snowy_ground_share(img8, rows) < SNOWY_SHARE:
         return None
-    score, ok = snow_score(img8)
+    score, _ = snow_score(img8)
     cand, _ = snow_candidates(score)
     trusted = _agree_with_neighbours(cand, wrap)
-    _, lum = _chroma_luma(img8)
+    chroma, lum = _chroma_luma(img8)
     placed = place_rows(lum, np.where(trusted, cand, np.nan))
     line = np.where(np.isfinite(rows), rows, -10.0 * h)
     trusted &= np.isfinite(placed) & (~found | (np.nan_to_num(placed, nan=0.0) < line - STEP_ABOVE_PX))
@@ -210,13 +220,16 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     llr = _gaussian_llr(feats, sky[:: max(1, sky.shape[0] // 20000)], snow[:: max(1, snow.shape[0] // 20000)])
     if llr is None:
         return None
-    return SnowEvidence(score, ok, llr, lum)
+    sky_chroma = float(np.median(chroma[(rr >= t - 8) & (rr <= t - 4)]))
+    snow_chroma = float(np.median(chroma[(rr >= t + 4) & (rr <= t + 8)]))
+    return SnowEvidence(score, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma))
 
 
 def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
                 wrap: bool) -> np.ndarray:
     """``conf`` set to 0 where the line at ``rows`` lies below a sky/snow boundary, where the pixels
-    3-10 rows above it look more like snow than sky, or where it dips more than DIP_PX rows below
+    3-10 rows above it look more like snow than sky or those 2-3 rows above it are nearer the snow's
+    colour than the sky's, or where it dips more than DIP_PX rows below
     the highest line within DIP_COLUMNS columns (the top of a rock in snow that looks like the sky:
     far snow in haze takes the air's colour)."""
     h, w = ev.llr.shape
@@ -224,7 +237,11 @@ def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confid
     r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
     up = np.clip(r[None, :] - np.arange(3, 11)[:, None], 0, h - 1)
     above = np.clip(ev.llr[up, cols[None, :]], -1.0, 1.0).mean(axis=0)
-    bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | ~np.isfinite(rows)
+    # and just above the line the colour is nearer the sky's than the snow's (a rock a few rows below
+    # the skyline has snow just above its top)
+    near = np.clip(r[None, :] - np.arange(2, 4)[:, None], 0, h - 1)
+    snow_just_above = ev.chroma[near, cols[None, :]].mean(axis=0) < ev.chroma_cut
+    bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above | ~np.isfinite(rows)
     conf = np.where(bad, 0.0, conf)
     k = DIP_COLUMNS
     if w > 2 * k:
