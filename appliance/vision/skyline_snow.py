@@ -43,11 +43,12 @@ SNOW_MIN_LUMA = 0.65
 SNOW_MAX_CHROMA = 0.08
 #: Rows below the line sampled for the snowy-ground share.
 GROUND_ROWS = (4, 40)
-#: Smallest fall of blue minus red across a candidate (mean of rows 3-8 above less that below).
+#: Smallest fall of blue minus red across a candidate (mean of rows 3-8 above less the largest of rows 3-8
+#: below: a rock in those rows does not hide the snow beside it).
 MIN_CHROMA_STEP = 0.05
-#: Below a candidate nothing may be bluer than the ground just below it by more than this.
+#: Below a candidate nothing may be bluer than the bluest of rows 3-8 below it by more than this.
 NO_SKY_TOLERANCE = 0.03
-#: The ground below a candidate may be darker than the sky above it by at most this.
+#: The brightest of rows 3-8 below a candidate may be darker than the mean of rows 3-8 above by at most this.
 MAX_DARKER = 0.03
 #: The colour step and the brightness rise (rows +-2) at which a candidate scores fully.
 FULL_CHROMA_STEP = 0.08
@@ -88,6 +89,17 @@ def _band_mean(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
     return np.asarray((cs[b] - cs[a]) / n, dtype=np.float32)
 
 
+def _band_max(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """Per pixel, the largest ``x`` over rows ``r + k0 .. r + k1`` of its column (clipped to the image)."""
+    h = x.shape[0]
+    out = np.full_like(x, -np.inf)
+    for k in range(k0, k1 + 1):
+        lo, hi = max(0, -k), min(h, h - k)
+        if hi > lo:
+            np.maximum(out[lo:hi], x[lo + k : hi + k], out=out[lo:hi])
+    return out
+
+
 def _chroma_luma(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     f = _to_float(img8)
     chroma = cv2.GaussianBlur(f[..., 0] - f[..., 2], (0, 0), sigmaX=2.0, sigmaY=0.7)
@@ -116,8 +128,8 @@ def snow_score(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     chroma, lum = _chroma_luma(img8)
     h, w = chroma.shape
     lum_h = cv2.blur(lum, (5, 1))
-    ca, cb = _band_mean(chroma, -8, -3), _band_mean(chroma, 3, 8)
-    la, lb = _band_mean(lum_h, -8, -3), _band_mean(lum_h, 3, 8)
+    ca, cb = _band_mean(chroma, -8, -3), _band_max(chroma, 3, 8)
+    la, lb = _band_mean(lum_h, -8, -3), _band_max(lum_h, 3, 8)
     step = ca - cb
     # the bluest pixel from three rows below each row down to the image's bottom
     below_max = np.full_like(chroma, -np.inf)
