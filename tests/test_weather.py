@@ -17,7 +17,7 @@ from appliance.sim.weather import (
     weather_truth,
 )
 from appliance.vision.panorama import Panorama, Projection
-from appliance.vision.skyline_detect import detect_columns, detect_skyline
+from appliance.vision.skyline_detect import DetectionConfig, detect_columns, detect_skyline
 from appliance.vision.synth import analytic_skyline_fn
 
 
@@ -41,6 +41,38 @@ def test_overcast_banks_hide_ridges_and_the_detector_never_draws_their_base():
     assert hidden > 0.2 * (hidden + visible_total)  # the banks hide a good part of the ridges
     assert found_within >= 0.95 * visible_total
     assert below <= 0.01 * found  # the banks' diffuse bases are left out, not taken for the skyline
+
+
+def test_fresh_snow_brighter_than_the_sky_the_line_is_not_drawn_on_the_rocks_below_it():
+    scores = {}
+    for snow in (False, True):
+        visible_total = found_within = below = found = 0
+        for seed in (2, 3, 6, 8):
+            fn = analytic_skyline_fn(seed)
+            scene = draw_weather("snow", seed, fn)
+            pano, true_el, visible = render_weather_panorama(fn, scene, np.random.default_rng(seed), 1200)
+            err = detect_columns(pano, DetectionConfig(snow=snow)).elevation_deg - true_el
+            ok = np.isfinite(err)
+            visible_total += int(visible.sum())
+            found_within += int((ok & visible & (np.abs(np.nan_to_num(err, nan=9.0)) <= 0.2)).sum())
+            below += int((ok & (np.nan_to_num(err) < -0.5)).sum())
+            found += int(ok.sum())
+        scores[snow] = (found_within / visible_total, below / max(found, 1))
+    # the brightness drop alone is at the top of the dark rocks in the snow, below the skyline
+    assert scores[False][1] > 0.2
+    # by colour: more than half of the skyline found, and (the issue's target) at most 1 % below it
+    assert scores[True][0] > 0.5
+    assert scores[True][1] <= 0.01
+
+
+def test_the_snow_pass_leaves_a_green_ground_alone():
+    fn = analytic_skyline_fn(3)
+    scene = draw_weather("cumulus", 3, fn)
+    pano, _, _ = render_weather_panorama(fn, scene, np.random.default_rng(3), 1200)
+    with_pass = detect_columns(pano, DetectionConfig(snow=True))
+    without = detect_columns(pano, DetectionConfig(snow=False))
+    assert np.isfinite(with_pass.row).mean() > 0.5
+    assert np.array_equal(with_pass.row, without.row, equal_nan=True)
 
 
 def test_a_bank_covers_the_ridge_where_the_truth_says_hidden():

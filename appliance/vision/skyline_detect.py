@@ -20,7 +20,9 @@ yields nothing, while a cloud sitting on a ridge, textured itself, does not drop
 clear sky shows above it.  Masked azimuth ranges are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
-:mod:`appliance.vision.skyline_pixels`.
+:mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
+then at the rocks below the skyline) is handled by a second path on the sky/snow colour boundary
+(:mod:`appliance.vision.skyline_snow`).
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.
@@ -58,6 +60,7 @@ from appliance.vision.skyline_pixels import (
     _texture,
     _to_float,
 )
+from appliance.vision.skyline_snow import place_rows, snow_checks, snow_evidence
 
 
 class Method(enum.Enum):
@@ -84,6 +87,7 @@ class DetectionConfig:
     chroma_weight: float = 0.7  # dp: weight of the blue-minus-red drop beside the intensity drop (0: off)
     edge_far_px: int = 6  # sharpness: the fall per row above the line is measured from 3 to this many rows up
     max_slope_ratio: float = 0.3  # sharpness: fall per row above the line over that across it, at zero confidence
+    snow: bool = True  # dp: on snowy ground, find the sky/snow boundary by colour (appliance.vision.skyline_snow)
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
     def __post_init__(self) -> None:
@@ -296,7 +300,46 @@ def _dp_rows(
         take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
         rows = np.where(take, rows2, rows)
         conf = np.where(take, conf2, conf)
+    if cfg.snow:
+        snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t)
+        if snowy is not None:
+            rows, conf = snowy
     return rows, conf
+
+
+def _snow_rows(
+    img8: np.ndarray,
+    drop: np.ndarray,
+    rows: np.ndarray,
+    conf: np.ndarray,
+    cfg: DetectionConfig,
+    masked: np.ndarray,
+    wrap: bool,
+    prior_t: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """On snowy ground (:mod:`appliance.vision.skyline_snow`), the path run again with the sky/snow
+    boundary's score beside the intensity drop as its edge and the sky and snow models learnt at the
+    trusted boundary as its regions; its rows and confidence.  None where the ground is not snowy.
+
+    Snow under a pale sky is brighter than the sky: the drop the first path follows is at the top of
+    the first dark rock below the skyline.  The rows are placed where the brightness first departs
+    from the sky's (a rise onto snow, a drop onto a rock); a line with a colour step onto snow above
+    it, or snow-coloured pixels just above it, is left out.
+    """
+    ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
+    if ev is None:
+        return None
+    edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
+    path = _run_dp(_path_cost(edge, ev.llr, cfg, masked, cfg.edge_weight), cfg, wrap)
+    # the boundary's score peaks at the brightness rise, a row either side of the path's row
+    near_edge = cv2.dilate(edge, np.ones((3, 1), np.uint8))
+    conf = _confidence(near_edge, ev.llr, path, cfg, prior_t, haze_below=True)
+    placed = place_rows(ev.lum, path.astype(np.float64))
+    return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
+
+
+#: The sky/snow score (0..1) becomes an edge of this intensity drop (the path's edge saturates at 0.1).
+SNOW_EDGE_SCALE = 0.1
 
 
 def _bridge(

@@ -1,0 +1,266 @@
+"""The skyline over fresh snow: white ground under a pale sky, found by colour where brightness fails.
+
+Snow under a pale sky is often brighter than the sky, so the first brightness drop down a column is
+not at the skyline but at the top of the first dark rock in the snow, below it: a line there is
+strong false evidence for the estimator ("nothing above this elevation").  The sky/snow boundary is
+a step of colour instead (the sky's blue above, neutral white below: blue minus red falls) with the
+brightness rising or level, and nothing as blue as the sky anywhere below it.
+
+On plain arrays (an image's rows, the detector's line and confidence); the path itself is run by
+:func:`appliance.vision.skyline_detect._snow_rows`:
+
+- the image is snowy when at least 30 % of the ground below the detector's line is bright and
+  neutral (:func:`snowy_ground_share`); otherwise nothing changes;
+- per pixel, a sky/snow boundary scores by its colour step onto ground not darker than the sky, with
+  no sky-blue pixel below it, times its brightness rise (:func:`snow_score`); each column's best
+  row is a candidate, trusted where it agrees with its neighbours' and lies above the detector's
+  line (or the line was not found there);
+- with a quarter of the columns trusted (a snowy image whose snow is darker than its sky, as in the
+  Finse photos, has a few candidates on cloud tops only and is left alone), sky and snow models are
+  learnt on both sides of the trusted rows (:func:`snow_evidence`); the path is run again with the
+  boundary's score beside the brightness drop as its edge and those models as its regions, and
+  placed where the brightness first departs from the sky's (:func:`place_rows`: a rise onto snow,
+  a drop onto a rock standing on the skyline);
+- a line is left out where a boundary lies above it, where the pixels just above it have the snow's
+  colour rather than the sky's (the top of a rock a few rows below the skyline) or where it dips
+  well below its neighbours (:func:`snow_checks`).  Where a white cloud stands behind the ridge
+  the snow has nearly its colour and brightness: those azimuths are mostly left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from appliance.vision.skyline_pixels import _features, _gaussian_llr, _luma, _texture, _to_float
+
+#: The image is snowy when at least this share of the ground below the line is bright and neutral.
+SNOWY_SHARE = 0.3
+#: Bright and neutral: blue-weighted intensity at least this, |blue - red| at most SNOW_MAX_CHROMA.
+SNOW_MIN_LUMA = 0.65
+SNOW_MAX_CHROMA = 0.08
+#: Rows below the line sampled for the snowy-ground share.
+GROUND_ROWS = (4, 40)
+#: Smallest fall of blue minus red across a candidate (mean of rows 3-8 above less the largest of rows 3-8
+#: below: a rock in those rows does not hide the snow beside it).
+MIN_CHROMA_STEP = 0.05
+#: Below a candidate nothing may be bluer than the bluest of rows 3-8 below it by more than this.
+NO_SKY_TOLERANCE = 0.03
+#: The brightest of rows 3-8 below a candidate may be darker than the mean of rows 3-8 above by at most this.
+MAX_DARKER = 0.03
+#: The colour step and the brightness rise (rows +-2) at which a candidate scores fully.
+FULL_CHROMA_STEP = 0.08
+FULL_RISE = 0.04
+MIN_SCORE = 0.5
+#: Continuity: a candidate lies within AGREE_PX rows of the median of the candidates within
+#: NEIGHBOUR_COLUMNS columns on either side, of which at least half must have one.
+NEIGHBOUR_COLUMNS = 10
+AGREE_PX = 3.0
+#: Rows of the image's top and bottom not searched (the bands measured around a row need them).
+EDGE_ROWS = 10
+#: A line whose pixels 3-10 rows above look more like the learnt snow than this is left out.
+SKY_ABOVE_MIN = 0.3
+#: Fewest trusted candidates (and share of the columns) to learn sky and snow from, and the rows
+#: above and below them that are learnt from (snow with its rocks).  A snowy image whose skyline is
+#: found by the brightness drop (snow darker than the sky) has a few candidates on cloud tops only.
+MIN_TRUSTED = 20
+TRUSTED_SHARE = 0.25
+SKY_ROWS = (3, 12)
+SNOW_ROWS = (3, 30)
+#: The colour 2-3 rows above a line must lie above this share of the way from the snow's to the sky's.
+CHROMA_CUT = 0.35
+#: A boundary this many rows or more above a line puts the line below the skyline.
+STEP_ABOVE_PX = 3.0
+#: A line more than DIP_PX rows below the highest line within DIP_COLUMNS columns is left out.
+DIP_COLUMNS = 5
+DIP_PX = 8.0
+
+
+def _band_mean(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """Per pixel, the mean of ``x`` over rows ``r + k0 .. r + k1`` of its column (clipped to the image)."""
+    h = x.shape[0]
+    cs = np.zeros((h + 1, x.shape[1]), dtype=np.float64)
+    np.cumsum(x, axis=0, dtype=np.float64, out=cs[1:])
+    r = np.arange(h)
+    a, b = np.clip(r + k0, 0, h), np.clip(r + k1 + 1, 0, h)
+    n = np.maximum(b - a, 1)[:, None]
+    return np.asarray((cs[b] - cs[a]) / n, dtype=np.float32)
+
+
+def _band_max(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """Per pixel, the largest ``x`` over rows ``r + k0 .. r + k1`` of its column (clipped to the image)."""
+    h = x.shape[0]
+    out = np.full_like(x, -np.inf)
+    for k in range(k0, k1 + 1):
+        lo, hi = max(0, -k), min(h, h - k)
+        if hi > lo:
+            np.maximum(out[lo:hi], x[lo + k : hi + k], out=out[lo:hi])
+    return out
+
+
+def _chroma_luma(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    f = _to_float(img8)
+    chroma = cv2.GaussianBlur(f[..., 0] - f[..., 2], (0, 0), sigmaX=2.0, sigmaY=0.7)
+    return np.asarray(chroma, dtype=np.float32), np.asarray(_luma(f), dtype=np.float32)
+
+
+def snowy_ground_share(img8: np.ndarray, rows: np.ndarray) -> float:
+    """The share of the pixels 4-40 rows below ``rows`` (columns with a row) that are bright and neutral."""
+    f = _to_float(img8)
+    lum = _luma(f)
+    chroma = f[..., 0] - f[..., 2]
+    h = lum.shape[0]
+    rr = np.arange(h)[:, None]
+    r = np.where(np.isfinite(rows), rows, -10.0 * h)[None, :]
+    sel = (rr >= r + GROUND_ROWS[0]) & (rr <= r + GROUND_ROWS[1])
+    if not sel.any():
+        return 0.0
+    snow = (lum >= SNOW_MIN_LUMA) & (np.abs(chroma) <= SNOW_MAX_CHROMA)
+    return float(snow[sel].mean())
+
+
+def snow_score(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel: the sky/snow boundary's score in [0, 1] (the colour step times the brightness
+    rise, where nothing below is as blue as the sky and the ground is not darker), and whether the
+    colour conditions hold at all (``ok``)."""
+    chroma, lum = _chroma_luma(img8)
+    h, w = chroma.shape
+    lum_h = cv2.blur(lum, (5, 1))
+    ca, cb = _band_mean(chroma, -8, -3), _band_max(chroma, 3, 8)
+    la, lb = _band_mean(lum_h, -8, -3), _band_max(lum_h, 3, 8)
+    step = ca - cb
+    # the bluest pixel from three rows below each row down to the image's bottom
+    below_max = np.full_like(chroma, -np.inf)
+    below_max[:-3] = np.maximum.accumulate(chroma[::-1], axis=0)[::-1][3:]
+    ok = (step >= MIN_CHROMA_STEP) & (below_max <= cb + NO_SKY_TOLERANCE) & (lb >= la - MAX_DARKER)
+    ok[:EDGE_ROWS] = False
+    ok[h - EDGE_ROWS :] = False
+    pad = np.concatenate([np.repeat(lum_h[:1], 2, 0), lum_h, np.repeat(lum_h[-1:], 2, 0)])
+    rise = pad[4:] - pad[:-4]
+    score = np.clip(step / FULL_CHROMA_STEP, 0.0, 1.0) * np.clip(rise / FULL_RISE, 0.0, 1.0) * ok
+    return np.asarray(score, dtype=np.float32), ok
+
+
+def snow_candidates(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column: the row of the best sky/snow score (NaN: below MIN_SCORE), and that score."""
+    w = score.shape[1]
+    best = np.argmax(score, axis=0)
+    best_score = score[best, np.arange(w)]
+    return np.where(best_score >= MIN_SCORE, best.astype(np.float64), np.nan), np.asarray(best_score)
+
+
+def step_above(score: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Per column: whether a sky/snow boundary (``score`` at least MIN_SCORE) lies more than
+    STEP_ABOVE_PX rows above ``rows``: the line is then below the skyline."""
+    h = score.shape[0]
+    r = np.where(np.isfinite(rows), rows, -10.0 * h)
+    return np.asarray(((score >= MIN_SCORE) & (np.arange(h)[:, None] < (r - STEP_ABOVE_PX)[None, :])).any(axis=0))
+
+
+def _agree_with_neighbours(cand: np.ndarray, wrap: bool) -> np.ndarray:
+    half = NEIGHBOUR_COLUMNS
+    w = cand.size
+    if w < 2 * half + 1:
+        return np.zeros(w, dtype=bool)
+    nan = np.full(half, np.nan)
+    p = np.concatenate([cand[-half:], cand, cand[:half]]) if wrap else np.concatenate([nan, cand, nan])
+    win = np.lib.stride_tricks.sliding_window_view(p, 2 * half + 1)
+    count = np.isfinite(win).sum(axis=1)
+    filled = np.where(np.isfinite(win), win, 0.0)
+    # the median of the finite ones: sort NaN last and pick the middle of the finite part
+    srt = np.sort(np.where(np.isfinite(win), filled, np.inf), axis=1)
+    mid = np.clip((count - 1) // 2, 0, 2 * half)
+    med = srt[np.arange(w), mid]
+    return np.isfinite(cand) & (count >= half) & (np.abs(cand - med) <= AGREE_PX)
+
+
+def place_rows(lum: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """The fractional row near each candidate where the brightness first departs from the sky's
+    (rows 6-9 above) by half its largest departure within rows -5..+4 (pixel centres at integers)."""
+    h, w = lum.shape
+    cols = np.arange(w)
+    lum3 = cv2.blur(lum, (3, 1))
+    r0 = np.clip(np.nan_to_num(cand, nan=float(EDGE_ROWS)).astype(np.int64), EDGE_ROWS, h - EDGE_ROWS)
+    sky = np.mean([lum3[r0 - k, cols] for k in range(6, 10)], axis=0)
+    win = np.stack([lum3[r0 + k, cols] for k in range(-5, 5)])
+    dev = np.abs(win - sky[None, :])
+    half = 0.5 * dev.max(axis=0)
+    first = np.argmax(dev >= half[None, :], axis=0)
+    prev = dev[np.maximum(first - 1, 0), cols]
+    cur = dev[first, cols]
+    frac = np.where(cur > prev, (half - prev) / np.maximum(cur - prev, 1e-6), 0.0)
+    return np.asarray(np.where(np.isfinite(cand), r0 - 6 + first + np.clip(frac, 0.0, 1.0), np.nan))
+
+
+@dataclass(frozen=True)
+class SnowEvidence:
+    """What a snowy image shows of its sky/snow boundary (HxW maps, per-column rows)."""
+
+    score: np.ndarray  # per pixel: the boundary's score in [0, 1] (:func:`snow_score`)
+    llr: np.ndarray  # per pixel: sky-vs-snow log-likelihood ratio of models learnt at the trusted rows
+    lum: np.ndarray  # the blue-weighted intensity
+    chroma: np.ndarray  # blue minus red, smoothed
+    chroma_cut: float  # CHROMA_CUT of the way from the snow's blue minus red to the sky's, at the trusted rows
+
+
+def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: bool) -> SnowEvidence | None:
+    """The snow evidence of an image whose ground below ``rows`` (the detector's line, fractional,
+    NaN = none; ``found`` where it is confident) is snowy, from the candidates that agree with
+    their neighbours and lie above the line or where it is not found; None where the ground is not
+    snowy or too few candidates are trusted to learn sky and snow from (the brightness drop then
+    finds the skyline: snow darker than the sky)."""
+    h, w = img8.shape[:2]
+    if snowy_ground_share(img8, rows) < SNOWY_SHARE:
+        return None
+    score, _ = snow_score(img8)
+    cand, _ = snow_candidates(score)
+    trusted = _agree_with_neighbours(cand, wrap)
+    chroma, lum = _chroma_luma(img8)
+    placed = place_rows(lum, np.where(trusted, cand, np.nan))
+    line = np.where(np.isfinite(rows), rows, -10.0 * h)
+    trusted &= np.isfinite(placed) & (~found | (np.nan_to_num(placed, nan=0.0) < line - STEP_ABOVE_PX))
+    if trusted.sum() < max(MIN_TRUSTED, TRUSTED_SHARE * w):
+        return None
+    f = _to_float(img8)
+    feats = _features(f, _texture(_luma(f)))
+    rr = np.arange(h)[:, None]
+    t = np.where(trusted, placed, -10.0 * h)[None, :]
+    sky = feats[(rr >= t - SKY_ROWS[1]) & (rr <= t - SKY_ROWS[0])]
+    snow = feats[(rr >= t + SNOW_ROWS[0]) & (rr <= t + SNOW_ROWS[1])]
+    llr = _gaussian_llr(feats, sky[:: max(1, sky.shape[0] // 20000)], snow[:: max(1, snow.shape[0] // 20000)])
+    if llr is None:
+        return None
+    sky_chroma = float(np.median(chroma[(rr >= t - 8) & (rr <= t - 4)]))
+    snow_chroma = float(np.median(chroma[(rr >= t + 4) & (rr <= t + 8)]))
+    return SnowEvidence(score, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma))
+
+
+def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
+                wrap: bool) -> np.ndarray:
+    """``conf`` set to 0 where the line at ``rows`` lies below a sky/snow boundary, where the pixels
+    3-10 rows above it look more like snow than sky or those 2-3 rows above it are nearer the snow's
+    colour than the sky's, or where it dips more than DIP_PX rows below
+    the highest line within DIP_COLUMNS columns (the top of a rock in snow that looks like the sky:
+    far snow in haze takes the air's colour)."""
+    h, w = ev.llr.shape
+    cols = np.arange(w)
+    r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
+    up = np.clip(r[None, :] - np.arange(3, 11)[:, None], 0, h - 1)
+    above = np.clip(ev.llr[up, cols[None, :]], -1.0, 1.0).mean(axis=0)
+    # and just above the line the colour is nearer the sky's than the snow's (a rock a few rows below
+    # the skyline has snow just above its top)
+    near = np.clip(r[None, :] - np.arange(2, 4)[:, None], 0, h - 1)
+    snow_just_above = ev.chroma[near, cols[None, :]].mean(axis=0) < ev.chroma_cut
+    bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above | ~np.isfinite(rows)
+    conf = np.where(bad, 0.0, conf)
+    k = DIP_COLUMNS
+    if w > 2 * k:
+        line = np.where(conf >= min_confidence, rows, np.inf)
+        inf = np.full(k, np.inf)
+        pad = np.concatenate([line[-k:], line, line[:k]]) if wrap else np.concatenate([inf, line, inf])
+        highest = np.lib.stride_tricks.sliding_window_view(pad, 2 * k + 1).min(axis=1)
+        dip = np.isfinite(line) & (np.where(np.isfinite(line), line, 0.0) - highest > DIP_PX)
+        conf = np.where(dip, 0.0, conf)
+    return np.asarray(conf)
