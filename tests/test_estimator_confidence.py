@@ -167,3 +167,32 @@ def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_plac
     # the same skyline with a forest's share of occluders as the prior: the place the trees allow
     hidden = estimate(skyline_grid(db), az, el, occlusion_weight=0.5)
     assert math.hypot(hidden.row - res.row, hidden.col - res.col) > 2.0
+
+
+def test_a_clean_skyline_is_not_lost_to_a_place_that_fits_it_poorly_everywhere(dem, tmp_path):
+    """A skyline detected under cumulus (211 of 360 azimuths, within a hundredth of a degree of the truth's)
+    whose place lies between nodes where the skyline swings by degrees: the search at the default interval
+    (0.3-0.8 deg) weighs every azimuth loosely and settles 16 km away on a fit of 0.4 deg RMS, which used to say
+    ok.  Searched again narrower, the true place fits to the noise and is the answer."""
+    from pathlib import Path
+
+    from appliance.estimator import estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m
+    from appliance.terrain.database import build_database, load_database
+
+    path = tmp_path / "north.viperdb"
+    build_database(dem, path, search_bounds=(-84.40, 36.58, -84.20, 36.74), progress=None)
+    db = load_database(path, dem)
+    rows = np.loadtxt(Path(__file__).parent / "data" / "cumulus_skyline.csv", delimiter=",", comments="#",
+                      skiprows=4)
+    az = np.arange(360.0)
+    el = np.full(360, np.nan)
+    el[np.round(rows[:, 0]).astype(int) % 360] = rows[:, 1]
+    truth = (36.711339, -84.254391)
+    grid = skyline_grid(db)
+    res = estimate(grid, az, el)
+    assert truth_error_m(db, place(db, res), truth) < 10.0 and not res.ambiguous
+    assert res.rms_residual_deg < 0.05
+    # the search at the default interval alone (the narrower one is what finds the place)
+    wide = estimate(grid, az, el, learn_noise=False)
+    assert truth_error_m(db, place(db, wide), truth) > 1000.0

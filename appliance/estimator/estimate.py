@@ -74,6 +74,12 @@ HEADING_WIDEN_DEG = 3.0
 #: with the occluders' share at its most (MAX_OCCLUDED_SHARE): a skyline raised by trees the map lacks
 #: can be fitted, poorly, as terrain somewhere else.
 OCCLUSION_CHECK_RATIO = 1.0
+#: ... and with the interval narrowed to [NARROW_SHARE, 1] times that lower sigma: a wide interval weighs
+#: every azimuth loosely, and a place whose skyline fits to a tenth of it can lose the search to one that
+#: fits poorly everywhere.  The two best fits are compared with each one's occluded azimuths counted at
+#: NARROW_CLIP times the first fit's RMS.
+NARROW_SHARE = 1.0 / 3.0
+NARROW_CLIP = 3.0
 
 
 @dataclass(frozen=True)
@@ -205,6 +211,9 @@ def estimate(
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
         search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
         res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
+    if again and res.sigma_learned and res.rms_residual_deg > OCCLUSION_CHECK_RATIO * float(sigma_deg[0]):
+        res = _narrowed(grid, azimuth_deg, elevation_deg, res, (NARROW_SHARE * float(sigma_deg[0]),
+                                                                float(sigma_deg[0])), search)
     if again and res.heading_at_limit and heading_tolerance_deg is not None:
         res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
             heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
@@ -213,6 +222,24 @@ def estimate(
         res = _occluders_checked(grid, azimuth_deg, elevation_deg, res,
                                  replace(search, occlusion_weight=MAX_OCCLUDED_SHARE))
     return replace(res, elapsed_s=time.perf_counter() - t0)
+
+
+def _narrowed(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
+              sigma_deg: tuple[float, float], search: _Search) -> EstimateResult:
+    """``res``, whose best fit stays above the noise the search assumed, against the search made with
+    the narrower ``sigma_deg``: a best place elsewhere (more than SAME_ANSWER_CELLS) whose fit explains
+    the skyline better is the answer, its confidence its own; otherwise ``res``.  "Better": the mean
+    squared residual with each fit's occluded azimuths counted at NARROW_CLIP times ``res``'s RMS, so
+    that a fit does not win by leaving more of the skyline to occluders."""
+    narrow = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
+    if math.hypot(narrow.row - res.row, narrow.col - res.col) <= SAME_ANSWER_CELLS:
+        return res
+    clip2 = (NARROW_CLIP * res.rms_residual_deg) ** 2
+
+    def cost(r: EstimateResult) -> float:
+        return (1.0 - r.occluded_share) * r.rms_residual_deg**2 + r.occluded_share * clip2
+
+    return narrow if cost(narrow) < cost(res) else res
 
 
 def _occluders_checked(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
