@@ -129,6 +129,83 @@ def mcap_with(folder: Path, name: str, messages: list[tuple[str, str, bytes]]) -
     return name
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+GIB3 = 3 << 30  # what the compression bombs inflate to
+
+
+def _record(opcode: int, body: bytes, length: int | None = None) -> bytes:
+    """An MCAP record: its opcode, its length (``body``'s unless forged) and ``body``."""
+    return bytes([opcode]) + struct.pack("<Q", len(body) if length is None else length) + body
+
+
+def _chunk(compression: str, data: bytes, uncompressed_size: int) -> bytes:
+    """A chunk record's body: no time span, no CRC, ``data`` declared as ``uncompressed_size`` bytes."""
+    return (struct.pack("<QQQI", 0, 0, uncompressed_size, 0) + struct.pack("<I", len(compression))
+            + compression.encode() + struct.pack("<Q", len(data)) + data)
+
+
+def _zeros_compressed(compression: str, size: int) -> bytes:
+    """``size`` zero bytes as one zstd frame (declaring its size) or one lz4 frame, compressed piece by piece."""
+    import io
+
+    import lz4.frame
+    import zstandard
+
+    piece = bytes(16 << 20)
+    if compression == "zstd":
+        buf = io.BytesIO()
+        with zstandard.ZstdCompressor(level=3).stream_writer(buf, size=size, closefd=False) as w:
+            for _ in range(size // len(piece)):
+                w.write(piece)
+        return buf.getvalue()
+    with lz4.frame.LZ4FrameCompressor() as c:
+        return c.begin() + b"".join(c.compress(piece) for _ in range(size // len(piece))) + c.flush()
+
+
+def hostile_mcap(d: Path, name: str, record: bytes) -> str:
+    """A log of the magic, a header record and ``record`` (forged by hand, lengths included)."""
+    header = _record(0x01, struct.pack("<I", 5) + b"viper" + struct.pack("<I", 5) + b"bench")
+    (d / name).write_bytes(MCAP_MAGIC + header + record)
+    return name
+
+
+# each: the record after the header (at byte 35), and what `viper log info` says of it
+HOSTILE_MCAP: dict[str, tuple[Callable[[], bytes], str]] = {
+    "mcap-chunk-length-2e62": (lambda: _record(0x06, bytes(64), 2**62),
+                               r"unreadable record at byte 35: CHUNK record has length 4611686018427387904 that "
+                               r"exceeds limit 108"),
+    "mcap-attachment-length-2e62": (lambda: _record(0x09, bytes(64), 2**62),
+                                    r"unreadable record at byte 35: ATTACHMENT record has length 4611686018427387904"),
+    "mcap-attachment-data-2e62": (lambda: _record(0x09, struct.pack("<QQ", 0, 0) + struct.pack("<I", 1) + b"a"
+                                                  + struct.pack("<I", 1) + b"b" + struct.pack("<Q", 2**62)
+                                                  + bytes(16)), r"file ends before its footer"),
+    "mcap-string-beyond-file": (lambda: _record(0x03, struct.pack("<HI", 1, 2**31) + b"abc"),
+                                r"file ends before its footer"),
+    "mcap-chunk-declaring-2e62": (lambda: _record(0x06, _chunk("zstd", b"", 2**62)),
+                                  r"unreadable record at byte 35: a chunk declaring 4611686018427387904 bytes "
+                                  r"uncompressed, more than the 256 MiB a chunk may hold"),
+    "mcap-zstd-bomb-3-gib": (lambda: _record(0x06, _chunk("zstd", _zeros_compressed("zstd", GIB3), 1000)),
+                             r"unreadable record at byte 35: a chunk declaring 1000 bytes uncompressed holds more "
+                             r"than 1000"),
+    "mcap-lz4-bomb-3-gib": (lambda: _record(0x06, _chunk("lz4", _zeros_compressed("lz4", GIB3), 1000)),
+                            r"unreadable record at byte 35: a chunk declaring 1000 bytes uncompressed holds more "
+                            r"than 1000"),
+}
+
+
+def _hostile_info(case: str) -> Callable[[Path, dict[str, Path]], list[str]]:
+    def make(d: Path, shared: dict[str, Path]) -> list[str]:
+        return ["log", "info", hostile_mcap(d, "hostile.mcap", HOSTILE_MCAP[case][0]())]
+    return make
+
+
+def _hostile_replay(case: str) -> Callable[[Path, dict[str, Path]], list[str]]:
+    def make(d: Path, shared: dict[str, Path]) -> list[str]:
+        return ["replay", hostile_mcap(d, "hostile.mcap", HOSTILE_MCAP[case][0]()), "--db", str(shared["db"]),
+                "--out", "rep"]
+    return make
+
+
 SHAPES = [
     ("/estimate/record", "viper.EstimateRecord", b"[1, 2]"),
     ("/estimate/record", "viper.EstimateRecord", b'{"lat": "north", "lon": [], "region": 5}'),
@@ -353,6 +430,15 @@ CATALOGUE: list[Case] = [
          r"--height 1e\+300 m: more than 100000 m above the ground"),
     Case("calibrate-config-dev-zero", _theodolite_config_zero, r"/dev/zero: the configuration is a character "
          r"device, not a regular file"),
+    # MCAP records with forged lengths: `log info` reports the log INCOMPLETE (exit 1) with the reason on
+    # stdout; `replay` notes it and finds no frame to estimate from
+    *(Case(name, _hostile_info(name), None, ok_status=1,
+           expect_stdout=r"hostile\.mcap: \d+ bytes, 0 messages, INCOMPLETE: " + said)
+      for name, (_, said) in HOSTILE_MCAP.items()),
+    *(Case(name.replace("mcap-", "mcap-replay-"), _hostile_replay(name), None, ok_status=1,
+           expect_stdout=r"log incomplete \(" + said + r".*\n.*no estimate: no tagged frames", needs=("db",))
+      for name, (_, said) in HOSTILE_MCAP.items() if name in ("mcap-chunk-length-2e62", "mcap-zstd-bomb-3-gib",
+                                                                "mcap-lz4-bomb-3-gib")),
 ]
 
 
