@@ -5,7 +5,7 @@ peak memory read from the kernel's accounting of the child (``wait4``).
 Each case builds its inputs in a folder of its own and names what must happen: one stderr line
 matching a pattern and a non-zero exit, or a correct result (exit status and output).  The test
 ``tests/test_bounded_input.py`` runs the same catalogue and asserts each case; this script prints the
-table of outcomes and peak memory and writes it to ``bench/results/bounded_input.md``.
+table of outcomes and peak memory and appends it, dated, to ``bench/results/bounded_input.md``.
 
     python -m bench.bounded_input [--out bench/results/bounded_input.md] [--only NAME]
 """
@@ -523,17 +523,20 @@ def main(argv: list[str] | None = None) -> int:
                   f"{run.seconds:5.1f} s  {shown[:110]}", flush=True)
     table = ["| case | outcome | exit | peak RSS (MiB) | time (s) |", "|---|---|---|---|---|"]
     table += [f"| {' | '.join(r)} |" for r in rows]
-    text = ("# Bounded input: the catalogue of issue 35\n\n"
-            "`python -m bench.bounded_input`: each case runs `viper` in a child process with a 60 s timeout and "
-            "a 2 GiB address-space limit (RLIMIT_AS); peak RSS is the child's `ru_maxrss` from `wait4`. "
-            "'ok' means one stderr line of the expected shape, a non-zero exit and nothing left behind, or the "
-            f"correct result.\n\nPython {sys.version.split()[0]}, {os.cpu_count()} CPUs.\n\n" + "\n".join(table) + "\n")
+    header = ("# Bounded input: the catalogue of issue 35\n\n"
+              "`python -m bench.bounded_input`: each case runs `viper` in a child process with a 60 s timeout and "
+              "a 2 GiB address-space limit (RLIMIT_AS); peak RSS is the child's `ru_maxrss` from `wait4`. "
+              "'ok' means one stderr line of the expected shape, a non-zero exit and nothing left behind, or the "
+              "correct result.\n")
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    text = (f"\n## {stamp}\n\nPython {sys.version.split()[0]}, {os.cpu_count()} CPUs, load average "
+            f"{os.getloadavg()[0]:.1f} at the end; {len(rows)} cases, {failed} not ok.\n\n" + "\n".join(table) + "\n")
     if not args.only:
         sys.path.insert(0, str(REPO))
-        from appliance.atomic import write_text_atomic
+        from bench.results_file import append_result
 
-        write_text_atomic(args.out, text)
-        print(f"wrote {args.out}")
+        append_result(args.out, header, text)
+        print(f"appended to {args.out}")
     return 1 if failed else 0
 
 
