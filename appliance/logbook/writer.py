@@ -365,11 +365,12 @@ class Logbook:
             sealed = self._seal(at_last_flush)
             self._state = "full" if full else "closed"
             what = "disk full" if full else f"write failed ({exc.strerror or exc})"
-            kept = (
-                f"sealed with {self.messages_durable} durable messages"
-                if sealed
-                else "left readable up to its last flush (run 'viper log recover')"
-            )
+            if sealed:
+                kept = f"sealed with {self.messages_durable} durable messages"
+            elif self._sealable is None:
+                kept = "closed before its first flush"
+            else:
+                kept = "left readable up to its last flush (run 'viper log recover')"
             cls = LogbookFullError if full else LogError
             raise cls(f"{self.name}: {what}; log {kept}") from None
 
