@@ -41,7 +41,8 @@ from appliance.logbook.topics import JSON_SCHEMA_KEY
 log = logging.getLogger(__name__)
 
 # What a corrupt or truncated byte stream raises inside mcap's reader (CRC errors are ValueErrors).
-_CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError, LogError)
+_CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError, LogError,
+               OverflowError)
 #: The longest record a log may hold (a chunk, an attachment): a session's chunks are 256 KiB, a
 #: camera frame a few MiB.
 MAX_RECORD_BYTES = 256 << 20
@@ -220,7 +221,8 @@ class LogReader:
                 self._stop(offset, "file ends before its footer (truncated)")
                 return
             except _CORRUPTION as exc:
-                self._stop(offset, f"unreadable record at byte {offset}: {str(exc) or type(exc).__name__}")
+                why = "a length no file can hold" if isinstance(exc, OverflowError) else str(exc) or type(exc).__name__
+                self._stop(offset, f"unreadable record at byte {offset}: {why}")
                 return
             for rec in inner:
                 msg = self._take(rec)
