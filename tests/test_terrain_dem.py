@@ -267,3 +267,19 @@ def test_npz_whose_npy_header_is_not_a_literal_is_a_dem_error(tmp_path):
             zf.writestr(name, data)
     with pytest.raises(DemError, match=r"header\.npz: not a readable \.npz grid \(.*\): the file is damaged"):
         load_dem(path)
+
+
+def test_npz_whose_member_says_it_is_encrypted_is_a_dem_error(tmp_path):
+    """A member flagged encrypted (RuntimeError in zipfile: a password is required), found by the input fuzzer."""
+    path = tmp_path / "locked.npz"
+    data = _small_npz(path)
+    for sig, flags in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # every local and central header: bit 0 set
+        at = data.find(sig)
+        while at >= 0:
+            data[at + flags] |= 1
+            at = data.find(sig, at + 4)
+    path.write_bytes(bytes(data))
+    with pytest.raises(DemError) as err:
+        load_dem(path)
+    assert str(err.value).startswith(f"{path}: not a readable .npz grid (File '")
+    assert "is encrypted, password required for extraction): the file is damaged or truncated" in str(err.value)

@@ -280,10 +280,11 @@ def _check_raw_size(p: Path, ds: Any) -> None:
 
 def _load_npz(p: Path) -> Dem:
     # zipfile raises NotImplementedError for a compression method, encryption or zip version it does not
-    # read; numpy's .npy header parser TokenError or SyntaxError for a header that is not a Python literal
+    # read and RuntimeError for an encrypted member; numpy's .npy header parser TokenError or SyntaxError for
+    # a header that is not a Python literal
     try:
         return _read_npz(p)
-    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, NotImplementedError,
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, NotImplementedError, RuntimeError,
             tokenize.TokenError, SyntaxError) as exc:
         if isinstance(exc, DemError):
             raise
