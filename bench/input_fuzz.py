@@ -1,6 +1,6 @@
 """Input-file fuzzing: mutated skyline CSVs, configurations, DEMs of every format and skyline databases.
 
-Run: .venv/bin/python bench/input_fuzz.py [--count 20000] [--dem-count 12] [--seed 1]
+Run: .venv/bin/python bench/input_fuzz.py [--count 20000] [--dem-count 12] [--seed 1] [--kinds fast]
      (appends to bench/results/input_fuzz.md)
 
 Readers and their seeds:
@@ -31,6 +31,17 @@ Readers and their seeds:
   detects and estimates: seconds).  Both report each log on stdout: ``log info`` exits 1 on a log it
   reads as incomplete, ``replay`` on one it cannot estimate from, with nothing on stderr; that counts
   as a project error.
+
+The fast kinds (``--kinds fast``, or by name), about a millisecond per input, for counts of 100,000:
+
+- ``sidecars``: the JSON sidecars through ``load_panorama``, ``read_orientation_file`` and ``shot_pose``.
+- ``dem-headers``: ``load_dem`` on 16 x 32 maps whose header is most of the file (GeoTIFF, PDS label and
+  image, .npz, .e00).
+- ``image-headers``: ``read_image`` (the header's pixel count checked, then OpenCV) on small PNGs and JPEGs.
+- ``mcap-records``: small logs (zstd, lz4, uncompressed), mutated or with one length forged, through
+  ``viper log info``'s reader and every message's decoder; an incomplete log is its project error.
+``--subprocess-every N`` runs every Nth DEM header and MCAP input again as ``viper dem info`` or ``viper log
+info`` in a child process.  A project error whose message has more than one line counts as foreign.
 
 The commands (``viper dem info``, ``viper skyline``, ``viper log``, ``viper replay``) are judged by
 what a user sees on stderr, the compiled libraries' own lines included: a project error is a non-zero
