@@ -28,9 +28,9 @@ Readers and their seeds:
 - session logs (MCAP) through ``viper log info``, ``viper log recover`` and ``viper replay``: the log of
   ``viper demo --seed 11`` (made once into bench/cache/, with its jacksboro database), mutated;
   ``--log-count`` inputs for info and recover, ``--replay-count`` for replay (each replay stitches,
-  detects and estimates: seconds).  Both report each log on stdout: ``log info`` exits 1 on a log it
-  reads as incomplete, ``replay`` on one it cannot estimate from, with nothing on stderr; that counts
-  as a project error.
+  detects and estimates: seconds; run as a child process, since the estimator keeps a pool of threads).
+  Both report each log on stdout: ``log info`` exits 1 on a log it reads as incomplete, ``replay`` on one
+  it cannot estimate from, with nothing on stderr; that counts as a project error.
 
 The fast kinds (``--kinds fast``, or by name), about a millisecond per input, for counts of 100,000:
 
@@ -442,10 +442,10 @@ def fuzz_logs(count: int, replay_count: int, rng: random.Random, work: Path) -> 
         info.run(functools.partial(_batch, ["log", "info", str(log)], "INCOMPLETE"))
         recover.run(functools.partial(_command, ["log", "recover", str(log), "--out", str(fixed), "--force"],
                                       fixed))
-        if k < replay_count:
+        if k < replay_count:  # in a child process: the estimator keeps a pool of threads once it has run
             out = work / "replay"
             shutil.rmtree(out, ignore_errors=True)
-            replay.run(functools.partial(_batch, ["replay", str(log), "--db", str(db), "--out", str(out)],
+            replay.run(functools.partial(_in_child, ["replay", str(log), "--db", str(db), "--out", str(out)],
                                          ": no estimate: "))
     return {"viper log info": info, "viper log recover": recover, "viper replay": replay}
 
