@@ -5,7 +5,7 @@ peak memory read from the kernel's accounting of the child (``wait4``).
 Each case builds its inputs in a folder of its own and names what must happen: one stderr line
 matching a pattern and a non-zero exit, or a correct result (exit status and output).  The test
 ``tests/test_bounded_input.py`` runs the same catalogue and asserts each case; this script prints the
-table of outcomes and peak memory and writes it to ``bench/results/bounded_input.md``.
+table of outcomes and peak memory and appends it, dated, to ``bench/results/bounded_input.md``.
 
     python -m bench.bounded_input [--out bench/results/bounded_input.md] [--only NAME]
 """
@@ -127,6 +127,86 @@ def mcap_with(folder: Path, name: str, messages: list[tuple[str, str, bytes]]) -
             w.add_message(channel_id=channels[topic], log_time=t, data=data, publish_time=t)
         w.finish()
     return name
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+GIB3 = 3 << 30  # what the compression bombs inflate to
+
+
+def _record(opcode: int, body: bytes, length: int | None = None) -> bytes:
+    """An MCAP record: its opcode, its length (``body``'s unless forged) and ``body``."""
+    return bytes([opcode]) + struct.pack("<Q", len(body) if length is None else length) + body
+
+
+def _chunk(compression: str, data: bytes, uncompressed_size: int) -> bytes:
+    """A chunk record's body: no time span, no CRC, ``data`` declared as ``uncompressed_size`` bytes."""
+    return (struct.pack("<QQQI", 0, 0, uncompressed_size, 0) + struct.pack("<I", len(compression))
+            + compression.encode() + struct.pack("<Q", len(data)) + data)
+
+
+def _zeros_compressed(compression: str, size: int) -> bytes:
+    """``size`` zero bytes as one zstd frame (declaring its size) or one lz4 frame, compressed piece by piece."""
+    import io
+
+    import lz4.frame
+    import zstandard
+
+    piece = bytes(16 << 20)
+    if compression == "zstd":
+        buf = io.BytesIO()
+        with zstandard.ZstdCompressor(level=3).stream_writer(buf, size=size, closefd=False) as w:
+            for _ in range(size // len(piece)):
+                w.write(piece)
+        return buf.getvalue()
+    with lz4.frame.LZ4FrameCompressor() as c:
+        return c.begin() + b"".join(c.compress(piece) for _ in range(size // len(piece))) + c.flush()
+
+
+def hostile_mcap(d: Path, name: str, record: bytes) -> str:
+    """A log of the magic, a header record and ``record`` (forged by hand, lengths included)."""
+    header = _record(0x01, struct.pack("<I", 5) + b"viper" + struct.pack("<I", 5) + b"bench")
+    (d / name).write_bytes(MCAP_MAGIC + header + record)
+    return name
+
+
+# each: the record after the header (at byte 35), and what `viper log info` says of it
+HOSTILE_MCAP: dict[str, tuple[Callable[[], bytes], str]] = {
+    "mcap-chunk-length-2e62": (lambda: _record(0x06, bytes(64), 2**62),
+                               r"unreadable record at byte 35: CHUNK record has length 4611686018427387904 that "
+                               r"exceeds limit 108"),
+    "mcap-attachment-length-2e62": (lambda: _record(0x09, bytes(64), 2**62),
+                                    r"unreadable record at byte 35: ATTACHMENT record has length 4611686018427387904"),
+    "mcap-attachment-data-2e62": (lambda: _record(0x09, struct.pack("<QQ", 0, 0) + struct.pack("<I", 1) + b"a"
+                                                  + struct.pack("<I", 1) + b"b" + struct.pack("<Q", 2**62)
+                                                  + bytes(16)), r"file ends before its footer"),
+    "mcap-chunk-data-2e64": (lambda: _record(0x06, struct.pack("<QQQI", 0, 0, 10, 0) + struct.pack("<I", 0)
+                                             + struct.pack("<Q", 2**64 - 1) + bytes(10)),
+                             r"unreadable record at byte 35: a length no file can hold"),
+    "mcap-string-beyond-file": (lambda: _record(0x03, struct.pack("<HI", 1, 2**31) + b"abc"),
+                                r"file ends before its footer"),
+    "mcap-chunk-declaring-2e62": (lambda: _record(0x06, _chunk("zstd", b"", 2**62)),
+                                  r"unreadable record at byte 35: a chunk declaring 4611686018427387904 bytes "
+                                  r"uncompressed, more than the 256 MiB a chunk may hold"),
+    "mcap-zstd-bomb-3-gib": (lambda: _record(0x06, _chunk("zstd", _zeros_compressed("zstd", GIB3), 1000)),
+                             r"unreadable record at byte 35: a chunk declaring 1000 bytes uncompressed holds more "
+                             r"than 1000"),
+    "mcap-lz4-bomb-3-gib": (lambda: _record(0x06, _chunk("lz4", _zeros_compressed("lz4", GIB3), 1000)),
+                            r"unreadable record at byte 35: a chunk declaring 1000 bytes uncompressed holds more "
+                            r"than 1000"),
+}
+
+
+def _hostile_info(case: str) -> Callable[[Path, dict[str, Path]], list[str]]:
+    def make(d: Path, shared: dict[str, Path]) -> list[str]:
+        return ["log", "info", hostile_mcap(d, "hostile.mcap", HOSTILE_MCAP[case][0]())]
+    return make
+
+
+def _hostile_replay(case: str) -> Callable[[Path, dict[str, Path]], list[str]]:
+    def make(d: Path, shared: dict[str, Path]) -> list[str]:
+        return ["replay", hostile_mcap(d, "hostile.mcap", HOSTILE_MCAP[case][0]()), "--db", str(shared["db"]),
+                "--out", "rep"]
+    return make
 
 
 SHAPES = [
@@ -353,6 +433,15 @@ CATALOGUE: list[Case] = [
          r"--height 1e\+300 m: more than 100000 m above the ground"),
     Case("calibrate-config-dev-zero", _theodolite_config_zero, r"/dev/zero: the configuration is a character "
          r"device, not a regular file"),
+    # MCAP records with forged lengths: `log info` reports the log INCOMPLETE (exit 1) with the reason on
+    # stdout; `replay` notes it and finds no frame to estimate from
+    *(Case(name, _hostile_info(name), None, ok_status=1,
+           expect_stdout=r"hostile\.mcap: \d+ bytes, 0 messages, INCOMPLETE: " + said)
+      for name, (_, said) in HOSTILE_MCAP.items()),
+    *(Case(name.replace("mcap-", "mcap-replay-"), _hostile_replay(name), None, ok_status=1,
+           expect_stdout=r"log incomplete \(" + said + r".*\n.*no estimate: no tagged frames", needs=("db",))
+      for name, (_, said) in HOSTILE_MCAP.items() if name in ("mcap-chunk-length-2e62", "mcap-zstd-bomb-3-gib",
+                                                                "mcap-lz4-bomb-3-gib")),
 ]
 
 
@@ -437,17 +526,20 @@ def main(argv: list[str] | None = None) -> int:
                   f"{run.seconds:5.1f} s  {shown[:110]}", flush=True)
     table = ["| case | outcome | exit | peak RSS (MiB) | time (s) |", "|---|---|---|---|---|"]
     table += [f"| {' | '.join(r)} |" for r in rows]
-    text = ("# Bounded input: the catalogue of issue 35\n\n"
-            "`python -m bench.bounded_input`: each case runs `viper` in a child process with a 60 s timeout and "
-            "a 2 GiB address-space limit (RLIMIT_AS); peak RSS is the child's `ru_maxrss` from `wait4`. "
-            "'ok' means one stderr line of the expected shape, a non-zero exit and nothing left behind, or the "
-            f"correct result.\n\nPython {sys.version.split()[0]}, {os.cpu_count()} CPUs.\n\n" + "\n".join(table) + "\n")
+    header = ("# Bounded input: the catalogue of issue 35\n\n"
+              "`python -m bench.bounded_input`: each case runs `viper` in a child process with a 60 s timeout and "
+              "a 2 GiB address-space limit (RLIMIT_AS); peak RSS is the child's `ru_maxrss` from `wait4`. "
+              "'ok' means one stderr line of the expected shape, a non-zero exit and nothing left behind, or the "
+              "correct result.\n")
+    stamp = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    text = (f"\n## {stamp}\n\nPython {sys.version.split()[0]}, {os.cpu_count()} CPUs, load average "
+            f"{os.getloadavg()[0]:.1f} at the end; {len(rows)} cases, {failed} not ok.\n\n" + "\n".join(table) + "\n")
     if not args.only:
         sys.path.insert(0, str(REPO))
-        from appliance.atomic import write_text_atomic
+        from bench.results_file import append_result
 
-        write_text_atomic(args.out, text)
-        print(f"wrote {args.out}")
+        append_result(args.out, header, text)
+        print(f"appended to {args.out}")
     return 1 if failed else 0
 
 

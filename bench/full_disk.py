@@ -1,7 +1,12 @@
 """20 runs on a full disk: ``viper capture``, ``viper daemon session``, ``viper estimate --report`` and
 ``viper replay``, 5 of each, each with the disk filling at a different byte offset.
 
-Run: .venv/bin/python bench/full_disk.py   (appends to bench/results/full_disk.md)
+Run: .venv/bin/python bench/full_disk.py [--per-command 5] [--after-flushes]
+     (appends to bench/results/full_disk.md)
+
+``--per-command N`` spreads N offsets per command over the same range (5: the fractions below);
+``--after-flushes`` adds, for capture and the daemon, a run with the limit 25 bytes after each flush
+of the log a run with room writes (where a log has just room for its data but not its closing records).
 
 The full disk is RLIMIT_FSIZE in the command's process (a write past the limit fails with EFBIG, as
 one on a full disk fails with ENOSPC).  The offsets are spread over the sizes of the files a run
@@ -17,6 +22,7 @@ Targets: 0 files left truncated or empty, every failure on stderr.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import datetime
 import io
@@ -119,7 +125,30 @@ def cases(work: Path) -> dict[str, tuple[list[str], Path]]:
     }
 
 
+def flush_ends(log: Path) -> list[int]:
+    """Where each flush of ``log`` ended: the offsets after each chunk's message index records."""
+    from mcap.records import Chunk, DataEnd, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    ends, pos, last = [], 0, None
+    with open(log, "rb") as f:
+        for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+            if isinstance(last, (Chunk, MessageIndex)) and not isinstance(record, MessageIndex):
+                ends.append(pos)
+            if isinstance(record, DataEnd):
+                break
+            last, pos = record, f.tell()
+    return ends
+
+
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--per-command", type=int, default=len(FRACTIONS), help="offsets per command")
+    ap.add_argument("--after-flushes", action="store_true",
+                    help="for capture and the daemon, also a limit 25 bytes after each flush of the log")
+    opts = ap.parse_args()
+    fractions = (FRACTIONS if opts.per_command == len(FRACTIONS)
+                 else tuple(float(f) for f in np.geomspace(0.001, 0.95, opts.per_command)))
     rows, totals = [], {"runs": 0, "truncated": 0, "not_on_stderr": 0}
     with tempfile.TemporaryDirectory(prefix="viper-full-disk-") as tmp:
         work = Path(tmp)
@@ -127,8 +156,11 @@ def main() -> int:
             tag = name.split()[0]
             free = viper([a.replace("{out}", f"{tag}-free") for a in args], cwd)
             largest = max((p.stat().st_size for p in final_files(cwd / f"{tag}-free")), default=0)
-            for k, fraction in enumerate(FRACTIONS):
-                limit = max(1, int(largest * fraction))
+            limits = [max(1, int(largest * fraction)) for fraction in fractions]
+            logs = sorted((cwd / f"{tag}-free").glob("viper-*.mcap"))
+            if opts.after_flushes and logs:
+                limits += [end + 25 for end in flush_ends(logs[0])]
+            for k, limit in enumerate(limits):
                 out = cwd / f"{tag}-{k}"
                 r = viper([a.replace("{out}", out.name) for a in args], cwd, limit)
                 bad, unsaid, line = judge(r, out)
@@ -142,7 +174,10 @@ def main() -> int:
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     header = ("# Full disk: capture, daemon, estimate --report, replay\n\n"
               "Written by `bench/full_disk.py`; the disk fills at the byte offset in column 2 (RLIMIT_FSIZE).\n")
-    text = (f"\n## {stamp}\n\n{totals['runs']} runs: {totals['truncated']} files left truncated or empty under a "
+    load = os.getloadavg()[0]
+    how = f"--per-command {opts.per_command}{' --after-flushes' if opts.after_flushes else ''}"
+    text = (f"\n## {stamp}\n\n`{how}`, load average {load:.1f} on {os.cpu_count()} CPUs.\n\n"
+            f"{totals['runs']} runs: {totals['truncated']} files left truncated or empty under a "
             f"final name, {totals['not_on_stderr']} failures not on stderr (targets: 0 and 0)\n\n"
             "| command | limit (bytes) | exit | files left | truncated or empty | failure on stderr "
             "| last stderr line |\n"

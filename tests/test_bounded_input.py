@@ -129,3 +129,37 @@ def test_a_camera_file_name_too_long_is_one_config_error(tmp_path):
 
     with pytest.raises(ConfigError, match="cannot read the calibration file"):
         load_intrinsics(tmp_path / ("c" * 300 + ".toml"))
+
+
+def _png_with_a_chunk_past_the_end(path) -> None:
+    """A 48 x 24 PNG whose pixel chunk is renamed (an unknown critical chunk), then a chunk declaring 1 GiB
+    of which 8 bytes are there: what the input fuzzer's mutations made of a small PNG."""
+    import struct
+
+    good = png_bytes(48, 24)
+    idat, iend = good.find(b"IDAT"), good.rfind(b"IEND") - 4
+    path.write_bytes(good[:idat] + b"IDAU" + good[idat + 4:iend] + struct.pack(">I", 1 << 30) + b"IEND" + bytes(8))
+
+
+def test_a_png_chunk_declared_past_the_file_is_not_allocated(tmp_path):
+    """OpenCV's PNG reader allocated the 1 GiB the chunk declares; the buffer it gets now ends before it."""
+    from bench.bounded_input import run_viper
+
+    _png_with_a_chunk_past_the_end(tmp_path / "forged.png")
+    run = run_viper(["skyline", "forged.png", "--out", "s.csv"], tmp_path)
+    assert run.returncode != 0 and len(run.stderr_lines) == 1, run.stderr
+    assert re.match(r"viper skyline: error: forged\.png: not a readable image \(\d+ bytes\)", run.stderr_lines[0])
+    assert run.peak_bytes < 512 << 20  # a file of 79 bytes; the decoder took over 1 GiB for it
+    assert not (tmp_path / "s.csv").exists()
+
+
+def test_bounded_png_cuts_at_the_first_chunk_past_the_end(tmp_path):
+    from appliance.inputs import bounded_png
+
+    good = png_bytes(48, 24)
+    assert bounded_png(good) == good
+    assert bounded_png(b"\xff\xd8\xff" + bytes(20)) == b"\xff\xd8\xff" + bytes(20)  # not a PNG: as it is
+    _png_with_a_chunk_past_the_end(tmp_path / "forged.png")
+    forged = (tmp_path / "forged.png").read_bytes()
+    assert bounded_png(forged) == forged[:len(forged) - 16]  # before the length, type and 8 bytes of the chunk
+    assert bounded_png(good[:-5]) == good[:good.rfind(b"IEND") - 4]  # a torn last chunk

@@ -15,6 +15,7 @@ from mcap.reader import make_reader
 from appliance.logbook import Logbook
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
+from appliance.logbook.writer import CLOSING_BYTES
 
 T0 = 1_700_000_000_000_000_000
 REPO = Path(__file__).resolve().parents[1]
@@ -22,7 +23,8 @@ N = 92
 
 
 def write_log(path: Path) -> list[int]:
-    """N GPS fixes and a tilt message every third, one chunk per flush; the file's size after each."""
+    """N GPS fixes and a tilt message every third, one chunk per flush; the log's length after each (the
+    file holds the room for its closing records beyond it)."""
     sizes = []
     with Logbook.create(path, reserve_bytes=0) as lb:
         for i in range(N):
@@ -30,7 +32,7 @@ def write_log(path: Path) -> list[int]:
             if i % 3 == 0:
                 lb.write_json(t.TILT_RAW, "viper.TiltRaw", {"roll_deg": i}, T0 + i)
             lb.flush()
-            sizes.append(os.path.getsize(path))
+            sizes.append(os.path.getsize(path) - CLOSING_BYTES)
     return sizes
 
 

@@ -20,7 +20,7 @@ from appliance.logbook import Logbook, LogbookFullError, LogReader, recover_log
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.sink import DurableFile
-from appliance.logbook.writer import LIBRARY, PROFILE
+from appliance.logbook.writer import CLOSING_BYTES, LIBRARY, PROFILE
 
 T0 = 1_700_000_000_000_000_000
 REPO = Path(__file__).resolve().parents[1]
@@ -31,7 +31,8 @@ def fix(i):
 
 
 def write_flushed(path, n):
-    """n messages, flushed one by one; returns the file size after each flush."""
+    """n messages, flushed one by one; returns the log's length after each flush (the file holds the
+    room for its closing records beyond it, zeros)."""
     sizes = []
     lb = Logbook.create(path, reserve_bytes=0)
     for i in range(n):
@@ -39,7 +40,9 @@ def write_flushed(path, n):
         if i % 3 == 0:
             lb.write_json(t.TILT_RAW, "viper.TiltRaw", {"roll_deg": i}, T0 + i)
         lb.flush()
-        sizes.append(os.path.getsize(path))
+        held = path.read_bytes()[-CLOSING_BYTES:]
+        assert held == bytes(CLOSING_BYTES)
+        sizes.append(os.path.getsize(path) - CLOSING_BYTES)
     lb.close()
     return sizes
 
@@ -242,3 +245,100 @@ def test_cli_info_and_recover(tmp_path, capsys):
     junk.write_bytes(b"\x00" * 100)
     assert main(["log", "info", str(junk)]) == 1
     assert "INCOMPLETE" in capsys.readouterr().out
+
+
+LIMITED_CHILD = textwrap.dedent("""
+    import resource, sys
+    from appliance.errors import LogError
+    from appliance.logbook import Logbook
+    from appliance.logbook import messages as m, topics as t
+    limit = int(sys.argv[2])
+    if limit:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    lb = Logbook.create(sys.argv[1], reserve_bytes=1024)
+    try:
+        for i in range(6):
+            lb.write_proto(t.GPS_FIX, m.location_fix(%d + i, 33.0 + i * 1e-6, -97.0), %d + i)
+            lb.write_proto(t.IMAGE, m.compressed_image(%d + i, bytes(range(i, i + 200))), %d + i)
+            lb.flush()
+            print("flushed", lb.messages_durable, flush=True)
+        lb.close()
+    except LogError as exc:
+        print(exc, file=sys.stderr)
+        sys.exit(1)
+""") % ((T0,) * 4)
+
+
+def _limited_log(path: Path, limit: int) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", LIMITED_CHILD, str(path), str(limit)], capture_output=True,
+                          text=True, cwd=REPO, timeout=60, check=False)
+
+
+def _data_section_crc_checked(data: bytes) -> int:
+    """The DataEnd record's offset, once its CRC is checked against the bytes before it."""
+    import zlib
+
+    from mcap.records import DataEnd
+    from mcap.stream_reader import StreamReader
+
+    with open_bytes(data) as f:
+        reader = StreamReader(f, skip_magic=False, emit_chunks=True, validate_crcs=True)
+        pos = 0
+        for record in reader.records:
+            if isinstance(record, DataEnd):
+                assert record.data_section_crc == zlib.crc32(data[:pos])
+                return pos
+            pos = f.tell()
+    raise AssertionError("no DataEnd record")
+
+
+def open_bytes(data: bytes):
+    import io
+
+    return io.BytesIO(data)
+
+
+def test_a_file_size_limit_just_after_a_flush_still_leaves_a_sealed_log(tmp_path):
+    """RLIMIT_FSIZE falling in the 50 bytes after a flush: freeing the reserve gives the log itself no room,
+    so the log is closed within the room its last complete flush held."""
+    free = tmp_path / "free.mcap"
+    r = _limited_log(free, 0)
+    assert r.returncode == 0, r.stderr
+    whole = free.read_bytes()
+    starts = [0] + _chunk_ends(whole)
+    assert len(starts) == 7  # the header and metadata, and one chunk (with its index) per flush
+    for k, extra in ((2, 0), (2, 1), (2, 30), (2, 49), (2, 50), (4, 25)):
+        limit = starts[k] + extra
+        log = tmp_path / f"limit-{limit}.mcap"
+        r = _limited_log(log, limit)
+        kept = k if extra >= 50 else k - 1  # flushes whose closing records had room
+        assert r.returncode == 1
+        assert r.stderr == f"{log}: write failed (File too large); log sealed with {2 * kept} durable messages\n"
+        assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(f".{log.name}")) == []
+        data = log.read_bytes()
+        reader = LogReader(log)
+        times = [msg.log_time_ns for msg in reader.messages() if msg.topic == t.GPS_FIX]
+        assert reader.complete and reader.problem is None, (limit, reader.problem)
+        assert times == [T0 + i for i in range(kept)]
+        # nothing lost: the log is the free run's up to that flush, then its closing records
+        end = _data_section_crc_checked(data)
+        assert end == starts[kept] and data[:end] == whole[:end]
+        with open(log, "rb") as f:  # mcap's own seeking reader opens it
+            assert [msg.log_time for _, ch, msg in make_reader(f).iter_messages(log_time_order=False)
+                    if ch.topic == t.GPS_FIX] == times
+
+
+def _chunk_ends(data: bytes) -> list[int]:
+    """Where each flush ended: the offsets after each chunk's message index records."""
+    from mcap.records import Chunk, DataEnd, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    ends, pos, last = [], 0, None
+    with open_bytes(data) as f:
+        for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+            if isinstance(last, (Chunk, MessageIndex)) and not isinstance(record, MessageIndex):
+                ends.append(pos)
+            if isinstance(record, DataEnd):
+                break
+            last, pos = record, f.tell()
+    return ends

@@ -225,3 +225,61 @@ def test_damaged_geotiffs_say_one_line_with_nothing_from_the_libraries(tmp_path)
                              capture_output=True, text=True, timeout=120)
         assert out.returncode == 1 and out.stdout == ""
         assert out.stderr.count("\n") == 1 and words in out.stderr, out.stderr
+
+
+def _small_npz(path):
+    np.savez(path, elevation=np.arange(400.0).reshape(20, 20), dx=0.001, dy=0.001, xmin=7.0, xmax=7.02,
+             ymin=46.0, ymax=46.02)
+    return bytearray(path.read_bytes())
+
+
+def test_npz_whose_zip_names_a_method_zipfile_does_not_read_is_a_dem_error(tmp_path):
+    """A compression method zipfile does not know (NotImplementedError in zipfile), found by the input fuzzer."""
+    path = tmp_path / "method.npz"
+    data = _small_npz(path)
+    for sig in (b"PK\x03\x04", b"PK\x01\x02"):  # every local and central header: method 99
+        at = data.find(sig)
+        while at >= 0:
+            field = at + (8 if sig == b"PK\x03\x04" else 10)
+            data[field:field + 2] = (99).to_bytes(2, "little")
+            at = data.find(sig, at + 4)
+    path.write_bytes(bytes(data))
+    with pytest.raises(DemError) as err:
+        load_dem(path)
+    assert str(err.value) == (f"{path}: not a readable .npz grid (That compression method is not supported): the file "
+                              "is damaged or truncated")
+
+
+def test_npz_whose_npy_header_is_not_a_literal_is_a_dem_error(tmp_path):
+    """An .npy header whose bracket never closes (TokenError in numpy's header parser), found by the input
+    fuzzer; the zip itself is sound (its CRCs hold)."""
+    import struct
+    import zipfile
+
+    path = tmp_path / "header.npz"
+    _small_npz(path)
+    header = b"{'descr': '<f8', 'fortran_order': False, 'shape': (20, 20 ,".ljust(117) + b"\n"
+    with zipfile.ZipFile(path, "a") as zf:
+        members = {n: zf.read(n) for n in zf.namelist() if n != "elevation.npy"}
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("elevation.npy", b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header + bytes(3200))
+        for name, data in members.items():
+            zf.writestr(name, data)
+    with pytest.raises(DemError, match=r"header\.npz: not a readable \.npz grid \(.*\): the file is damaged"):
+        load_dem(path)
+
+
+def test_npz_whose_member_says_it_is_encrypted_is_a_dem_error(tmp_path):
+    """A member flagged encrypted (RuntimeError in zipfile: a password is required), found by the input fuzzer."""
+    path = tmp_path / "locked.npz"
+    data = _small_npz(path)
+    for sig, flags in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):  # every local and central header: bit 0 set
+        at = data.find(sig)
+        while at >= 0:
+            data[at + flags] |= 1
+            at = data.find(sig, at + 4)
+    path.write_bytes(bytes(data))
+    with pytest.raises(DemError) as err:
+        load_dem(path)
+    assert str(err.value).startswith(f"{path}: not a readable .npz grid (File '")
+    assert "is encrypted, password required for extraction): the file is damaged or truncated" in str(err.value)

@@ -37,7 +37,7 @@ from appliance.acquisition.session_facts import FactsCollector, SessionFacts, re
 from appliance.atomic import atomic_output, check_output_folder, fsync_folder, output_error, temporary_path
 from appliance.config import EstimatorConfig
 from appliance.errors import ErrorPolicy, EstimationError, InputError, LogError, OutputError
-from appliance.inputs import check_image_pixels
+from appliance.inputs import bounded_png, check_image_pixels
 from appliance.logbook import messages as m
 from appliance.logbook import topics as t
 from appliance.logbook.reader import LogMessage, LogReader
@@ -131,7 +131,7 @@ class SessionCollector:
             elif msg.topic == t.IMAGE:
                 jpeg = bytes(msg.decode().data)
                 check_image_pixels(jpeg, f"{msg.topic} at {msg.log_time_ns} ns")
-                img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+                img = cv2.imdecode(np.frombuffer(bounded_png(jpeg), np.uint8), cv2.IMREAD_COLOR)
                 if img is None:
                     self.undecodable += 1
                     return

@@ -5,10 +5,16 @@ truncated anywhere yields every message of every complete chunk before the cut. 
 the first unreadable byte depends on the :class:`~appliance.errors.ErrorPolicy`: ``RAISE`` raises
 :class:`LogError` naming the offset; ``SKIP`` ends the iteration there and records the problem in
 ``reader.problem`` (``reader.complete`` is False); ``LOG`` does the same and logs a warning.
+
+A damaged or hostile file cannot make the reader allocate more than it holds: a record is at most
+:data:`MAX_RECORD_BYTES` long and never longer than the file (mcap's own ``record_size_limit``), a
+length inside a record reads from the file's bytes and ends at their end, and a chunk is decompressed
+(:func:`chunk_records`) into at most the size it declares, itself at most :data:`MAX_CHUNK_BYTES`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -18,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import lz4.frame
 import zstandard
 from google.protobuf.message import DecodeError
 from mcap.exceptions import EndOfFile, McapError
@@ -34,7 +41,51 @@ from appliance.logbook.topics import JSON_SCHEMA_KEY
 log = logging.getLogger(__name__)
 
 # What a corrupt or truncated byte stream raises inside mcap's reader (CRC errors are ValueErrors).
-_CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError)
+_CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError, LogError,
+               OverflowError)
+#: The longest record a log may hold (a chunk, an attachment): a session's chunks are 256 KiB, a
+#: camera frame a few MiB.
+MAX_RECORD_BYTES = 256 << 20
+#: The largest size a chunk may declare for its records, uncompressed.
+MAX_CHUNK_BYTES = 256 << 20
+
+
+def chunk_records(chunk: Chunk) -> list[Any]:
+    """The records a chunk holds, its CRC checked; :class:`LogError` where it declares more than
+    :data:`MAX_CHUNK_BYTES` uncompressed, decompresses to another size (never past the declared one),
+    or holds a record that runs past its end."""
+    size = chunk.uncompressed_size
+    if size > MAX_CHUNK_BYTES:
+        raise LogError(f"a chunk declaring {size} bytes uncompressed, more than the {MAX_CHUNK_BYTES >> 20} MiB "
+                       "a chunk may hold")
+    if chunk.compression == "zstd":
+        with zstandard.ZstdDecompressor().stream_reader(chunk.data) as stream:
+            data = _read_up_to(stream.read, size + 1)
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise LogError(f"a chunk compressed with unknown {chunk.compression[:40]!r}")
+    if len(data) != size:
+        got = f"more than {size}" if len(data) > size else str(len(data))
+        raise LogError(f"a chunk declaring {size} bytes uncompressed holds {got}")
+    try:
+        return breakup_chunk(dataclasses.replace(chunk, compression="", data=data), validate_crc=True)
+    except EndOfFile:
+        raise LogError("a record runs past the end of its chunk") from None
+
+
+def _read_up_to(read: Callable[[int], bytes], limit: int) -> bytes:
+    parts: list[bytes] = []
+    total = 0
+    while total < limit:
+        part = read(limit - total)
+        if not part:
+            break
+        parts.append(part)
+        total += len(part)
+    return b"".join(parts)
 
 
 @dataclass(frozen=True)
@@ -155,21 +206,23 @@ class LogReader:
 
     def messages(self) -> Iterator[LogMessage]:
         stream = io.BytesIO(self._data)
-        reader = StreamReader(stream, emit_chunks=True, validate_crcs=True, record_size_limit=self.size_bytes)
+        reader = StreamReader(stream, emit_chunks=True, validate_crcs=True,
+                              record_size_limit=min(self.size_bytes, MAX_RECORD_BYTES))
         records = reader.records
         offset = 0
         while True:
             try:
                 offset = stream.tell()
                 record = next(records)
-                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
+                inner = chunk_records(record) if isinstance(record, Chunk) else [record]
             except StopIteration:
                 break
             except EndOfFile:
                 self._stop(offset, "file ends before its footer (truncated)")
                 return
             except _CORRUPTION as exc:
-                self._stop(offset, f"unreadable record at byte {offset}: {exc}")
+                why = "a length no file can hold" if isinstance(exc, OverflowError) else str(exc) or type(exc).__name__
+                self._stop(offset, f"unreadable record at byte {offset}: {why}")
                 return
             for rec in inner:
                 msg = self._take(rec)

@@ -44,12 +44,12 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import MCAP0_MAGIC, CompressionType
 from mcap.writer import Writer as McapWriter
 
 from appliance.atomic import atomic_output, check_output_path
 from appliance.errors import LogError
+from appliance.logbook.reader import chunk_records
 from appliance.logbook.sink import DurableFile
 from appliance.logbook.writer import LIBRARY, PROFILE, remove_stale_reserves
 
@@ -63,7 +63,7 @@ _KINDS: dict[int, Any] = {
 }
 # What a corrupt record raises inside mcap's record parsers (CRC errors are ValueErrors).
 _CORRUPTION = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError,
-               UnicodeDecodeError, EOFError, IndexError, OverflowError)
+               UnicodeDecodeError, EOFError, IndexError, OverflowError, LogError)
 _HEAD = 9  # opcode (1 byte) and length (8 bytes, little-endian)
 
 
@@ -119,7 +119,7 @@ def _record_at(data: bytes, pos: int) -> tuple[Any, list[Any], int] | None:
         record = kind.read(stream, length) if kind is Message else kind.read(stream)
         if body.tell() != length:
             return None
-        inner = breakup_chunk(record, validate_crc=True) if kind is Chunk else [record]
+        inner = chunk_records(record) if kind is Chunk else [record]
     except _CORRUPTION:
         return None
     return record, inner, end

@@ -2,14 +2,21 @@
 
 Every ``write`` hands the whole buffer to the kernel (looping over short writes) before it
 returns, so the MCAP writer's record batches land whole or raise; ``committed`` is the offset
-after the last ``write`` that completed, always a record boundary.  ``sync`` makes everything
-written durable (fsync).  After a failed write (a full disk) ``truncate(committed)`` removes the
-torn tail.
+after the last ``write`` that completed, always a record boundary, and ``crc`` the CRC-32 of the
+bytes before it (the data section's CRC, were the data section to end there).  ``sync`` makes
+everything written durable (fsync).
+
+A full disk.  ``hold(n)`` writes ``n`` zero bytes past the end without moving it: the next writes
+overwrite them, and until then they hold the room the log's closing records need, on a full disk
+and under a per-file size limit alike.  ``end_at(offset, data)`` overwrites the file from ``offset``
+with ``data`` and cuts it there (the torn tail of a failed write removed): within bytes already
+held, it needs no new room.
 """
 
 from __future__ import annotations
 
 import os
+import zlib
 from pathlib import Path
 from typing import Protocol
 
@@ -21,6 +28,7 @@ class Sink(Protocol):
     """What :class:`appliance.logbook.writer.Logbook` needs from its file."""
 
     committed: int
+    crc: int
 
     def write(self, data: bytes | bytearray | memoryview) -> int: ...
 
@@ -30,7 +38,9 @@ class Sink(Protocol):
 
     def sync(self) -> None: ...
 
-    def truncate(self, offset: int) -> None: ...
+    def hold(self, size: int) -> None: ...
+
+    def end_at(self, offset: int, data: bytes) -> None: ...
 
     def close(self) -> None: ...
 
@@ -52,6 +62,7 @@ class DurableFile:
             raise LogError(f"{self.path}: cannot create log file: {exc.strerror}") from None
         self._pos = 0
         self.committed = 0
+        self.crc = 0
         fsync_folder(self.path.parent)
 
     @property
@@ -68,6 +79,7 @@ class DurableFile:
             self._pos += n
             view = view[n:]
         self.committed = self._pos
+        self.crc = zlib.crc32(data, self.crc)
         return total
 
     def tell(self) -> int:
@@ -79,10 +91,22 @@ class DurableFile:
     def sync(self) -> None:
         os.fsync(self.fd)
 
-    def truncate(self, offset: int) -> None:
-        os.ftruncate(self.fd, offset)
-        os.lseek(self.fd, offset, os.SEEK_SET)
-        self._pos = self.committed = offset
+    def hold(self, size: int) -> None:
+        self._write_at(self._pos, bytes(size))
+
+    def end_at(self, offset: int, data: bytes) -> None:
+        self._write_at(offset, data)
+        end = offset + len(data)
+        os.ftruncate(self.fd, end)
+        os.lseek(self.fd, end, os.SEEK_SET)
+        self._pos = self.committed = end
+
+    def _write_at(self, offset: int, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            n = os.pwrite(self.fd, view, offset)
+            offset += n
+            view = view[n:]
 
     def close(self) -> None:
         if self._fd is not None:

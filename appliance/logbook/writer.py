@@ -6,10 +6,14 @@ the logbook calls it itself when ``fsync_interval_s`` has passed since the last 
 cut loses at most that much: the file then reads (with :class:`appliance.logbook.reader.LogReader`
 or ``viper log recover``) up to its last flush.
 
-Full disk.  A write that fails with ENOSPC (or EDQUOT) cuts the torn tail off at the last complete
-record, frees a small reserve file kept beside the log, and closes the data section with an empty
-summary (DataEnd, Footer, magic): a valid MCAP file holding everything written before the failure.
-The logbook then refuses further writes and raises :class:`LogbookFullError`.
+Full disk.  A write that fails with ENOSPC (or EDQUOT, or EFBIG under a file size limit) cuts the
+torn tail off at the last complete record, frees a small reserve file kept beside the log, and closes
+the data section with an empty summary (DataEnd with the data section's CRC, Footer, magic): a valid
+MCAP file holding everything written before the failure.  Every flush also holds the room for those
+closing records (50 bytes, zeros) past the end of the log, so that where the freed reserve gives the
+log no room (a per-file limit, a disk filled again by another writer) the log is still closed after
+its last flush, overwriting bytes it already has.  The logbook then refuses further writes and raises
+:class:`LogbookFullError` (a full disk) or :class:`LogError`.
 
 Encoding.  ``encoding`` chooses the messages: Foxglove's protobuf schemas (the default), or standard
 ROS 2 messages in CDR (:mod:`appliance.logbook.ros2`), the JSON records then as ``std_msgs/msg/String``
@@ -55,6 +59,16 @@ PROFILE = "viper"
 PROFILES = {LogEncoding.PROTOBUF: PROFILE, LogEncoding.ROS2: "ros2"}
 LIBRARY = "viper-appliance logbook"
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+
+def _closing_records(data_section_crc: int) -> bytes:
+    """What closes a log's data section with an empty summary: DataEnd, Footer and the magic."""
+    builder = RecordBuilder()
+    DataEnd(data_section_crc=data_section_crc).write(builder)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+    return bytes(builder.end()) + MCAP0_MAGIC
+
+
+CLOSING_BYTES = len(_closing_records(0))
 COMPRESSIONS = {Compression.ZSTD: CompressionType.ZSTD, Compression.LZ4: CompressionType.LZ4,
                 Compression.NONE: CompressionType.NONE}
 
@@ -112,6 +126,11 @@ class Logbook:
         self.messages_durable = 0
         self.flushes = 0
         self.seal_problem: str | None = None
+        #: where the log can be closed in place: the offset after the last flush (its closing records'
+        #: room held), the data section's CRC there and the messages before it
+        self._sealable: tuple[int, int, int] | None = None
+        #: the offset after the last chunk written whole, and the messages before it
+        self._written_through = (0, 0)
         if reserve_path is not None:
             self._make_reserve(reserve_path, reserve_bytes)
         self._writer = McapWriter(
@@ -242,11 +261,17 @@ class Logbook:
     def flush(self) -> None:
         """Close the chunk in progress, write it and fsync: everything written so far is durable."""
         self._require_open()
-        self._guarded(self._writer.flush)
-        self._guarded(self._sink.sync)
-        self.messages_durable = self.messages_written
+        self._flush()
         self.flushes += 1
         self._last_flush = self._clock()
+
+    def _flush(self) -> None:
+        self._guarded(self._writer.flush)
+        self._written_through = (self._sink.committed, self.messages_written)
+        self._guarded(lambda: self._sink.hold(CLOSING_BYTES))
+        self._guarded(self._sink.sync)
+        self.messages_durable = self.messages_written
+        self._sealable = (self._sink.committed, self._sink.crc, self.messages_durable)
 
     def maybe_flush(self) -> None:
         """Flush if ``fsync_interval_s`` has passed since the last flush."""
@@ -260,12 +285,11 @@ class Logbook:
         if self._state == "full":
             self._state = "closed"
             return
-        self._guarded(self._writer.flush)
-        self._guarded(self._sink.sync)
-        self.messages_durable = self.messages_written
-        data_end = self._sink.committed
-        self._guarded(self._writer.finish, rollback_to=data_end)
-        self._guarded(self._sink.sync, rollback_to=data_end)
+        self._flush()
+        self._guarded(self._writer.finish, at_last_flush=True)
+        # the summary may be shorter than the room held for the closing records: cut the file at its end
+        self._guarded(lambda: self._sink.end_at(self._sink.committed, b""), at_last_flush=True)
+        self._guarded(self._sink.sync, at_last_flush=True)
         self._sink.close()
         self._drop_reserve()
         self._state = "closed"
@@ -333,38 +357,48 @@ class Logbook:
         self.messages_written += 1
         self.maybe_flush()
 
-    def _guarded(self, action: Callable[[], Any], rollback_to: int | None = None) -> Any:
+    def _guarded(self, action: Callable[[], Any], at_last_flush: bool = False) -> Any:
         try:
             return action()
         except OSError as exc:
             full = exc.errno in _FULL_ERRNOS
-            sealed = self._seal(rollback_to)
+            sealed = self._seal(at_last_flush)
             self._state = "full" if full else "closed"
             what = "disk full" if full else f"write failed ({exc.strerror or exc})"
-            kept = (
-                f"sealed with {self.messages_durable} durable messages"
-                if sealed
-                else "left readable up to its last flush (run 'viper log recover')"
-            )
+            if sealed:
+                kept = f"sealed with {self.messages_durable} durable messages"
+            elif self._sealable is None:
+                kept = "closed before its first flush"
+            else:
+                kept = "left readable up to its last flush (run 'viper log recover')"
             cls = LogbookFullError if full else LogError
             raise cls(f"{self.name}: {what}; log {kept}") from None
 
-    def _seal(self, rollback_to: int | None) -> bool:
-        """Cut the torn tail and close the data section with an empty summary; True if it worked."""
+    def _seal(self, at_last_flush: bool) -> bool:
+        """Cut the torn tail and close the data section with an empty summary; True if it worked.
+
+        First after the last complete write (unless ``at_last_flush``), which needs up to 50 bytes
+        of new room (the freed reserve's, on a full disk); failing that, after the last flush, within
+        the room that flush held."""
         self._drop_reserve()
-        offset = self._sink.committed if rollback_to is None else rollback_to
+        committed = self._sink.committed
+        messages = self._written_through[1] if committed == self._written_through[0] else self.messages_durable
+        places = [] if at_last_flush else [(committed, self._sink.crc, messages)]
+        if self._sealable is not None and self._sealable not in places:
+            places.append(self._sealable)
         try:
-            self._sink.truncate(offset)
-            if offset == 0:
-                return False
-            builder = RecordBuilder()
-            DataEnd(data_section_crc=0).write(builder)
-            Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
-            self._sink.write(builder.end() + MCAP0_MAGIC)
-            self._sink.sync()
-            return True
-        except OSError as exc:
-            self.seal_problem = str(exc)
+            for offset, crc, messages in places:
+                if offset == 0:
+                    continue
+                try:
+                    self._sink.end_at(offset, _closing_records(crc))
+                    self._sink.sync()
+                except OSError as exc:
+                    self.seal_problem = str(exc)
+                    continue
+                self.messages_durable = messages
+                self.seal_problem = None
+                return True
             return False
         finally:
             try:

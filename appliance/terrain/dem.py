@@ -14,6 +14,7 @@ import hashlib
 import logging
 import math
 import re
+import tokenize
 import warnings
 import zipfile
 import zlib
@@ -278,9 +279,13 @@ def _check_raw_size(p: Path, ds: Any) -> None:
 
 
 def _load_npz(p: Path) -> Dem:
+    # zipfile raises NotImplementedError for a compression method, encryption or zip version it does not
+    # read and RuntimeError for an encrypted member; numpy's .npy header parser TokenError or SyntaxError for
+    # a header that is not a Python literal
     try:
         return _read_npz(p)
-    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, NotImplementedError, RuntimeError,
+            tokenize.TokenError, SyntaxError) as exc:
         if isinstance(exc, DemError):
             raise
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
