@@ -4,6 +4,7 @@ credible region's modes, the covariance in metres, and the fix that carries them
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -138,12 +139,20 @@ def test_the_fix_carries_the_covariance_and_the_altitude(dem, window_db):
     assert rec["status"] == "ok" and rec["truth"]["error_m"] < rec["radius95_m"] + 5.0
 
 
+def _fixture_skyline(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """A measured skyline kept in tests/data (azimuth_deg,elevation_deg rows under four comment and header
+    lines) on the whole-degree azimuths, NaN where nothing was measured."""
+    rows = np.loadtxt(Path(__file__).parent / "data" / name, delimiter=",", comments="#", skiprows=4)
+    az = np.arange(360.0)
+    el = np.full(360, np.nan)
+    el[np.round(rows[:, 0]).astype(int) % 360] = rows[:, 1]
+    return az, el
+
+
 def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_place(tmp_path):
     """A camera in a forest clearing sees treetops over much of its skyline; fitted as terrain, the
     skyline matches a place 280 m away with the compass's error at its bound.  Searched again with half of
     the skyline allowed to stand above the map, the best place moves: the answer is ambiguous, never ok."""
-    from pathlib import Path
-
     from appliance.estimator import estimate
     from appliance.locating.position import place, skyline_grid, truth_error_m
     from appliance.terrain.database import build_database, load_database
@@ -153,11 +162,7 @@ def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_plac
     path = tmp_path / "forest.viperdb"
     build_database(tile, path, search_bounds=(-71.35, 44.20, -71.20, 44.35), progress=None)
     db = load_database(path, tile)
-    rows = np.loadtxt(Path(__file__).parent / "data" / "forest_clearing_skyline.csv", delimiter=",", comments="#",
-                      skiprows=4)
-    az = np.arange(360.0)
-    el = np.full(360, np.nan)
-    el[np.round(rows[:, 0]).astype(int) % 360] = rows[:, 1]
+    az, el = _fixture_skyline("forest_clearing_skyline.csv")
     res = estimate(skyline_grid(db), az, el)
     truth = (44.21750349, -71.27563203)
     pos = place(db, res)
@@ -174,8 +179,6 @@ def test_a_clean_skyline_is_not_lost_to_a_place_that_fits_it_poorly_everywhere(d
     whose place lies between nodes where the skyline swings by degrees: the search at the default interval
     (0.3-0.8 deg) weighs every azimuth loosely and settles 16 km away on a fit of 0.4 deg RMS, which used to say
     ok.  Searched again narrower, the true place fits to the noise and is the answer."""
-    from pathlib import Path
-
     from appliance.estimator import estimate
     from appliance.locating.position import place, skyline_grid, truth_error_m
     from appliance.terrain.database import build_database, load_database
@@ -183,11 +186,7 @@ def test_a_clean_skyline_is_not_lost_to_a_place_that_fits_it_poorly_everywhere(d
     path = tmp_path / "north.viperdb"
     build_database(dem, path, search_bounds=(-84.40, 36.58, -84.20, 36.74), progress=None)
     db = load_database(path, dem)
-    rows = np.loadtxt(Path(__file__).parent / "data" / "cumulus_skyline.csv", delimiter=",", comments="#",
-                      skiprows=4)
-    az = np.arange(360.0)
-    el = np.full(360, np.nan)
-    el[np.round(rows[:, 0]).astype(int) % 360] = rows[:, 1]
+    az, el = _fixture_skyline("cumulus_skyline.csv")
     truth = (36.711339, -84.254391)
     grid = skyline_grid(db)
     res = estimate(grid, az, el)
