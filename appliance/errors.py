@@ -8,6 +8,7 @@ single line on stderr and a non-zero exit status.
 from __future__ import annotations
 
 import enum
+from typing import TypeVar
 
 
 class ViperError(Exception):
@@ -75,3 +76,18 @@ class ErrorPolicy(enum.Enum):
     RAISE = "raise"
     LOG = "log"
     SKIP = "skip"
+
+
+E = TypeVar("E", bound=enum.Enum)
+
+
+def enum_member(cls: type[E], name: str | E, what: str) -> E:
+    """``name`` as a member of ``cls`` (a member passes as it is), or an :class:`InputError` naming
+    ``what`` and every value ``cls`` holds."""
+    if isinstance(name, cls):
+        return name
+    try:
+        return cls(name)
+    except ValueError:
+        names = ", ".join(str(m.value) for m in cls)
+        raise InputError(f"{what} {name!r} unknown; expected one of {names}") from None

@@ -36,7 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from appliance.errors import InputError
+from appliance.errors import enum_member
 from appliance.vision.camera import CameraPose, directions_to_pixels, pixels_to_directions
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama, Projection, full_circle_width
@@ -60,13 +60,7 @@ class SkyCondition(enum.Enum):
 
     @classmethod
     def parse(cls, name: str | SkyCondition) -> SkyCondition:
-        if isinstance(name, SkyCondition):
-            return name
-        try:
-            return cls(name)
-        except ValueError:
-            names = ", ".join(c.value for c in cls)
-            raise InputError(f"weather class {name!r} unknown; expected one of {names}") from None
+        return enum_member(cls, name, "weather class")
 
 
 @dataclass(frozen=True)

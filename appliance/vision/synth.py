@@ -20,7 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from appliance.errors import InputError
+from appliance.errors import InputError, enum_member
 from appliance.skyline import Skyline
 from appliance.terrain.horizon import render_skyline
 from appliance.vision.camera import CameraPose, pixels_to_directions
@@ -49,13 +49,7 @@ class Weather(enum.Enum):
 
     @classmethod
     def parse(cls, name: str | Weather) -> Weather:
-        if isinstance(name, Weather):
-            return name
-        try:
-            return cls(name)
-        except ValueError:
-            names = ", ".join(w.value for w in cls)
-            raise InputError(f"weather {name!r} unknown; expected one of {names}") from None
+        return enum_member(cls, name, "weather")
 
     @property
     def clouds(self) -> bool:
