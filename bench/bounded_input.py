@@ -178,12 +178,16 @@ HOSTILE_MCAP: dict[str, tuple[Callable[[], bytes], str]] = {
                                     r"unreadable record at byte 35: ATTACHMENT record has length 4611686018427387904"),
     "mcap-attachment-data-2e62": (lambda: _record(0x09, struct.pack("<QQ", 0, 0) + struct.pack("<I", 1) + b"a"
                                                   + struct.pack("<I", 1) + b"b" + struct.pack("<Q", 2**62)
-                                                  + bytes(16)), r"file ends before its footer"),
+                                                  + bytes(16)),
+                                  r"unreadable record at byte 35: a length of 4611686018427387904 bytes, more than the "
+                                  r"file's \d+"),
     "mcap-chunk-data-2e64": (lambda: _record(0x06, struct.pack("<QQQI", 0, 0, 10, 0) + struct.pack("<I", 0)
                                              + struct.pack("<Q", 2**64 - 1) + bytes(10)),
-                             r"unreadable record at byte 35: a length no file can hold"),
+                             r"unreadable record at byte 35: a length of 18446744073709551615 bytes, more than the "
+                             r"file's \d+"),
     "mcap-string-beyond-file": (lambda: _record(0x03, struct.pack("<HI", 1, 2**31) + b"abc"),
-                                r"file ends before its footer"),
+                                r"unreadable record at byte 35: a length of 2147483648 bytes, more than the "
+                                r"file's \d+"),
     "mcap-chunk-declaring-2e62": (lambda: _record(0x06, _chunk("zstd", b"", 2**62)),
                                   r"unreadable record at byte 35: a chunk declaring 4611686018427387904 bytes "
                                   r"uncompressed, more than the 256 MiB a chunk may hold"),

@@ -342,3 +342,28 @@ def _chunk_ends(data: bytes) -> list[int]:
                 break
             last, pos = record, f.tell()
     return ends
+
+
+def test_a_sparse_log_of_gigabytes_is_read_as_far_as_it_holds_records(tmp_path):
+    """A log whose file runs on in zeros for 6 GiB (a sparse file: a disk image, a flush's room never written)
+    is read record by record from the file, not into memory: `log info` under a 1 GiB address-space limit
+    stops at the zeros at once, in one line, and says where."""
+    src = tmp_path / "short.mcap"
+    lb = Logbook.create(src, reserve_bytes=0)
+    lb.close()
+    data = src.read_bytes()
+    header_end = 8 + 9 + int.from_bytes(data[9:17], "little")  # the magic, then the header record
+    sparse = tmp_path / "sparse.mcap"
+    with open(sparse, "wb") as f:
+        f.write(data[:header_end])
+        f.truncate(6 << 30)
+    limit = 1 << 30
+    code = (f"import resource, sys; resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit})); "
+            "from appliance.cli.main import main; sys.exit(main(['log', 'info', sys.argv[1]]))")
+    out = subprocess.run([sys.executable, "-c", code, str(sparse)], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 1, out.stderr
+    first = out.stdout.splitlines()[0]
+    assert first.startswith(f"{sparse}: {6 << 30} bytes, 0 messages, INCOMPLETE: zeros where a record should "
+                            f"start at byte {header_end}")
+    assert "Traceback" not in out.stderr

@@ -1,14 +1,17 @@
 """Reading a log, complete or cut short by a power cut, a kill or a full disk.
 
-:class:`LogReader` reads the file sequentially (it never needs the summary), so a log that was
-truncated anywhere yields every message of every complete chunk before the cut.  What happens at
+:class:`LogReader` reads the file sequentially, record by record from the file (it never needs the
+summary, and never holds more than a chunk in memory), so a log that was truncated anywhere yields
+every message of every complete chunk before the cut.  Zeros where a record should start (the room a
+flush holds past the log's end, a sparse file) end the log there.  What happens at
 the first unreadable byte depends on the :class:`~appliance.errors.ErrorPolicy`: ``RAISE`` raises
 :class:`LogError` naming the offset; ``SKIP`` ends the iteration there and records the problem in
 ``reader.problem`` (``reader.complete`` is False); ``LOG`` does the same and logs a warning.
 
 A damaged or hostile file cannot make the reader allocate more than it holds: a record is at most
 :data:`MAX_RECORD_BYTES` long and never longer than the file (mcap's own ``record_size_limit``), a
-length inside a record reads from the file's bytes and ends at their end, and a chunk is decompressed
+length inside a record longer than the whole file is refused before anything is read for it, one that
+runs past the file's end ends the log there, and a chunk is decompressed
 (:func:`chunk_records`) into at most the size it declares, itself at most :data:`MAX_CHUNK_BYTES`.
 """
 
@@ -18,11 +21,12 @@ import dataclasses
 import io
 import json
 import logging
+import os
 import struct
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 import lz4.frame
 import zstandard
@@ -174,6 +178,28 @@ def _decode_errors(name: str, decoder: Callable[[bytes], Any]) -> Callable[[byte
     return decode
 
 
+class _FileStream:
+    """The log file as the MCAP reader reads it: no read asks for more than is left of the file's
+    ``size`` bytes (a file cut short then ends as such), and a length longer than the whole file, forged
+    inside a record (an attachment's data, a string, a chunk's records), is a :class:`LogError`: nothing
+    is allocated for it."""
+
+    def __init__(self, fh: io.BufferedReader, size: int) -> None:
+        self._fh, self._size = fh, size
+
+    def read(self, n: int = -1) -> bytes:
+        if n is not None and n > self._size:
+            raise LogError(f"a length of {n} bytes, more than the file's {self._size}")
+        left = max(self._size - self._fh.tell(), 0)
+        return self._fh.read(left if n is None or n < 0 else min(n, left))
+
+    def tell(self) -> int:
+        return self._fh.tell()
+
+    def peek(self, n: int) -> bytes:
+        return self._fh.peek(n)[:n]
+
+
 class LogReader:
     """Sequential reader of one MCAP log.  Iterate :meth:`messages` once; then read the outcome.
 
@@ -193,26 +219,39 @@ class LogReader:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.metadata: dict[str, dict[str, str]] = {}
+        with self._open() as fh:
+            self.size_bytes = os.fstat(fh.fileno()).st_size
+
+    def _open(self) -> io.BufferedReader:
+        """The log opened for reading (a regular file), or :class:`LogError` in one line."""
         try:
-            with open_regular(self.path, "log", LogError) as fh:
-                self._data = fh.read()
+            return open_regular(self.path, "log", LogError)
         except FileNotFoundError:
             raise LogError(f"{self.path}: log file not found") from None
         except LogError:
             raise
         except OSError as exc:
             raise LogError(f"{self.path}: cannot read log: {exc.strerror}") from None
-        self.size_bytes = len(self._data)
 
     def messages(self) -> Iterator[LogMessage]:
-        stream = io.BytesIO(self._data)
-        reader = StreamReader(stream, emit_chunks=True, validate_crcs=True,
+        """The log's messages in file order, read record by record from the file (a chunk at a time
+        in memory, never the whole log)."""
+        with self._open() as fh:
+            yield from self._messages(_FileStream(fh, self.size_bytes))
+
+    def _messages(self, stream: _FileStream) -> Iterator[LogMessage]:
+        reader = StreamReader(cast(IO[bytes], stream), emit_chunks=True, validate_crcs=True,
                               record_size_limit=min(self.size_bytes, MAX_RECORD_BYTES))
         records = reader.records
         offset = 0
         while True:
             try:
                 offset = stream.tell()
+                if stream.peek(1)[:1] == b"\x00":
+                    # no record starts with opcode 0: zeros past the last write (a flush's held room, a
+                    # sparse file), read as the log's end rather than walked nine bytes at a time
+                    self._stop(offset, f"zeros where a record should start at byte {offset} (truncated)")
+                    return
                 record = next(records)
                 inner = chunk_records(record) if isinstance(record, Chunk) else [record]
             except StopIteration:
