@@ -70,10 +70,10 @@ OCCLUSION_AGAIN_RATIO = 2.0
 #: A search whose heading correction reached the compass's tolerance is made again with a tolerance
 #: this much (deg) wider.
 HEADING_WIDEN_DEG = 3.0
-#: A best fit left with an RMS residual above this share of the search's lower sigma is searched again
-#: with the occluders' share at its most (MAX_OCCLUDED_SHARE): a skyline raised by trees the map lacks
-#: can be fitted, poorly, as terrain somewhere else.
-OCCLUSION_CHECK_RATIO = 1.0
+#: A best fit left with an RMS residual above this share of the search's lower sigma is poor: it is
+#: searched again with the occluders' share at its most (MAX_OCCLUDED_SHARE), since a skyline raised by
+#: trees the map lacks can be fitted, poorly, as terrain somewhere else ...
+POOR_FIT_RATIO = 1.0
 #: ... and with the interval narrowed to [NARROW_SHARE, 1] times that lower sigma: a wide interval weighs
 #: every azimuth loosely, and a place whose skyline fits to a tenth of it can lose the search to one that
 #: fits poorly everywhere.  The two best fits are compared with each one's occluded azimuths counted at
@@ -211,17 +211,21 @@ def estimate(
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
         search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
         res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
-    if again and res.sigma_learned and res.rms_residual_deg > OCCLUSION_CHECK_RATIO * float(sigma_deg[0]):
+    if again and res.sigma_learned and _poor_fit(res, sigma_deg):
         res = _narrowed(grid, azimuth_deg, elevation_deg, res, (NARROW_SHARE * float(sigma_deg[0]),
                                                                 float(sigma_deg[0])), search)
     if again and res.heading_at_limit and heading_tolerance_deg is not None:
         res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
             heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
-    if (again and not res.ambiguous and search.occlusion_weight < MAX_OCCLUDED_SHARE
-            and res.rms_residual_deg > OCCLUSION_CHECK_RATIO * float(sigma_deg[0])):
+    if again and not res.ambiguous and search.occlusion_weight < MAX_OCCLUDED_SHARE and _poor_fit(res, sigma_deg):
         res = _occluders_checked(grid, azimuth_deg, elevation_deg, res,
                                  replace(search, occlusion_weight=MAX_OCCLUDED_SHARE))
     return replace(res, elapsed_s=time.perf_counter() - t0)
+
+
+def _poor_fit(res: EstimateResult, sigma_deg: tuple[float, float]) -> bool:
+    """Whether ``res``'s best fit stays above the noise the search assumed (POOR_FIT_RATIO)."""
+    return res.rms_residual_deg > POOR_FIT_RATIO * float(sigma_deg[0])
 
 
 def _narrowed(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,

@@ -217,16 +217,6 @@ def _periodic_knots(xp: np.ndarray, fp: np.ndarray, period: float) -> tuple[np.n
     return np.concatenate((xp[-1:] - period, xp, xp[0:1] + period)), np.concatenate((fp[-1:], fp, fp[0:1]))
 
 
-def periodic_interp(x: np.ndarray, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
-    """``np.interp(x, xp, fp, period=period)`` for any shape of ``x``: the same numbers, compiled
-    (:func:`_interp_points`), without the temporaries of ``x``'s size."""
-    xk, fk = _periodic_knots(xp, fp, period)
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    out = np.empty_like(x)
-    _interp_points(x.ravel(), xk, fk, float(period), out.ravel())
-    return out
-
-
 def turned_interp(turn: np.ndarray, n: int, xp: np.ndarray, fp: np.ndarray, period: float) -> np.ndarray:
     """``np.interp(((np.arange(n)[None, :] + turn[:, None]) % n) * (period / n), xp, fp,
     period=period)``: the same numbers (one row per turn, in steps of the ``n`` azimuths), compiled."""

@@ -100,16 +100,15 @@ def _band_max(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
     return out
 
 
-def _chroma_luma(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    f = _to_float(img8)
+def _chroma_luma(f: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The blurred blue minus red and the luminance of the float image ``f`` (whose luminance is ``lum``), float32."""
     chroma = cv2.GaussianBlur(f[..., 0] - f[..., 2], (0, 0), sigmaX=2.0, sigmaY=0.7)
-    return np.asarray(chroma, dtype=np.float32), np.asarray(_luma(f), dtype=np.float32)
+    return np.asarray(chroma, dtype=np.float32), np.asarray(lum, dtype=np.float32)
 
 
-def snowy_ground_share(img8: np.ndarray, rows: np.ndarray) -> float:
-    """The share of the pixels 4-40 rows below ``rows`` (columns with a row) that are bright and neutral."""
-    f = _to_float(img8)
-    lum = _luma(f)
+def snowy_ground_share(f: np.ndarray, lum: np.ndarray, rows: np.ndarray) -> float:
+    """The share of the pixels 4-40 rows below ``rows`` (columns with a row) that are bright and neutral, in
+    the float image ``f`` whose luminance is ``lum``."""
     chroma = f[..., 0] - f[..., 2]
     h = lum.shape[0]
     rr = np.arange(h)[:, None]
@@ -121,11 +120,10 @@ def snowy_ground_share(img8: np.ndarray, rows: np.ndarray) -> float:
     return float(snow[sel].mean())
 
 
-def snow_score(img8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel: the sky/snow boundary's score in [0, 1] (the colour step times the brightness
-    rise, where nothing below is as blue as the sky and the ground is not darker), and whether the
-    colour conditions hold at all (``ok``)."""
-    chroma, lum = _chroma_luma(img8)
+def snow_score(chroma: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, from the blurred blue minus red and the luminance (:func:`_chroma_luma`): the sky/snow
+    boundary's score in [0, 1] (the colour step times the brightness rise, where nothing below is as blue
+    as the sky and the ground is not darker), and whether the colour conditions hold at all (``ok``)."""
     h, w = chroma.shape
     lum_h = cv2.blur(lum, (5, 1))
     ca, cb = _band_mean(chroma, -8, -3), _band_max(chroma, 3, 8)
@@ -212,19 +210,20 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     snowy or too few candidates are trusted to learn sky and snow from (the brightness drop then
     finds the skyline: snow darker than the sky)."""
     h, w = img8.shape[:2]
-    if snowy_ground_share(img8, rows) < SNOWY_SHARE:
+    f = _to_float(img8)
+    luma = _luma(f)
+    if snowy_ground_share(f, luma, rows) < SNOWY_SHARE:
         return None
-    score, _ = snow_score(img8)
+    chroma, lum = _chroma_luma(f, luma)
+    score, _ = snow_score(chroma, lum)
     cand, _ = snow_candidates(score)
     trusted = _agree_with_neighbours(cand, wrap)
-    chroma, lum = _chroma_luma(img8)
     placed = place_rows(lum, np.where(trusted, cand, np.nan))
     line = np.where(np.isfinite(rows), rows, -10.0 * h)
     trusted &= np.isfinite(placed) & (~found | (np.nan_to_num(placed, nan=0.0) < line - STEP_ABOVE_PX))
     if trusted.sum() < max(MIN_TRUSTED, TRUSTED_SHARE * w):
         return None
-    f = _to_float(img8)
-    feats = _features(f, _texture(_luma(f)))
+    feats = _features(f, _texture(luma))
     rr = np.arange(h)[:, None]
     t = np.where(trusted, placed, -10.0 * h)[None, :]
     sky = feats[(rr >= t - SKY_ROWS[1]) & (rr <= t - SKY_ROWS[0])]
