@@ -31,6 +31,7 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import geodesic_distance_m  # noqa: E402
+from appliance.estimator import confidence  # noqa: E402
 from appliance.locating.surface_fit import SCREEN_PLACES, SURFACE_PLACES  # noqa: E402
 from appliance.locating.tile_cache import SearchParams  # noqa: E402
 from appliance.locating.tiled_index import box_around, open_surface, open_tiled  # noqa: E402
@@ -60,6 +61,16 @@ def measured(dem, lat: float, lon: float, max_range_m: float, rng: np.random.Gen
     truth = render_skyline(dem, lat, lon, HEIGHT_M, az, max_range_m).elevation_deg
     el = np.interp((az + err) % 360.0, az, truth, period=360.0) + rng.normal(0.0, NOISE_DEG, az.size)
     return Skyline(az, el)
+
+
+def in_ellipse(pos, lat: float, lon: float, body) -> bool:
+    """Whether the truth (lat, lon) lies inside the answer's 95 % covariance ellipse (False without one)."""
+    cov = pos.tiled.covariance_m2
+    if cov is None or not np.all(np.isfinite(cov)):
+        return False
+    az, _, dist = body.geod.inv(pos.lon, pos.lat, lon, lat)
+    offset = np.array([dist * np.sin(np.radians(az)), dist * np.cos(np.radians(az))])
+    return confidence.inside_ellipse(offset, cov)
 
 
 def main() -> int:
@@ -108,9 +119,15 @@ def main() -> int:
         lons = rng.uniform(0.0, 360.0, args.positions)
         rows: list[dict] = []
 
+        # the earlier runs' sections (every "## " heading after this run's Build and Positions) stay below it
+        kept = out.read_text().splitlines() if out.exists() else []
+        at = next((i for i, line in enumerate(kept) if line.startswith("## ") and line not in
+                   ("## Build", "## Positions")), len(kept))
+        earlier = "\n".join(["", *kept[at:]]) if at < len(kept) else ""
+
         def write() -> None:
             write_text_atomic(out, report(rows, index, nodes, storage, stats, spacing, args, load_before,
-                                          surface is not None))
+                                          surface is not None) + earlier)
 
         skies = [measured(dem, float(lat), float(lon), index.max_range_m, np.random.default_rng(args.seed * 1000 + k))
                  for k, (lat, lon) in enumerate(zip(lats, lons))]
@@ -123,7 +140,7 @@ def main() -> int:
             r = locate_tiled(index, sky, PARAMS, box=box_around(float(lat), float(lon), args.box_km * 1e3, "moon"),
                              surface=surface)
             row["box"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
-                          r.tiled.ambiguous, len(r.tiled.tiles_searched))
+                          r.tiled.status() != "ok", len(r.tiled.tiles_searched), in_ellipse(r, lat, lon, dem.body))
             rows.append(row)
             print(k, "box", [round(v, 2) if isinstance(v, float) else v for v in row["box"]], flush=True)
             write()
@@ -133,7 +150,8 @@ def main() -> int:
             t0 = time.perf_counter()
             r = locate_tiled(index, skies[k], PARAMS, client=client, surface=surface)
             rows[k]["whole"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
-                                r.tiled.ambiguous, len(r.tiled.tiles_searched))
+                                r.tiled.status() != "ok", len(r.tiled.tiles_searched),
+                                in_ellipse(r, lat, lon, dem.body))
             print(k, "whole", [round(v, 2) if isinstance(v, float) else v for v in rows[k]["whole"]], flush=True)
             write()
     return 0
@@ -184,11 +202,18 @@ def report(rows: list[dict], index, nodes: int, storage: int, stats: dict, spaci
         err = np.array([g[0] for g in got])
         t = np.array([g[1] for g in got])
         within = float(np.mean(err <= cell2)) * 100.0
+        right = err <= cell2
+        ok = np.array([not g[2] for g in got])
+        ellipse = np.array([g[4] for g in got])
         lines += [f"### Located {name}", "",
-                  "| positions | within two cells | median error | max error | ambiguous | facets searched | "
-                  "time per estimate (median) |", "|---|---|---|---|---|---|---|",
+                  "| positions | within two cells | median error | max error | ambiguous | right and ok (of right) | "
+                  "wrong and ok (target 0) | truth in 95 % ellipse (right answers) | facets searched | "
+                  "time per estimate (median) |", "|---|---|---|---|---|---|---|---|---|---|",
                   f"| {len(got)} | {within:.0f} % | {np.median(err) / 1000:.2f} km | {err.max() / 1000:.1f} km | "
-                  f"{sum(g[2] for g in got)} | {int(np.median([g[3] for g in got]))} | {np.median(t):.1f} s |", ""]
+                  f"{int((~ok).sum())} | {int((ok & right).sum())} of {int(right.sum())} | "
+                  f"{int((ok & ~right).sum())} | "
+                  f"{int((ellipse & right).sum())} of {int(right.sum())} | {int(np.median([g[3] for g in got]))} | "
+                  f"{np.median(t):.1f} s |", ""]
     lines += ["### Every position", "", "| lat | lon | skyline relief (deg) | box error (km) | whole-body error (km) |",
               "|---|---|---|---|---|"]
     for r in rows:

@@ -71,6 +71,17 @@ def test_the_credible_region_holds_its_level_and_splits_into_modes():
     assert split.rival_mass == pytest.approx(0.3, abs=0.03)
     rows, cols = np.divmod(split.rivals, n_cols)
     assert np.all(np.hypot(rows - 30, cols - 40) < 4)
+    # a far place holding less than the 5 % a 95 % region leaves out anyway is no rival, though the
+    # region (the most probable nodes first) takes its peak in
+    faint = (0.97 * near / near.sum() + 0.03 * far / far.sum()).ravel()
+    kept = confidence.modes(faint, n_rows, n_cols, 10.0, 12.0)
+    assert np.any(np.hypot(*np.divmod(kept.region, n_cols) - np.array([[30], [40]])) < 1.5)
+    assert kept.rivals.size == 0 and kept.rival_mass == 0.0
+    # more than that inside the region: a rival
+    rival = confidence.modes((0.92 * near / near.sum() + 0.08 * far / far.sum()).ravel(), n_rows, n_cols, 10.0, 12.0)
+    assert rival.rivals.size > 0 and 0.05 < rival.rival_mass <= 0.08
+    # a place within the answer's own ellipse (``reach_cells``) is its spread, not a rival
+    assert confidence.modes(two, n_rows, n_cols, 10.0, 12.0, reach_cells=40.0).rivals.size == 0
 
 
 def test_grid_covariance_turns_into_east_and_north():

@@ -16,6 +16,7 @@ import pytest
 from appliance.bodies import MOON, geodesic_distance_m
 from appliance.cli.main import main
 from appliance.errors import DatabaseError, InputError
+from appliance.estimator import confidence
 from appliance.locating.tile_cache import SearchParams
 from appliance.locating.tiled_index import TiledIndex, open_surface, open_tiled, select_tiles
 from appliance.locating.tiled_search import locate_tiled
@@ -326,6 +327,18 @@ def test_fit_on_the_maps_surface_finds_the_renderers_skyline_in_the_cap(moon, ca
         assert rec["surface_fit"]["places"] == res.tiled.fit.places >= 1
         assert rec["surface_fit"]["screened"] == res.tiled.fit.screened >= res.tiled.fit.places
         assert rec["status"] == ("ambiguous" if res.tiled.ambiguous else "ok")
+        # the noise learned from the fit on the map (0.2 deg read, the renderers' own difference
+        # besides) and the covariance at it, whose 99.9 % ellipse holds the truth (the renderers'
+        # difference moves the fit a little beyond what the residuals tell: bench/results/moon_whole_body.md
+        # gives the 95 % ellipse's share)
+        lo, hi, temper = res.tiled.noise
+        assert 0.1 < lo <= hi < 1.0 and 0.0 < temper <= 1.0
+        assert rec["covariance_m2"] == [[round(float(v), 4) for v in row] for row in res.tiled.fit.covariance_m2]
+        assert rec["radius95_m"] > 0.0
+        body = dem.body
+        az_deg, _, dist = body.geod.inv(res.lon, res.lat, lon, lat)
+        offset = dist * np.array([np.sin(np.radians(az_deg)), np.cos(np.radians(az_deg))])
+        assert confidence.inside_ellipse(offset, res.tiled.fit.covariance_m2, level=0.999)
 
 
 def test_fit_on_the_maps_surface_gives_the_same_answer_on_dask(moon, cap_db, client):

@@ -204,7 +204,8 @@ def _locate_tiled(args: argparse.Namespace, cfg: Any, skylines: list[tuple[str, 
         print(f"viper estimate: warning: {args.db}: estimates stay on the facets' grid, not fitted on the map's "
               f"own surface: {why_not}", file=sys.stderr)
     with _dask_client(args.scheduler, args.workers) as client:
-        return index, [locate_tiled(index, sky, params, box=box, client=client, source=name, surface=surface)
+        return index, [locate_tiled(index, sky, params, box=box, client=client, source=name, surface=surface,
+                                    sigma_floor_deg=cfg.sigma_floor_deg)
                        for name, sky in skylines]
 
 

@@ -169,11 +169,13 @@ class Modes:
 
 
 def modes(posterior: np.ndarray, n_rows: int, n_cols: int, row: float, col: float,
-          level: float = LEVEL, same_cells: float = 2.0) -> Modes:
+          level: float = LEVEL, same_cells: float = 2.0, reach_cells: float = 0.0) -> Modes:
     """The credible region of ``posterior`` (per node, sums to one) at ``level`` and its modes, the
     answer (fractional ``row``, ``col``) belonging to the mode nearest it.  A mode is a rival when
-    its nearest cell lies farther from the answer than ``same_cells`` and than twice the answer's
-    mode's spread (1 sigma along its major axis)."""
+    its nearest cell lies farther from the answer than ``same_cells``, than twice the answer's
+    mode's spread (1 sigma along its major axis) and than ``reach_cells`` (the answer's own
+    ellipse, where it is known), and the rivals together hold at least 1 - ``level`` of the
+    posterior."""
     region = credible_nodes(posterior, level)
     labels = mode_labels(region, n_rows, n_cols)
     r, c = np.divmod(region, n_cols)
@@ -187,10 +189,14 @@ def modes(posterior: np.ndarray, n_rows: int, n_cols: int, row: float, col: floa
     d = np.stack([mr - mean[0], mc - mean[1]])
     cov = (d * w) @ d.T + np.eye(2) / 12.0
     spread = math.sqrt(float(np.linalg.eigvalsh(cov)[-1]))
-    reach = max(same_cells, 2.0 * spread)
+    reach = max(same_cells, 2.0 * spread, reach_cells)
     rival_labels = [lab for lab in np.unique(labels) if lab != main_label
                     and float(np.min(dist[labels == lab])) > reach]
     rivals = region[np.isin(labels, rival_labels)]
+    if float(p[rivals].sum()) < 1.0 - level:
+        # places holding less than the level leaves out anyway: the answer's mode alone is a region
+        # at the level, and they are no rivals
+        rivals = rivals[:0]
     return Modes(region, main, rivals, float(p[main].sum()), float(p[rivals].sum()), cov)
 
 

@@ -141,6 +141,8 @@ class EstimateResult:
     heading_at_limit: bool = False
     #: the sigma interval the search was made with (deg)
     sigma_deg_searched: tuple[float, float] = (math.nan, math.nan)
+    #: the share of an independent azimuth each measured one counted for (1: as many as measured)
+    temper: float = 1.0
 
 
 def estimate(
@@ -161,6 +163,7 @@ def estimate(
     first: FirstPass | None = None,
     learn_noise: bool = True,
     sigma_floor_deg: float | None = None,
+    temper: float = 1.0,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -183,7 +186,9 @@ def estimate(
     likelihood by the skyline's share of independent azimuths (``confidence.py``); ``sigma_deg`` then
     only steers the search.  A search over several grids keeps one sigma for all (False).
     ``sigma_floor_deg`` is the least sigma learned (the calibrated sensor's; None: the database's
-    quantisation, ``confidence.SIGMA_FLOOR_DEG``).
+    quantisation, ``confidence.SIGMA_FLOOR_DEG``).  ``temper`` (0 < temper <= 1, with ``learn_noise``
+    False) is the share of an independent azimuth each measured one counts for, learned by an earlier
+    search: a search over several grids made again at the noise its first round's answer left.
 
     When the best fit leaves far more of the skyline to occluders than ``occlusion_weight`` says (a
     forest's edge, buildings), the search is made once more with the share it found.  When the sigma
@@ -198,7 +203,9 @@ def estimate(
                      min_field_of_view_deg=min_field_of_view_deg, refine=refine, height_m=height_m,
                      occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
                      position_prior=position_prior, rescore_floor=rescore_floor, first=first,
-                     learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg)
+                     learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg, temper=temper)
+    if not 0.0 < temper <= 1.0 or (learn_noise and temper != 1.0):
+        raise ValueError(f"temper {temper}: expected 0 < temper <= 1, and 1 where the noise is learned here")
     again = learn_noise and first is None and rescore_floor is None
     res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     lo, hi = res.sigma_deg
@@ -293,6 +300,7 @@ class _Search:
     first: FirstPass | None
     learn_noise: bool
     sigma_floor_deg: float | None
+    temper: float = 1.0
 
     @property
     def floor_deg(self) -> float:
@@ -366,16 +374,20 @@ def _searched(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndar
     # a uniform prior is a read-only view of one zero, not an array of the grid's size
     lp = (np.broadcast_to(0.0, (grid.codes.shape[0],)) if log_prior is None
           else np.asarray(log_prior, dtype=np.float64))
+    temper = search.temper
     if given and log_prior is None:
         # a first pass made earlier (a tiled search's floor) holds these bounds already; the
         # posteriors are made from them in place
         lo, up, scored = first.uniform_bounds()
-        bounds = (lo.copy(), up.copy(), scored)
-    else:
+        bounds = (lo.copy(), up.copy(), scored) if temper == 1.0 else (lo * temper, up * temper, scored)
+    elif temper == 1.0:
         bounds = first_pass_bounds(first.scores, meas, lp)
+    else:
+        lo, up, scored = first_pass_bounds(first.scores, meas)
+        bounds = (lo * temper + lp, up * temper + lp, scored)
     plausible = plausible_nodes(bounds, search.rescore_floor)
     rescored = rescore_nodes(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
-    post = posteriors(meas, lp, plausible, rescored)
+    post = posteriors(meas, lp, plausible, rescored, temper)
     answer = grid_answer(grid, meas, rescored, post)
     fits: list[Fit] = []
     best_fit: Fit | None = None
@@ -383,7 +395,7 @@ def _searched(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndar
     if search.refine:
         answer, fits, best_fit, notes = refined(grid, meas, lp, rescored, post, answer, heading_tolerance_deg,
                                                 search.height_m, search.position_prior)
-    return _Found(meas, first, lp, plausible, rescored, post, answer, fits, best_fit, notes)
+    return _Found(meas, first, lp, plausible, rescored, post, answer, fits, best_fit, notes, temper)
 
 
 def _with_learned_noise(grid: SkylineGrid, found: _Found, search: _Search) -> _Found:
@@ -422,6 +434,12 @@ def _result(grid: SkylineGrid, found: _Found, searched: Measurement, learned: bo
     conf = confidence.modes(post.posterior_mid, grid.n_rows, grid.n_cols, answer.row, answer.col,
                             same_cells=SAME_ANSWER_CELLS)
     cov_cells = answer_covariance(best_fit, meas, temper, conf)
+    if learned and np.all(np.isfinite(cov_cells)):
+        # a place inside the answer's own 95 % ellipse is the answer's spread, not a rival
+        reach = math.sqrt(confidence.chi2_2dof() * max(float(np.linalg.eigvalsh(cov_cells)[-1]), 0.0))
+        if conf.rivals.size and reach > SAME_ANSWER_CELLS:
+            conf = confidence.modes(post.posterior_mid, grid.n_rows, grid.n_cols, answer.row, answer.col,
+                                    same_cells=SAME_ANSWER_CELLS, reach_cells=reach)
     answer_node = nearest_node(grid, answer.row, answer.col)
     cov_m2 = confidence.grid_to_east_north(cov_cells, grid.dx_m, grid.dy_m,
                                            float(grid.convergence_deg[answer_node]))
@@ -451,5 +469,5 @@ def _result(grid: SkylineGrid, found: _Found, searched: Measurement, learned: bo
         main_mass=conf.main_mass, rival_mass=conf.rival_mass,
         eye_offset_m=math.nan if best_fit is None else best_fit.eye_offset_m, sigma_learned=learned,
         occluded_share=hidden, heading_at_limit=region.heading_at_limit,
-        sigma_deg_searched=(searched.sigma_lo_deg, searched.sigma_hi_deg),
+        sigma_deg_searched=(searched.sigma_lo_deg, searched.sigma_hi_deg), temper=temper,
     )

@@ -27,16 +27,34 @@ TILT_SIGMA_DEG = 0.3
 POLISH_SPREAD_CELLS = 0.05
 
 
+def learned_noise(residual_deg: np.ndarray, floor_deg: float, default_deg: float) -> tuple[float, float, float]:
+    """Sigma's interval (deg, each end at least ``floor_deg``) and the likelihood's tempering
+    (independent azimuths over measured ones) that a best fit's residuals (deg on the azimuth grid,
+    NaN where missing) give; ``default_deg`` is the RMS taken when no residual is finite."""
+    r = np.asarray(residual_deg, dtype=np.float64)
+    finite = np.isfinite(r)
+    rms = math.sqrt(float(np.nanmean(r * r))) if finite.any() else default_deg
+    independent = confidence.independent_azimuths(r)
+    lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
+    return lo, hi, min(1.0, independent / max(float(finite.sum()), 1.0))
+
+
+def tempered_covariance(fit: Fit, sigma_deg: float, temper: float) -> np.ndarray | None:
+    """The exact fit's (row, col) covariance (cells^2) from its curvature at ``sigma_deg``, its
+    likelihood counting ``temper`` of itself, with its priors (None: no curvature, or singular)."""
+    if fit.curvature is None or fit.prior_information is None:
+        return None
+    sig2 = sigma_deg**2 * confidence.COVARIANCE_SCALE
+    return marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+
+
 def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[Measurement, float]:
     """The measurement with sigma's interval learned from ``fit``'s residuals (each end at least
     ``floor_deg``), and the tempering of its likelihood: independent azimuths over measured ones
     (``confidence.py``)."""
     r = fit.residual_deg
     assert r is not None
-    rms = math.sqrt(float(np.nanmean(r * r))) if np.isfinite(r).any() else meas.sigma_ref_deg
-    independent = confidence.independent_azimuths(r)
-    lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
-    temper = min(1.0, independent / max(float(np.isfinite(r).sum()), 1.0))
+    lo, hi, temper = learned_noise(r, floor_deg, meas.sigma_ref_deg)
     learned = Measurement(meas.elevation_deg, meas.weight, meas.valid, meas.n_valid, meas.n_eff, lo, hi,
                           sigma_midpoint(lo, hi), meas.cap_deg2, meas.occlusion_weight, meas.map_sigma_m)
     return learned, temper
@@ -74,9 +92,8 @@ def answer_covariance(fit: Fit | None, meas: Measurement, temper: float,
                       conf: confidence.Modes) -> np.ndarray:
     """The answer's (row, col) covariance (cells^2): the exact fit's curvature at the learned sigma,
     tempered, with its priors; without one, the spread of the answer's mode over its nodes."""
-    if fit is not None and fit.curvature is not None and fit.prior_information is not None:
-        sig2 = meas.sigma_ref_deg**2 * confidence.COVARIANCE_SCALE
-        cov = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+    if fit is not None:
+        cov = tempered_covariance(fit, meas.sigma_ref_deg, temper)
         if cov is not None:
             return cov
     return conf.main_covariance_cells

@@ -27,7 +27,7 @@ from appliance.estimator import (
 from appliance.estimator.estimate import OCCLUSION_WEIGHT
 from appliance.estimator.raycast import bilinear
 from appliance.locating.search_grid import crs_name, skyline_grid
-from appliance.locating.tiled_answer import TileCombination
+from appliance.locating.tiled_answer import TileCombination, covariance_json, radius_json
 from appliance.locating.tiled_index import TiledIndex
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -138,19 +138,6 @@ class Position:
         if truth is not None:
             out["truth"] = {"lat": truth[0], "lon": truth[1], "error_m": round(truth_error_m(db, self, truth), 2)}
         return out
-
-
-def covariance_json(cov: np.ndarray | None) -> list[list[float]] | None:
-    """[[ee, en], [en, nn]] (m^2) as the JSON record carries it; None without one."""
-    if cov is None:
-        return None
-    return [[round(float(cov[0, 0]), 4), round(float(cov[0, 1]), 4)],
-            [round(float(cov[1, 0]), 4), round(float(cov[1, 1]), 4)]]
-
-
-def radius_json(cov: np.ndarray | None) -> float | None:
-    """The 95 % ellipse's semi-major axis (m) as the JSON record carries it; None without one."""
-    return None if cov is None else round(confidence.radius_m(cov), 2)
 
 
 def _round_or_none(v: float, digits: int) -> float | None:
@@ -275,17 +262,18 @@ def locate(
     first: FirstPass | None = None,
     learn_noise: bool = True,
     sigma_floor_deg: float | None = None,
+    temper: float = 1.0,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
     its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine``,
-    ``rescore_floor``, ``first``, ``learn_noise`` and ``sigma_floor_deg`` are those of
+    ``rescore_floor``, ``first``, ``learn_noise``, ``sigma_floor_deg`` and ``temper`` are those of
     :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
                    map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine,
-                   rescore_floor=rescore_floor, first=first, learn_noise=learn_noise,
+                   rescore_floor=rescore_floor, first=first, learn_noise=learn_noise, temper=temper,
                    sigma_floor_deg=sigma_floor_deg)
     return place(db, res, source)
 

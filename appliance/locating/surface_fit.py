@@ -11,7 +11,10 @@ from __future__ import annotations
 import dataclasses
 
 from appliance.bodies import body_named, geodesic_distance_m
+from appliance.estimator import confidence
 from appliance.estimator.estimate import SAME_ANSWER_CELLS
+from appliance.estimator.likelihood import sigma_midpoint
+from appliance.estimator.noise import learned_noise, tempered_covariance
 from appliance.locating.search_grid import crs_name
 from appliance.locating.tile_cache import SearchParams, open_tile
 from appliance.locating.tiled_answer import SurfaceFit, TileCombination
@@ -28,12 +31,13 @@ SURFACE_PLACES = 24
 
 
 def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skyline: Skyline,
-                   params: SearchParams) -> TileCombination | None:
+                   params: SearchParams, floor_deg: float = confidence.SIGMA_FLOOR_DEG) -> TileCombination | None:
     """``est`` (the facets' grid answer) with its answer fitted on the map's own surface: the
     contending places (the best, then the region's distinct places by upper posterior, at most
     SCREEN_PLACES) screened on renders of the map, the grid's best and the SURFACE_PLACES - 1 that
     screen best each fitted between nodes on renders of the map, the best fit kept
-    (:mod:`appliance.locating.verification`).  The posterior bounds and the region stay the grid's; a fit
+    (:mod:`appliance.locating.verification`) with the noise its residuals give (sigma at least
+    ``floor_deg``) and its covariance at that noise.  The posterior bounds and the region stay the grid's; a fit
     farther than SAME_ANSWER_CELLS from the grid's best makes the answer ambiguous.  None where no
     place can be fitted."""
     spacing = max(est.best.cell_size_m)
@@ -53,25 +57,42 @@ def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skylin
     fits = fit_places(surface, skyline, places, settings)
     if not fits:
         return None
-    return _with_fit(index, est, min(fits, key=lambda f: f.cost), len(places), len(fits), len(candidates))
+    best = surface_fit(index, min(fits, key=lambda f: f.cost), len(places), len(fits), len(candidates), floor_deg,
+                       (est.best.lat, est.best.lon))
+    return with_surface_fit(index, est, best)
 
 
-def _with_fit(index: TiledIndex, est: TileCombination, w: PlaceFit, places: int, fits: int,
-              candidates: int) -> TileCombination:
-    """``est`` answered by the fit ``w``, with a note of the fits and, where the fit lies farther
-    than SAME_ANSWER_CELLS from the grid's best place, ambiguous."""
-    spacing = max(est.best.cell_size_m)
+def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidates: int, floor_deg: float,
+                grid_lat_lon: tuple[float, float]) -> SurfaceFit:
+    """The fit ``w`` (the best of ``fits``) as the answer records it, with the noise its residuals
+    give (sigma's interval at least ``floor_deg``, the tempering) and its covariance at that noise;
+    ``grid_lat_lon`` is the grid's best place, which the fit's distance is measured from."""
     tile = next(t for t in index.tiles if t.file == w.place.tile)
     db = open_tile(str(index.folder), tile, None)[0]
     x, y = db.grid.lonlat_to_xy(w.lon, w.lat)
-    off = geodesic_distance_m(est.best.lat, est.best.lon, w.lat, w.lon, body_named(index.body))
-    notes = list(est.notes) + [f"fitted on the map's own surface: {candidates} contending place(s) screened, "
-                               f"{places} looked at, {fits} fitted, the best {w.rms_deg:.2f} deg RMS"]
+    off = geodesic_distance_m(grid_lat_lon[0], grid_lat_lon[1], w.lat, w.lon, body_named(index.body))
+    noise: tuple[float, float, float] | None = None
+    cov_m2 = None
+    if w.exact is not None and w.exact.residual_deg is not None:
+        noise = learned_noise(w.exact.residual_deg, floor_deg, w.rms_deg)
+        cov = tempered_covariance(w.exact, sigma_midpoint(noise[0], noise[1]), noise[2])
+        if cov is not None:
+            cov_m2 = confidence.grid_to_east_north(cov, w.cell_m, w.cell_m, w.grid_north_deg)
+    return SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
+                      w.heading_correction_deg, w.rms_deg, places, off, candidates, cov_m2, noise, fits)
+
+
+def with_surface_fit(index: TiledIndex, est: TileCombination, fit: SurfaceFit) -> TileCombination:
+    """``est`` answered by ``fit``, with a note of the fits and, where the
+    fit lies farther than SAME_ANSWER_CELLS from ``est``'s best place on the grid, ambiguous."""
+    spacing = max(est.best.cell_size_m)
+    off = geodesic_distance_m(est.best.lat, est.best.lon, fit.lat, fit.lon, body_named(index.body))
+    fit = dataclasses.replace(fit, grid_distance_m=off)
+    notes = list(est.notes) + [f"fitted on the map's own surface: {fit.screened} contending place(s) screened, "
+                               f"{fit.places} looked at, {fit.fits} fitted, the best {fit.rms_deg:.2f} deg RMS"]
     ambiguous = est.ambiguous
     if off > SAME_ANSWER_CELLS * spacing:
         ambiguous = True
         notes.append(f"ambiguous: fitted on the map's own surface, the skyline lies {off / 1000:.1f} km from the "
                      f"grid's best place (in {est.best.file})")
-    fit = SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
-                     w.heading_correction_deg, w.rms_deg, places, off, candidates)
     return dataclasses.replace(est, fit=fit, ambiguous=ambiguous, notes=notes)

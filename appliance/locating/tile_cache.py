@@ -34,6 +34,9 @@ class SearchParams:
     height_m: float | None = None
     occlusion_weight: float = OCCLUSION_WEIGHT
     map_sigma_m: float = 0.0
+    #: the share of an independent azimuth each measured one counts for: below 1 in a search's
+    #: second round, made at the noise its first round's answer left (:func:`appliance.estimator.estimate`)
+    temper: float = 1.0
 
 
 #: Candidate nodes of the tiles a process keeps mapped between searches (checksums verified once,

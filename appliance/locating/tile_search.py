@@ -40,7 +40,7 @@ def tile_floor(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPar
 
 def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchParams, *, source: str = "",
                 refine: bool = True, expect: tuple[int, float] | None = None, rescore_floor: float | None = None,
-                region: bool = True) -> TileOutcome:
+                region: bool = True, learn_noise: bool = False) -> TileOutcome:
     """The ordinary estimate on one tile, with the exact refinement or without (``refine``), its
     rescoring pruned against ``rescore_floor`` (the best first-pass lower bound over every tile
     searched, :func:`tile_floor`).  A tile where the skyline cannot be placed at all (no terrain
@@ -50,14 +50,18 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
     the combination reads it from the best tile only, and a round that only picks the best tile
     (:func:`appliance.locating.tile_combination.best_tile`) needs none.  A tile the skyline does not
     single a place out on (sea, a plain) holds a region of most of its nodes, whose projection to
-    lon/lat costs more than the tile's search on the grid."""
+    lon/lat costs more than the tile's search on the grid.
+
+    ``learn_noise`` (the best tile's refinement in a search's first round) learns the noise from the
+    tile's best fit (:func:`appliance.estimator.estimate`) and sends it back: the tile's posteriors are
+    then on another scale than the others', and only the noise is read from it."""
     t0 = time.perf_counter()
     try:
         db, grid, first = tile_first_pass(folder, tile, skyline, params, expect)
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source, grid=grid,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
                      map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor, first=first,
-                     learn_noise=False)
+                     learn_noise=learn_noise, temper=params.temper)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result
@@ -70,7 +74,7 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
         r.log_evidence_lower, r.log_evidence_upper, r.log_evidence_mid, math.log(g.dx_m * g.dy_m),
         (g.dx_m, g.dy_m), r.ambiguous, nodes, _lonlat(g, nodes), top.astype(np.int64), up[top], up_un[top],
         _lonlat(g, top), left_max, left_max_un, r.candidates, time.perf_counter() - t0, region,
-        pos.x, pos.y, pos.crs)
+        pos.x, pos.y, pos.crs, (*r.sigma_deg, r.temper) if r.sigma_learned else None)
 
 
 def _top_nodes(r: EstimateResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:

@@ -16,9 +16,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.bodies import body_named, geodesic_distance_m
+from appliance.estimator import confidence
 from appliance.locating.tile_cache import open_tile
 from appliance.locating.tiled_index import TiledIndex
 from appliance.terrain.grid import lon_overlap
+
+
+def covariance_json(cov: np.ndarray | None) -> list[list[float]] | None:
+    """[[ee, en], [en, nn]] (m^2) as the JSON record carries it; None without one."""
+    if cov is None:
+        return None
+    return [[round(float(cov[0, 0]), 4), round(float(cov[0, 1]), 4)],
+            [round(float(cov[1, 0]), 4), round(float(cov[1, 1]), 4)]]
+
+
+def radius_json(cov: np.ndarray | None) -> float | None:
+    """The 95 % ellipse's semi-major axis (m) as the JSON record carries it; None without one."""
+    return None if cov is None else round(confidence.radius_m(cov), 2)
 
 
 @dataclass(frozen=True)
@@ -56,6 +70,9 @@ class TileOutcome:
     x: float = math.nan  # the best candidate in the tile grid's CRS
     y: float = math.nan
     crs: str = ""
+    #: the noise learned from the tile's best fit: sigma's interval (deg) and the tempering; None
+    #: where the search kept the sigma it was given
+    noise: tuple[float, float, float] | None = None
 
 
 
@@ -90,6 +107,11 @@ class SurfaceFit:
     places: int
     grid_distance_m: float  # from the grid's best place
     screened: int = 0  # contending places screened before choosing those looked at
+    #: the fit's covariance (east, north; m^2) at the noise learned from it; None where not made
+    covariance_m2: np.ndarray | None = None
+    #: the noise the fit's residuals give: sigma's interval (deg) and the tempering; None without
+    noise: tuple[float, float, float] | None = None
+    fits: int = 0  # places fitted (of those looked at)
 
 
 @dataclass(frozen=True)
@@ -113,6 +135,9 @@ class TileCombination:
     elapsed_s: float
     candidates: int
     fit: SurfaceFit | None = None  # the answer fitted on the map's own surface, where the map was at hand
+    #: the noise the search weighed every tile at, learned from its first round's answer: sigma's
+    #: interval (deg) and the tempering; None where it kept the sigma it was given
+    noise: tuple[float, float, float] | None = None
 
     @property
     def tile(self) -> str:
@@ -144,13 +169,23 @@ class TileCombination:
             return self.fit.heading_correction_deg
         return float(self.best.record["heading_correction_deg"])
 
+    @property
+    def covariance_m2(self) -> np.ndarray | None:
+        """The answer's covariance (east, north; m^2): its fit's on the map's surface, else its best
+        tile's exact fit's; None where there is none."""
+        if self.fit is not None:
+            return self.fit.covariance_m2
+        cov = self.best.record.get("covariance_m2")
+        return None if cov is None else np.asarray(cov, dtype=np.float64)
+
     def truth_error_m(self, truth: tuple[float, float]) -> float:
         return geodesic_distance_m(self.lat, self.lon, truth[0], truth[1], body_named(self.body))
 
     def status(self, index: TiledIndex | None = None, truth: tuple[float, float] | None = None) -> str:
-        """'ambiguous' when the combination is, or when the truth (where known) lies outside the
-        region; else 'ok'."""
-        if self.ambiguous:
+        """'ambiguous' when the combination is, when it has no finite covariance, or when the truth
+        (where known) lies outside the region; else 'ok'."""
+        cov = self.covariance_m2
+        if self.ambiguous or cov is None or not np.all(np.isfinite(cov)):
             return "ambiguous"
         if truth is not None and (index is None or not self.truth_in_region(index, truth)):
             return "ambiguous"
@@ -204,9 +239,12 @@ class TileCombination:
             "elapsed_ms": round(self.elapsed_s * 1e3, 2),
             "notes": list(self.notes),
         })
+        if self.noise is not None:
+            out["sigma_deg"] = [round(v, 6) for v in self.noise[:2]]
         if self.fit is not None:
             f = self.fit
             out.update({"lat": round(f.lat, 8), "lon": round(f.lon, 8), "x": round(f.x, 3), "y": round(f.y, 3),
+                        "covariance_m2": covariance_json(f.covariance_m2), "radius95_m": radius_json(f.covariance_m2),
                         "crs": f.crs, "heading_correction_deg": round(f.heading_correction_deg, 3),
                         "rms_residual_deg": round(f.rms_deg, 4),
                         "surface_fit": {"places": f.places, "screened": f.screened,

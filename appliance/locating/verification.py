@@ -30,7 +30,7 @@ import numpy as np
 from pyproj import Transformer
 
 from appliance.estimator.estimate import OCCLUSION_WEIGHT, measured_on_grid
-from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Model, Terrain, refine, render, screen
+from appliance.estimator.exact import SCREEN_SCAN_DEG, START_SPREAD_CELLS, Fit, Model, Terrain, refine, render, screen
 from appliance.estimator.likelihood import occlusion_cap_deg2, sigma_midpoint
 from appliance.skyline import Skyline
 from appliance.terrain.dem import Dem
@@ -89,7 +89,8 @@ class Place:
 class PlaceFit:
     """The exact fit of a skyline near ``place`` on the map's surface: where it ended, the heading
     correction (deg, the compass's error), its cost (the residual sum at sigma's midpoint,
-    chi-square units) and RMS residual (deg)."""
+    chi-square units) and RMS residual (deg); the exact fit itself (its residuals and curvature, in
+    cells of ``cell_m`` of a local grid whose north stands ``grid_north_deg`` from true north at the fit)."""
 
     place: Place
     lat: float
@@ -97,6 +98,9 @@ class PlaceFit:
     heading_correction_deg: float
     cost: float
     rms_deg: float
+    exact: Fit | None = None
+    cell_m: float = math.nan
+    grid_north_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -331,7 +335,8 @@ class PlaceSearch:
         # the fit's heading is against the frame's grid north; the true azimuth of grid north there
         gamma, _, _ = self.dem.body.geod.inv(lon[0], lat[0], lon[1], lat[1])
         heading = (best.heading_deg + float(gamma) + 180.0) % 360.0 - 180.0
-        return PlaceFit(self.place, float(lat[0]), float(lon[0]), heading, best.ssd / self.sig_ref**2, best.rms_deg)
+        return PlaceFit(self.place, float(lat[0]), float(lon[0]), heading, best.ssd / self.sig_ref**2, best.rms_deg,
+                        best, cell, float(gamma))
 
 
 def fit_places(dem: Dem, skyline: Skyline, places: list[Place], settings: FitSettings) -> list[PlaceFit]:
