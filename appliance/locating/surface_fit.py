@@ -9,10 +9,11 @@ and the best fit is the answer; the posterior bounds and the region stay the gri
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from appliance.bodies import body_named, geodesic_distance_m
 from appliance.estimator import confidence
-from appliance.estimator.estimate import SAME_ANSWER_CELLS
+from appliance.estimator.estimate import AMBIGUOUS_CELLS, SAME_ANSWER_CELLS
 from appliance.estimator.likelihood import sigma_midpoint
 from appliance.estimator.noise import learned_noise, tempered_covariance
 from appliance.locating.search_grid import crs_name
@@ -28,6 +29,9 @@ from appliance.terrain.dem import Dem
 SCREEN_PLACES = 400
 #: Places fitted on the map: the grid's best place and the SURFACE_PLACES - 1 that screen best.
 SURFACE_PLACES = 24
+#: A place fitted on the map is a rival of the best fit when its likelihood at the learned noise,
+#: tempered, is at least this share of the best's: what a 95 % statement leaves out.
+RIVAL_SHARE = 0.05
 
 
 def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skyline: Skyline,
@@ -57,9 +61,30 @@ def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skylin
     fits = fit_places(surface, skyline, places, settings)
     if not fits:
         return None
-    best = surface_fit(index, min(fits, key=lambda f: f.cost), len(places), len(fits), len(candidates), floor_deg,
-                       (est.best.lat, est.best.lon))
-    return with_surface_fit(index, est, best)
+    w = min(fits, key=lambda f: f.cost)
+    best = surface_fit(index, w, len(places), len(fits), len(candidates), floor_deg, (est.best.lat, est.best.lon))
+    return with_surface_fit(index, est, dataclasses.replace(best, rivals=_rival_fits(fits, w, best, spacing, surface)),
+                            params.sigma_deg[1])
+
+
+def _rival_fits(fits: list[PlaceFit], w: PlaceFit, best: SurfaceFit, spacing_m: float, surface: Dem) -> int:
+    """How many of the places fitted, farther than SAME_ANSWER_CELLS from the best fit ``w``, fit
+    nearly as well at the noise learned from it (``best``'s): their likelihood, tempered, at least
+    RIVAL_SHARE of the best's."""
+    if best.noise is None or w.exact is None:
+        return 0
+    lo, hi, temper = best.noise
+    sig2 = sigma_midpoint(lo, hi) ** 2
+    body = surface.body
+    reach = -2.0 * math.log(RIVAL_SHARE)
+    out = 0
+    for f in fits:
+        if f is w or f.exact is None:
+            continue
+        far = geodesic_distance_m(w.lat, w.lon, f.lat, f.lon, body) > SAME_ANSWER_CELLS * spacing_m
+        if far and temper * (f.exact.ssd - w.exact.ssd) / sig2 < reach:
+            out += 1
+    return out
 
 
 def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidates: int, floor_deg: float,
@@ -82,16 +107,35 @@ def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidat
                       w.heading_correction_deg, w.rms_deg, places, off, candidates, cov_m2, noise, fits)
 
 
-def with_surface_fit(index: TiledIndex, est: TileCombination, fit: SurfaceFit) -> TileCombination:
-    """``est`` answered by ``fit``, with a note of the fits and, where the
-    fit lies farther than SAME_ANSWER_CELLS from ``est``'s best place on the grid, ambiguous."""
+def with_surface_fit(index: TiledIndex, est: TileCombination, fit: SurfaceFit,
+                     sigma_hi_deg: float) -> TileCombination:
+    """``est`` answered by ``fit``, with a note of the fits.
+
+    Where the fit learned the noise, the answer is ambiguous when the grid's region is (too many
+    cells, a rival tile), when places fitted elsewhere on the map come near the fit
+    (:func:`_rival_fits`), or when the fit's RMS exceeds ``sigma_hi_deg`` (the search's given
+    interval's upper end: a skyline from no place on the map); the grid's own fit, worse than the
+    map's by the facets' resampling, is no longer the measure of the match.  Without a noise learned,
+    a fit farther than SAME_ANSWER_CELLS from ``est``'s best place on the grid is ambiguous."""
     spacing = max(est.best.cell_size_m)
     off = geodesic_distance_m(est.best.lat, est.best.lon, fit.lat, fit.lon, body_named(index.body))
     fit = dataclasses.replace(fit, grid_distance_m=off)
     notes = list(est.notes) + [f"fitted on the map's own surface: {fit.screened} contending place(s) screened, "
                                f"{fit.places} looked at, {fit.fits} fitted, the best {fit.rms_deg:.2f} deg RMS"]
     ambiguous = est.ambiguous
-    if off > SAME_ANSWER_CELLS * spacing:
+    if fit.noise is not None:
+        ambiguous = est.rival_tiles or bool(est.overflowed) or len(est.region) > AMBIGUOUS_CELLS
+        notes = [n for n in notes if not n.startswith("ambiguous: poor match")]
+        if fit.rms_deg > sigma_hi_deg:
+            ambiguous = True
+            notes.append(f"ambiguous: poor match: fitted on the map's own surface, residual {fit.rms_deg:.2f} deg "
+                         f"RMS, more than the {sigma_hi_deg:.2f} deg the search allows")
+    if fit.rivals:
+        ambiguous = True
+        notes.append(f"ambiguous: fitted on the map's own surface, {fit.rivals} place(s) more than "
+                     f"{SAME_ANSWER_CELLS:.0f} cells away fit nearly as well (within a likelihood ratio of "
+                     f"{1 / RIVAL_SHARE:.0f})")
+    elif off > SAME_ANSWER_CELLS * spacing and fit.noise is None:
         ambiguous = True
         notes.append(f"ambiguous: fitted on the map's own surface, the skyline lies {off / 1000:.1f} km from the "
                      f"grid's best place (in {est.best.file})")

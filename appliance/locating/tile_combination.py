@@ -114,7 +114,7 @@ def combine_tiles(outcomes: Sequence[TileOutcome], body: str, elapsed_s: float =
     ambiguous = bool(best.ambiguous or rival or overflowed or len(region) > AMBIGUOUS_CELLS)
     return TileCombination(best, tuple(o.file for o in outcomes), failed, best_lower, g_upper[b], tuple(region),
                            area, ambiguous, share, tuple(overflowed), notes, body, elapsed_s,
-                           sum(o.candidates for o in ok))
+                           sum(o.candidates for o in ok), rival_tiles=rival)
 
 
 def _tile_cells(o: TileOutcome, is_best: bool, best_lower: float, others_lower: float) -> tuple[list[RegionCell], bool]:

@@ -112,6 +112,7 @@ class SurfaceFit:
     #: the noise the fit's residuals give: sigma's interval (deg) and the tempering; None without
     noise: tuple[float, float, float] | None = None
     fits: int = 0  # places fitted (of those looked at)
+    rivals: int = 0  # places fitted more than two cells away whose fit comes within RIVAL_SHARE of the best's
 
 
 @dataclass(frozen=True)
@@ -138,6 +139,8 @@ class TileCombination:
     #: the noise the search weighed every tile at, learned from its first round's answer: sigma's
     #: interval (deg) and the tempering; None where it kept the sigma it was given
     noise: tuple[float, float, float] | None = None
+    #: whether another tile holds a place of the region more than two cells from the answer
+    rival_tiles: bool = False
 
     @property
     def tile(self) -> str:
@@ -183,13 +186,24 @@ class TileCombination:
 
     def status(self, index: TiledIndex | None = None, truth: tuple[float, float] | None = None) -> str:
         """'ambiguous' when the combination is, when it has no finite covariance, or when the truth
-        (where known) lies outside the region; else 'ok'."""
+        (where known) lies outside both the region and the answer's 95 % ellipse; else 'ok'."""
         cov = self.covariance_m2
         if self.ambiguous or cov is None or not np.all(np.isfinite(cov)):
             return "ambiguous"
-        if truth is not None and (index is None or not self.truth_in_region(index, truth)):
+        if truth is not None and not self.truth_in_ellipse(truth) and (
+                index is None or not self.truth_in_region(index, truth)):
             return "ambiguous"
         return "ok"
+
+    def truth_in_ellipse(self, truth: tuple[float, float]) -> bool:
+        """Whether the true (lat, lon) lies inside the answer's 95 % covariance ellipse (False
+        without a finite covariance)."""
+        cov = self.covariance_m2
+        if cov is None or not np.all(np.isfinite(cov)):
+            return False
+        az, _, dist = body_named(self.body).geod.inv(self.lon, self.lat, truth[1], truth[0])
+        offset = dist * np.array([math.sin(math.radians(az)), math.cos(math.radians(az))])
+        return confidence.inside_ellipse(offset, cov)
 
     def truth_in_region(self, index: TiledIndex, truth: tuple[float, float]) -> bool:
         """Whether the node nearest the true (lat, lon), in a searched tile holding it or within half a

@@ -67,7 +67,7 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
         near = [t for t in tiles if t.file in held]
         second = _searched(index, near, skyline, again, client, source, None, placed, False, floor_deg)
         if found.fit is not None:
-            second = with_surface_fit(index, second, found.fit)
+            second = with_surface_fit(index, second, found.fit, params.sigma_deg[1])
         found = dataclasses.replace(second, noise=noise, tiles_searched=found.tiles_searched,
                                     tiles_failed=found.tiles_failed)
     return place_tiled(dataclasses.replace(found, elapsed_s=time.perf_counter() - t0), source)
