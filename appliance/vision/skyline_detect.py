@@ -17,7 +17,10 @@ look like ground, or the edge is too weak (a person, a pole, a panorama without 
 missing (NaN), never guessed.  The learnt colour models are checked against a generic prior (sky is
 smooth and bright): a column must show such sky somewhere above its line, so an image without sky
 yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
-clear sky shows above it.  Masked azimuth ranges are missing too.
+clear sky shows above it.  A ridge with white cumulus behind it (the pixels just above its line bright,
+white and over dark ground, :func:`appliance.vision.skyline_edges.cloud_above`) is judged with the
+cloud as sky where it continues the line found under clear sky on both sides.  Masked azimuth ranges
+are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
@@ -42,6 +45,8 @@ from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
 from appliance.vision.skyline_edges import (
     VOID_MARGIN_PX,
+    anchored,
+    cloud_above,
     colour_edge,
     fill_void,
     horizontal_luma,
@@ -87,6 +92,7 @@ class DetectionConfig:
     chroma_weight: float = 0.7  # dp: weight of the blue-minus-red drop beside the intensity drop (0: off)
     edge_far_px: int = 6  # sharpness: the fall per row above the line is measured from 3 to this many rows up
     max_slope_ratio: float = 0.3  # sharpness: fall per row above the line over that across it, at zero confidence
+    cloud: bool = True  # dp: white cloud just above a line over dark ground counts as sky (skyline_edges.cloud_above)
     snow: bool = True  # dp: on snowy ground, find the sky/snow boundary by colour (appliance.vision.skyline_snow)
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
@@ -291,6 +297,8 @@ def _dp_rows(
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
     cap = np.minimum(np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0), sharp)
     conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
+    if cfg.cloud:
+        conf = _cloud_columns(img8, edge, llr, path, rows, conf, cap, cfg, prior_full_t, wrap)
     bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t, edge)
     if bridged is not None:
         path2, conf2 = bridged
@@ -305,6 +313,36 @@ def _dp_rows(
         if snowy is not None:
             rows, conf = snowy
     return rows, conf
+
+
+#: A stretch of columns whose line has white cloud above it must meet lines under clear sky on both
+#: sides within this many columns, at most CLOUD_ANCHOR_STEP_PX rows from their rows.
+CLOUD_ANCHOR_GAP_PX = 8
+CLOUD_ANCHOR_STEP_PX = 8.0
+
+
+def _cloud_columns(
+    img8: np.ndarray,
+    edge: np.ndarray,
+    llr: np.ndarray,
+    path: np.ndarray,
+    rows: np.ndarray,
+    conf: np.ndarray,
+    cap: np.ndarray,
+    cfg: DetectionConfig,
+    prior_t: np.ndarray,
+    wrap: bool,
+) -> np.ndarray:
+    """The confidence with the columns whose line has white cloud just above it instead of the
+    learnt clear sky (:func:`appliance.vision.skyline_edges.cloud_above`) judged with that cloud as
+    sky, where they continue the line found under clear sky on both sides
+    (:func:`appliance.vision.skyline_edges.anchored`)."""
+    cloud = cloud_above(img8, rows)
+    with_cloud = np.minimum(_confidence(edge, llr, path, cfg, prior_t, cloud=cloud), cap)
+    good = conf >= cfg.min_confidence
+    extra = cloud & ~good & (with_cloud >= cfg.min_confidence)
+    keep = anchored(extra, good, cloud, rows, CLOUD_ANCHOR_GAP_PX, CLOUD_ANCHOR_STEP_PX, wrap)
+    return np.where(keep, with_cloud, conf)
 
 
 def _snow_rows(
@@ -414,8 +452,12 @@ def _confidence(
     cfg: DetectionConfig,
     prior_t: np.ndarray,
     haze_below: bool = False,
+    cloud: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
+
+    ``cloud`` (per column, :func:`appliance.vision.skyline_edges.cloud_above`) marks the columns whose
+    pixels just above the line are white cloud rather than the learnt clear sky: they count as sky.
 
     With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
     sky and clearly less sky-like than those above it (far terrain seen through haze), while those
@@ -443,6 +485,8 @@ def _confidence(
     strong = np.clip((edge - 2 * cfg.min_edge) / (4 * cfg.min_edge), 0.0, 1.0) * (ground_below > 0.6)
     strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
     c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
+    if cloud is not None:
+        c_sky = np.where(cloud, 1.0, c_sky)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     if haze_below:
         contrast = np.clip((sky_above + ground_below - 0.3) / 0.4, 0.0, 1.0) * (ground_below > -0.2)
