@@ -297,17 +297,29 @@ def _dp_rows(
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
     cap = np.minimum(np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0), sharp)
     conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
+    cloud = cloud_above(img8, rows) if cfg.cloud else np.zeros(w, dtype=bool)
     if cfg.cloud:
-        conf = _cloud_columns(img8, edge, llr, path, rows, conf, cap, cfg, prior_full_t, wrap)
-    bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t, edge)
+        conf = _cloud_columns(cloud, edge, llr, path, rows, conf, cap, cfg, prior_full_t, wrap)
+    # a line whose pixels just above are less like the learnt sky than like the ground (passed on the
+    # leniency for pale sky at the skyline) neither anchors the second path nor is kept from it
+    # (white cloud just above explains it: the cloud's top is no better a skyline)
+    doubtful = (conf >= cfg.min_confidence) & (_sky_above(llr, path) < DOUBTFUL_SKY) & ~cloud
+    bridged = _bridge(drop, llr, path, np.where(doubtful, 0.0, conf), cfg, masked, wrap, prior_full_t, edge)
     if bridged is not None:
-        path2, conf2 = bridged
+        path2, conf2, line = bridged
         rows2 = _refine(drop, path2)
         conf2 = np.minimum(conf2, sharpness_confidence(lum_h, rows2, cfg.edge_far_px, cfg.min_edge,
                                                        cfg.max_slope_ratio))
-        take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
+        if cfg.cloud:
+            # the second path is for faint edges under clear sky: a faint edge under white cloud is the
+            # cloud's base
+            conf2 = np.where(cloud_above(img8, rows2), 0.0, conf2)
+        take = ((conf < cfg.min_confidence) | doubtful) & (conf2 >= cfg.min_confidence)
         rows = np.where(take, rows2, rows)
-        conf = np.where(take, conf2, conf)
+        # a doubtful line the second path did not replace, well below the line joining the confident
+        # columns (a near hill's top under far land seen through haze), is left out
+        dip = doubtful & ~take & (rows > line + DOUBTFUL_DIP_BANDS * cfg.band_px)
+        conf = np.where(take, conf2, np.where(dip, 0.0, conf))
     if cfg.snow:
         snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t)
         if snowy is not None:
@@ -322,7 +334,7 @@ CLOUD_ANCHOR_STEP_PX = 8.0
 
 
 def _cloud_columns(
-    img8: np.ndarray,
+    cloud: np.ndarray,
     edge: np.ndarray,
     llr: np.ndarray,
     path: np.ndarray,
@@ -334,10 +346,9 @@ def _cloud_columns(
     wrap: bool,
 ) -> np.ndarray:
     """The confidence with the columns whose line has white cloud just above it instead of the
-    learnt clear sky (:func:`appliance.vision.skyline_edges.cloud_above`) judged with that cloud as
-    sky, where they continue the line found under clear sky on both sides
+    learnt clear sky (``cloud``: :func:`appliance.vision.skyline_edges.cloud_above`) judged with that
+    cloud as sky, where they continue the line found under clear sky on both sides
     (:func:`appliance.vision.skyline_edges.anchored`)."""
-    cloud = cloud_above(img8, rows)
     with_cloud = np.minimum(_confidence(edge, llr, path, cfg, prior_t, cloud=cloud), cap)
     good = conf >= cfg.min_confidence
     extra = cloud & ~good & (with_cloud >= cfg.min_confidence)
@@ -380,6 +391,11 @@ def _snow_rows(
 SNOW_EDGE_SCALE = 0.1
 
 
+#: The second path's window reaches this many band_px rows below the line joining the confident
+#: columns (2 band_px above it): a faint horizon lies about on that line, a near hill's top below it.
+BRIDGE_BELOW_BANDS = 1.0
+
+
 def _bridge(
     drop: np.ndarray,
     llr: np.ndarray,
@@ -390,9 +406,10 @@ def _bridge(
     wrap: bool,
     prior_t: np.ndarray,
     edge: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A second path through the columns the first one left unconfident, kept within ``2 band_px``
-    rows of the line joining the confident columns on either side, and its confidence.
+    rows above and ``BRIDGE_BELOW_BANDS band_px`` rows below the line joining the confident columns
+    on either side, its confidence and that line.
 
     A faint edge (a hazy far horizon) loses the first path to a stronger edge lower down, in the
     terrain; behind an occluder the first path may cut through it.  The window keeps the second path
@@ -413,8 +430,9 @@ def _bridge(
     else:
         line = np.interp(cols, anchors, anchor_rows)
     window = 2 * cfg.band_px
+    below = BRIDGE_BELOW_BANDS * cfg.band_px
     rr = np.arange(h, dtype=np.float64)[None, :]
-    outside = np.abs(rr - line[:, None]) > window
+    outside = (rr < line[:, None] - window) | (rr > line[:, None] + below)
     cost_t = _path_cost(drop, llr, cfg, masked, cfg.edge_weight)
     # confident columns keep their row: the second path leaves and rejoins the first one there
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
@@ -424,8 +442,21 @@ def _bridge(
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
-    conf2 = np.where(np.abs(path2 - line) <= window, conf2, 0.0)
-    return path2, conf2
+    conf2 = np.where((path2 >= line - window) & (path2 <= line + below), conf2, 0.0)
+    return path2, conf2, line
+
+
+#: A line whose pixels 2-9 rows above score below this on the learnt sky model (-1..1) is doubtful.
+DOUBTFUL_SKY = 0.0
+#: ... and left out where it lies more than this many band_px rows below the confident columns' line.
+DOUBTFUL_DIP_BANDS = 1.25
+
+
+def _sky_above(llr: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Per column: the mean sky log-likelihood ratio (clipped to +-1) over the rows 2-9 above ``path``."""
+    h, w = llr.shape
+    up = np.clip(path[None, :] - np.arange(2, 10)[:, None], 0, h - 1)
+    return np.asarray(np.clip(llr[up, np.arange(w)[None, :]], -1, 1).mean(axis=0))
 
 
 def _learn_llr(
