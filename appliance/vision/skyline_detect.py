@@ -299,7 +299,7 @@ def _dp_rows(
     conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
     cloud = cloud_above(img8, rows) if cfg.cloud else np.zeros(w, dtype=bool)
     if cfg.cloud:
-        conf = _cloud_columns(cloud, edge, llr, path, rows, conf, cap, cfg, prior_full_t, wrap)
+        conf = _cloud_columns(cloud, edge, llr, path, rows, conf, sharp, cfg, prior_full_t, wrap)
     # a line whose pixels just above are less like the learnt sky than like the ground (passed on the
     # leniency for pale sky at the skyline) neither anchors the second path nor is kept from it
     # (white cloud just above explains it: the cloud's top is no better a skyline)
@@ -329,7 +329,7 @@ def _dp_rows(
 
 #: A stretch of columns whose line has white cloud above it must meet lines under clear sky on both
 #: sides within this many columns, at most CLOUD_ANCHOR_STEP_PX rows from their rows.
-CLOUD_ANCHOR_GAP_PX = 8
+CLOUD_ANCHOR_GAP_PX = 16
 CLOUD_ANCHOR_STEP_PX = 8.0
 
 
@@ -340,16 +340,18 @@ def _cloud_columns(
     path: np.ndarray,
     rows: np.ndarray,
     conf: np.ndarray,
-    cap: np.ndarray,
+    sharp: np.ndarray,
     cfg: DetectionConfig,
     prior_t: np.ndarray,
     wrap: bool,
 ) -> np.ndarray:
     """The confidence with the columns whose line has white cloud just above it instead of the
     learnt clear sky (``cloud``: :func:`appliance.vision.skyline_edges.cloud_above`) judged with that
-    cloud as sky, where they continue the line found under clear sky on both sides
-    (:func:`appliance.vision.skyline_edges.anchored`)."""
-    with_cloud = np.minimum(_confidence(edge, llr, path, cfg, prior_t, cloud=cloud), cap)
+    cloud as sky, capped by the edge's sharpness (``sharp``), where they continue the line found
+    under clear sky on both sides (:func:`appliance.vision.skyline_edges.anchored`).  Clear sky
+    somewhere above the line is not asked of them (the cloud may fill the column to the image's
+    top): the lines on both sides, which had to show it, stand for it."""
+    with_cloud = np.minimum(_confidence(edge, llr, path, cfg, prior_t, cloud=cloud), sharp)
     good = conf >= cfg.min_confidence
     extra = cloud & ~good & (with_cloud >= cfg.min_confidence)
     keep = anchored(extra, good, cloud, rows, CLOUD_ANCHOR_GAP_PX, CLOUD_ANCHOR_STEP_PX, wrap)
