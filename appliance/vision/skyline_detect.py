@@ -65,7 +65,7 @@ from appliance.vision.skyline_pixels import (
     _texture,
     _to_float,
 )
-from appliance.vision.skyline_snow import place_rows, snow_checks, snow_evidence
+from appliance.vision.skyline_snow import colour_rows, place_rows, snow_checks, snow_evidence
 
 
 class Method(enum.Enum):
@@ -374,7 +374,8 @@ def _snow_rows(
 
     Snow under a pale sky is brighter than the sky: the drop the first path follows is at the top of
     the first dark rock below the skyline.  The rows are placed where the brightness first departs
-    from the sky's (a rise onto snow, a drop onto a rock); a line with a colour step onto snow above
+    from the sky's (a rise onto snow, a drop onto a rock), then where the colour crosses halfway from
+    the sky's to the ground's within three rows of that; a line with a colour step onto snow above
     it, or snow-coloured pixels just above it, is left out.
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
@@ -386,6 +387,7 @@ def _snow_rows(
     near_edge = cv2.dilate(edge, np.ones((3, 1), np.uint8))
     conf = _confidence(near_edge, ev.llr, path, cfg, prior_t, haze_below=True)
     placed = place_rows(ev.lum, path.astype(np.float64))
+    placed = colour_rows(ev.chroma, placed)
     return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
 
 
