@@ -5,6 +5,11 @@ A ridge against the sky is a silhouette: its step is made within a pixel or two.
 a cloud bank resting on a ridge fades over a degree or more, and a line drawn there lies below the
 hidden skyline (false evidence for the estimator: "nothing above this elevation").  These measures
 let the detector leave such columns out.
+
+A cumulus behind a ridge is the other way round: white cloud just above a sharp step onto dark
+ground (:func:`cloud_above`), unlike the clear sky the image's sky model was learnt on, yet no
+occluder; such columns are trusted where they continue the line found under clear sky on both
+sides (:func:`anchored`).
 """
 
 from __future__ import annotations
