@@ -151,19 +151,20 @@ def cloud_above(img8: np.ndarray, rows: np.ndarray) -> np.ndarray:
     (shadows, clothes, grass) among those rows, and far land seen through haze above a near hill is
     as blue as the sky's horizon, not white."""
     h, w = img8.shape[:2]
-    f = cv2.blur(_to_float(img8), (3, 1))
-    value = f.max(axis=2)
-    blue = f[..., 0] - f[..., 2]
+    # averaged over three columns (in 8 bits: the whole image blurred costs less than its floats),
+    # and only the rows around the line read as floats
+    smooth = cv2.blur(img8, (3, 1))
     cols = np.arange(w)
     r = np.round(np.nan_to_num(rows, nan=-10.0 * h)).astype(np.int64)
     offs = np.arange(CLOUD_ROWS[0], CLOUD_ROWS[1] + 1)
     up, dn = r[None, :] - offs[:, None], r[None, :] + offs[:, None]
     inside = (up.min(axis=0) >= 0) & (dn.max(axis=0) < h)
-    up, dn = np.clip(up, 0, h - 1), np.clip(dn, 0, h - 1)
-    v_up, b_up = value[up, cols[None, :]], blue[up, cols[None, :]]
-    whitest = b_up.min(axis=0)
+    px_up = smooth[np.clip(up, 0, h - 1), cols[None, :]].astype(np.float32) / np.float32(255.0)
+    px_dn = smooth[np.clip(dn, 0, h - 1), cols[None, :]].astype(np.float32) / np.float32(255.0)
+    v_up = px_up.max(axis=2)
+    whitest = (px_up[..., 0] - px_up[..., 2]).min(axis=0)
     bright = (v_up.min(axis=0) >= CLOUD_MIN_VALUE) & (whitest >= CLOUD_MIN_BLUE) & (whitest <= CLOUD_MAX_BLUE)
-    contrast = v_up.mean(axis=0) - value[dn, cols[None, :]].mean(axis=0) >= CLOUD_MIN_CONTRAST
+    contrast = v_up.mean(axis=0) - px_dn.max(axis=2).mean(axis=0) >= CLOUD_MIN_CONTRAST
     return np.asarray(inside & bright & contrast)
 
 
