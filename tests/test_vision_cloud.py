@@ -82,3 +82,16 @@ def test_a_cloud_stretch_across_the_seam_of_a_full_circle_is_joined() -> None:
     rows = np.full(40, 50.0)
     assert anchored(extra, good, extra, rows, gap_px=3, max_step_px=4.0, wrap=True).tolist() == extra.tolist()
     assert not anchored(extra, good, extra, rows, gap_px=3, max_step_px=4.0, wrap=False).any()
+
+
+def test_the_second_paths_stretches_each_hold_one_pinned_column_either_side() -> None:
+    from appliance.vision.skyline_detect import _stretches
+
+    free = np.array([1, 1, 0, 0, 1, 1, 1, 0, 1], dtype=bool)
+    # a full circle: the run 8, 0, 1 crosses the seam, bounded by the columns 7 and 2
+    got = sorted(tuple(s.tolist()) for s in _stretches(free, wrap=True))
+    assert got == [(3, 4, 5, 6, 7), (7, 8, 0, 1, 2)]
+    # a partial panorama: the image's ends bound the runs
+    got = sorted(tuple(s.tolist()) for s in _stretches(free, wrap=False))
+    assert got == [(0, 1, 2), (3, 4, 5, 6, 7), (7, 8)]
+    assert [s.tolist() for s in _stretches(np.ones(4, bool), wrap=True)] == [[0, 1, 2, 3]]

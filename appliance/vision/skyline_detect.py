@@ -441,13 +441,34 @@ def _bridge(
     # confident columns keep their row: the second path leaves and rejoins the first one there
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
     cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
-    path2 = _run_dp(np.ascontiguousarray(cost_t), cfg, wrap)
+    # the path is pinned at every confident column: each stretch between two of them is a path of its own
+    path2 = path.copy()
+    for idx in _stretches(~good, wrap):
+        path2[idx] = _dp_path(np.ascontiguousarray(cost_t[idx]), cfg.max_jump_px, cfg.jump_cost)
     conf2 = _confidence(edge, llr, path2, cfg, prior_t, haze_below=True)
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
     conf2 = np.where((path2 >= line - window) & (path2 <= line + below), conf2, 0.0)
     return path2, conf2, line
+
+
+def _stretches(free: np.ndarray, wrap: bool) -> list[np.ndarray]:
+    """The column indices of each run of ``free`` columns with the column before and after it (the
+    runs of a full circle may cross its seam; elsewhere the image's ends bound them)."""
+    w = free.size
+    if free.all():
+        return [np.arange(w)]
+    # a full circle is read from a column that is not free: no run then crosses the seam
+    shift = int(np.argmin(free)) if wrap else 0
+    f = np.roll(free, -shift)
+    edges = np.diff(np.r_[0, f.astype(np.int8), 0])
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = []
+    for a, b in zip(starts, ends):
+        lo, hi = (a - 1, b + 1) if wrap else (max(a - 1, 0), min(b + 1, w))
+        out.append(np.mod(np.arange(lo, hi) + shift, w) if wrap else np.arange(lo, hi) + shift)
+    return out
 
 
 #: A line whose pixels 2-9 rows above score below this on the learnt sky model (-1..1) is doubtful.
