@@ -65,6 +65,28 @@ def test_fresh_snow_brighter_than_the_sky_the_line_is_not_drawn_on_the_rocks_bel
     assert scores[True][1] <= 0.01
 
 
+def test_white_cumulus_behind_the_ridge_counts_as_sky_and_no_line_is_drawn_below_the_ridge():
+    scores = {}
+    for cloud in (False, True):
+        visible_total = found_within = below = found = 0
+        for seed in (2, 3, 6, 8):
+            fn = analytic_skyline_fn(seed)
+            scene = draw_weather("cumulus", seed, fn)
+            pano, true_el, visible = render_weather_panorama(fn, scene, np.random.default_rng(seed), 1200)
+            err = detect_columns(pano, DetectionConfig(cloud=cloud)).elevation_deg - true_el
+            ok = np.isfinite(err)
+            visible_total += int(visible.sum())
+            found_within += int((ok & visible & (np.abs(np.nan_to_num(err, nan=9.0)) <= 0.2)).sum())
+            below += int((ok & (np.nan_to_num(err) < -0.5)).sum())
+            found += int(ok.sum())
+        scores[cloud] = (found_within / visible_total, below / max(found, 1))
+    # the learnt sky is the clear blue: a ridge with a white cloud behind it was left out
+    assert scores[False][0] < 0.9
+    # the targets: 90 % of the visible skyline within 0.2 deg, at most 1 % below it
+    assert scores[True][0] >= 0.9
+    assert scores[True][1] <= 0.01
+
+
 def test_the_snow_pass_leaves_a_green_ground_alone():
     fn = analytic_skyline_fn(3)
     scene = draw_weather("cumulus", 3, fn)

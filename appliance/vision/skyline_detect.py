@@ -17,7 +17,10 @@ look like ground, or the edge is too weak (a person, a pole, a panorama without 
 missing (NaN), never guessed.  The learnt colour models are checked against a generic prior (sky is
 smooth and bright): a column must show such sky somewhere above its line, so an image without sky
 yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
-clear sky shows above it.  Masked azimuth ranges are missing too.
+clear sky shows above it.  A ridge with white cumulus behind it (the pixels just above its line bright,
+white and over dark ground, :func:`appliance.vision.skyline_edges.cloud_above`) is judged with the
+cloud as sky where it continues the line found under clear sky on both sides.  Masked azimuth ranges
+are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
@@ -42,6 +45,8 @@ from appliance.skyline import Skyline
 from appliance.vision.panorama import Panorama
 from appliance.vision.skyline_edges import (
     VOID_MARGIN_PX,
+    anchored,
+    cloud_above,
     colour_edge,
     fill_void,
     horizontal_luma,
@@ -60,7 +65,7 @@ from appliance.vision.skyline_pixels import (
     _texture,
     _to_float,
 )
-from appliance.vision.skyline_snow import place_rows, snow_checks, snow_evidence
+from appliance.vision.skyline_snow import colour_rows, place_rows, snow_checks, snow_evidence
 
 
 class Method(enum.Enum):
@@ -87,6 +92,7 @@ class DetectionConfig:
     chroma_weight: float = 0.7  # dp: weight of the blue-minus-red drop beside the intensity drop (0: off)
     edge_far_px: int = 6  # sharpness: the fall per row above the line is measured from 3 to this many rows up
     max_slope_ratio: float = 0.3  # sharpness: fall per row above the line over that across it, at zero confidence
+    cloud: bool = True  # dp: white cloud just above a line over dark ground counts as sky (skyline_edges.cloud_above)
     snow: bool = True  # dp: on snowy ground, find the sky/snow boundary by colour (appliance.vision.skyline_snow)
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
@@ -291,20 +297,65 @@ def _dp_rows(
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
     cap = np.minimum(np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0), sharp)
     conf = np.minimum(_confidence(edge, llr, path, cfg, prior_full_t), cap)
-    bridged = _bridge(drop, llr, path, conf, cfg, masked, wrap, prior_full_t, edge)
+    cloud = cloud_above(img8, rows) if cfg.cloud else np.zeros(w, dtype=bool)
+    if cfg.cloud:
+        conf = _cloud_columns(cloud, edge, llr, path, rows, conf, sharp, cfg, prior_full_t, wrap)
+    # a line whose pixels just above are less like the learnt sky than like the ground (passed on the
+    # leniency for pale sky at the skyline) neither anchors the second path nor is kept from it
+    # (white cloud just above explains it: the cloud's top is no better a skyline)
+    doubtful = (conf >= cfg.min_confidence) & (_sky_above(llr, path) < DOUBTFUL_SKY) & ~cloud
+    bridged = _bridge(drop, llr, path, np.where(doubtful, 0.0, conf), cfg, masked, wrap, prior_full_t, edge)
     if bridged is not None:
-        path2, conf2 = bridged
+        path2, conf2, line = bridged
         rows2 = _refine(drop, path2)
         conf2 = np.minimum(conf2, sharpness_confidence(lum_h, rows2, cfg.edge_far_px, cfg.min_edge,
                                                        cfg.max_slope_ratio))
-        take = (conf < cfg.min_confidence) & (conf2 >= cfg.min_confidence)
+        if cfg.cloud:
+            # the second path is for faint edges under clear sky: a faint edge under white cloud is the
+            # cloud's base
+            conf2 = np.where(cloud_above(img8, rows2), 0.0, conf2)
+        take = ((conf < cfg.min_confidence) | doubtful) & (conf2 >= cfg.min_confidence)
         rows = np.where(take, rows2, rows)
-        conf = np.where(take, conf2, conf)
+        # a doubtful line the second path did not replace, well below the line joining the confident
+        # columns (a near hill's top under far land seen through haze), is left out
+        dip = doubtful & ~take & (rows > line + DOUBTFUL_DIP_BANDS * cfg.band_px)
+        conf = np.where(take, conf2, np.where(dip, 0.0, conf))
     if cfg.snow:
         snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t)
         if snowy is not None:
             rows, conf = snowy
     return rows, conf
+
+
+#: A stretch of columns whose line has white cloud above it must meet lines under clear sky on both
+#: sides within this many columns, at most CLOUD_ANCHOR_STEP_PX rows from their rows.
+CLOUD_ANCHOR_GAP_PX = 16
+CLOUD_ANCHOR_STEP_PX = 8.0
+
+
+def _cloud_columns(
+    cloud: np.ndarray,
+    edge: np.ndarray,
+    llr: np.ndarray,
+    path: np.ndarray,
+    rows: np.ndarray,
+    conf: np.ndarray,
+    sharp: np.ndarray,
+    cfg: DetectionConfig,
+    prior_t: np.ndarray,
+    wrap: bool,
+) -> np.ndarray:
+    """The confidence with the columns whose line has white cloud just above it instead of the
+    learnt clear sky (``cloud``: :func:`appliance.vision.skyline_edges.cloud_above`) judged with that
+    cloud as sky, capped by the edge's sharpness (``sharp``), where they continue the line found
+    under clear sky on both sides (:func:`appliance.vision.skyline_edges.anchored`).  Clear sky
+    somewhere above the line is not asked of them (the cloud may fill the column to the image's
+    top): the lines on both sides, which had to show it, stand for it."""
+    with_cloud = np.minimum(_confidence(edge, llr, path, cfg, prior_t, cloud=cloud), sharp)
+    good = conf >= cfg.min_confidence
+    extra = cloud & ~good & (with_cloud >= cfg.min_confidence)
+    keep = anchored(extra, good, cloud, rows, CLOUD_ANCHOR_GAP_PX, CLOUD_ANCHOR_STEP_PX, wrap)
+    return np.where(keep, with_cloud, conf)
 
 
 def _snow_rows(
@@ -323,7 +374,8 @@ def _snow_rows(
 
     Snow under a pale sky is brighter than the sky: the drop the first path follows is at the top of
     the first dark rock below the skyline.  The rows are placed where the brightness first departs
-    from the sky's (a rise onto snow, a drop onto a rock); a line with a colour step onto snow above
+    from the sky's (a rise onto snow, a drop onto a rock), then where the colour crosses halfway from
+    the sky's to the ground's within three rows of that; a line with a colour step onto snow above
     it, or snow-coloured pixels just above it, is left out.
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
@@ -335,11 +387,17 @@ def _snow_rows(
     near_edge = cv2.dilate(edge, np.ones((3, 1), np.uint8))
     conf = _confidence(near_edge, ev.llr, path, cfg, prior_t, haze_below=True)
     placed = place_rows(ev.lum, path.astype(np.float64))
+    placed = colour_rows(ev.chroma, placed)
     return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
 
 
 #: The sky/snow score (0..1) becomes an edge of this intensity drop (the path's edge saturates at 0.1).
 SNOW_EDGE_SCALE = 0.1
+
+
+#: The second path's window reaches this many band_px rows below the line joining the confident
+#: columns (2 band_px above it): a faint horizon lies about on that line, a near hill's top below it.
+BRIDGE_BELOW_BANDS = 1.0
 
 
 def _bridge(
@@ -352,9 +410,10 @@ def _bridge(
     wrap: bool,
     prior_t: np.ndarray,
     edge: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A second path through the columns the first one left unconfident, kept within ``2 band_px``
-    rows of the line joining the confident columns on either side, and its confidence.
+    rows above and ``BRIDGE_BELOW_BANDS band_px`` rows below the line joining the confident columns
+    on either side, its confidence and that line.
 
     A faint edge (a hazy far horizon) loses the first path to a stronger edge lower down, in the
     terrain; behind an occluder the first path may cut through it.  The window keeps the second path
@@ -375,19 +434,54 @@ def _bridge(
     else:
         line = np.interp(cols, anchors, anchor_rows)
     window = 2 * cfg.band_px
+    below = BRIDGE_BELOW_BANDS * cfg.band_px
     rr = np.arange(h, dtype=np.float64)[None, :]
-    outside = np.abs(rr - line[:, None]) > window
+    outside = (rr < line[:, None] - window) | (rr > line[:, None] + below)
     cost_t = _path_cost(drop, llr, cfg, masked, cfg.edge_weight)
     # confident columns keep their row: the second path leaves and rejoins the first one there
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
     cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
-    path2 = _run_dp(np.ascontiguousarray(cost_t), cfg, wrap)
+    # the path is pinned at every confident column: each stretch between two of them is a path of its own
+    path2 = path.copy()
+    for idx in _stretches(~good, wrap):
+        path2[idx] = _dp_path(np.ascontiguousarray(cost_t[idx]), cfg.max_jump_px, cfg.jump_cost)
     conf2 = _confidence(edge, llr, path2, cfg, prior_t, haze_below=True)
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
-    conf2 = np.where(np.abs(path2 - line) <= window, conf2, 0.0)
-    return path2, conf2
+    conf2 = np.where((path2 >= line - window) & (path2 <= line + below), conf2, 0.0)
+    return path2, conf2, line
+
+
+def _stretches(free: np.ndarray, wrap: bool) -> list[np.ndarray]:
+    """The column indices of each run of ``free`` columns with the column before and after it (the
+    runs of a full circle may cross its seam; elsewhere the image's ends bound them)."""
+    w = free.size
+    if free.all():
+        return [np.arange(w)]
+    # a full circle is read from a column that is not free: no run then crosses the seam
+    shift = int(np.argmin(free)) if wrap else 0
+    f = np.roll(free, -shift)
+    edges = np.diff(np.r_[0, f.astype(np.int8), 0])
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = []
+    for a, b in zip(starts, ends):
+        lo, hi = (a - 1, b + 1) if wrap else (max(a - 1, 0), min(b + 1, w))
+        out.append(np.mod(np.arange(lo, hi) + shift, w) if wrap else np.arange(lo, hi) + shift)
+    return out
+
+
+#: A line whose pixels 2-9 rows above score below this on the learnt sky model (-1..1) is doubtful.
+DOUBTFUL_SKY = 0.0
+#: ... and left out where it lies more than this many band_px rows below the confident columns' line.
+DOUBTFUL_DIP_BANDS = 1.25
+
+
+def _sky_above(llr: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Per column: the mean sky log-likelihood ratio (clipped to +-1) over the rows 2-9 above ``path``."""
+    h, w = llr.shape
+    up = np.clip(path[None, :] - np.arange(2, 10)[:, None], 0, h - 1)
+    return np.asarray(np.clip(llr[up, np.arange(w)[None, :]], -1, 1).mean(axis=0))
 
 
 def _learn_llr(
@@ -414,8 +508,12 @@ def _confidence(
     cfg: DetectionConfig,
     prior_t: np.ndarray,
     haze_below: bool = False,
+    cloud: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
+
+    ``cloud`` (per column, :func:`appliance.vision.skyline_edges.cloud_above`) marks the columns whose
+    pixels just above the line are white cloud rather than the learnt clear sky: they count as sky.
 
     With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
     sky and clearly less sky-like than those above it (far terrain seen through haze), while those
@@ -443,6 +541,8 @@ def _confidence(
     strong = np.clip((edge - 2 * cfg.min_edge) / (4 * cfg.min_edge), 0.0, 1.0) * (ground_below > 0.6)
     strong = strong * np.clip(smooth_above / 0.5, 0.0, 1.0)
     c_sky = np.clip(sky_above + 1.2 + 0.6 * strong, 0.0, 1.0)
+    if cloud is not None:
+        c_sky = np.where(cloud, 1.0, c_sky)
     c_ground = np.clip((ground_below + 0.2) / 0.6, 0.0, 1.0)
     if haze_below:
         contrast = np.clip((sky_above + ground_below - 0.3) / 0.4, 0.0, 1.0) * (ground_below > -0.2)

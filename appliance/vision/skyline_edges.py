@@ -5,6 +5,11 @@ A ridge against the sky is a silhouette: its step is made within a pixel or two.
 a cloud bank resting on a ridge fades over a degree or more, and a line drawn there lies below the
 hidden skyline (false evidence for the estimator: "nothing above this elevation").  These measures
 let the detector leave such columns out.
+
+A cumulus behind a ridge is the other way round: white cloud just above a sharp step onto dark
+ground (:func:`cloud_above`), unlike the clear sky the image's sky model was learnt on, yet no
+occluder; such columns are trusted where they continue the line found under clear sky on both
+sides (:func:`anchored`).
 """
 
 from __future__ import annotations
@@ -124,3 +129,78 @@ def colour_edge(img8: np.ndarray, drop: np.ndarray, chroma_weight: float, smooth
     chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
     chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px)
     return np.asarray(np.maximum(drop, np.float32(chroma_weight) * _downward_drop(chroma)))
+
+
+#: Cloud above a line: rows CLOUD_ROWS above it all at least CLOUD_MIN_VALUE bright (largest channel),
+#: not warmer than neutral (blue minus red at least CLOUD_MIN_BLUE), white somewhere (blue minus red at
+#: most CLOUD_MAX_BLUE) and, on average, CLOUD_MIN_CONTRAST brighter than the same rows below it.
+CLOUD_ROWS = (3, 12)
+CLOUD_MIN_VALUE = 0.5
+CLOUD_MIN_BLUE = -0.02
+CLOUD_MAX_BLUE = 0.08
+CLOUD_MIN_CONTRAST = 0.25
+
+
+def cloud_above(img8: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Per column: whether the pixels just above ``rows`` (fractional, NaN = none) are white cloud
+    (and sky) over darker ground: every pixel of rows 3-12 above bright and neutral or blue, some of
+    them white, and brighter on average than rows 3-12 below by CLOUD_MIN_CONTRAST.
+
+    A cumulus behind a ridge is unlike the clear sky an image's sky model is learnt on, yet it is no
+    occluder: a rock, a person or a green hill in front of the skyline has dark or warm pixels
+    (shadows, clothes, grass) among those rows, and far land seen through haze above a near hill is
+    as blue as the sky's horizon, not white."""
+    h, w = img8.shape[:2]
+    # averaged over three columns (in 8 bits: the whole image blurred costs less than its floats),
+    # and only the rows around the line read as floats
+    smooth = cv2.blur(img8, (3, 1))
+    cols = np.arange(w)
+    r = np.round(np.nan_to_num(rows, nan=-10.0 * h)).astype(np.int64)
+    offs = np.arange(CLOUD_ROWS[0], CLOUD_ROWS[1] + 1)
+    up, dn = r[None, :] - offs[:, None], r[None, :] + offs[:, None]
+    inside = (up.min(axis=0) >= 0) & (dn.max(axis=0) < h)
+    px_up = smooth[np.clip(up, 0, h - 1), cols[None, :]].astype(np.float32) / np.float32(255.0)
+    px_dn = smooth[np.clip(dn, 0, h - 1), cols[None, :]].astype(np.float32) / np.float32(255.0)
+    v_up = px_up.max(axis=2)
+    whitest = (px_up[..., 0] - px_up[..., 2]).min(axis=0)
+    bright = (v_up.min(axis=0) >= CLOUD_MIN_VALUE) & (whitest >= CLOUD_MIN_BLUE) & (whitest <= CLOUD_MAX_BLUE)
+    contrast = v_up.mean(axis=0) - px_dn.max(axis=2).mean(axis=0) >= CLOUD_MIN_CONTRAST
+    return np.asarray(inside & bright & contrast)
+
+
+def anchored(extra: np.ndarray, good: np.ndarray, links: np.ndarray, rows: np.ndarray, gap_px: int,
+             max_step_px: float, wrap: bool) -> np.ndarray:
+    """Per column: ``extra`` where it lies on a chain of ``extra`` or ``links`` columns (gaps of at
+    most ``gap_px`` other columns) that meets a ``good`` column on both sides, within ``gap_px``
+    columns of its ends and ``max_step_px`` rows of their rows.
+
+    A ridge with a cloud behind it continues the line found under clear sky on either side, through
+    columns with the cloud above them all along (``links``, whether or not their line is trusted);
+    the edge of a shadow inside a rock near the camera, with bright rock face above it, is cut off
+    from the line on either side by the rock's darker parts."""
+    w = extra.size
+    out = np.zeros(w, dtype=bool)
+    if not good.any() or not extra.any():
+        return out
+    # a full circle is rotated to start at a good column: no chain then crosses the seam
+    shift = int(np.argmax(good)) if wrap else 0
+    ex, gd, ln, rw = (np.roll(a, -shift) for a in (extra & ~good, good, links, rows))
+    idx = np.flatnonzero((ex | ln) & ~gd)
+    if not idx.size:
+        return out
+    # chains: columns at most gap_px apart with no good column between them
+    seen = np.cumsum(gd)
+    cut = (np.diff(idx) > gap_px + 1) | (seen[idx[1:]] != seen[idx[:-1]])
+    starts = np.r_[idx[0], idx[1:][cut]]
+    ends = np.r_[idx[:-1][cut], idx[-1]]
+    good_idx = np.flatnonzero(gd)
+    for s, e in zip(starts, ends):
+        k = np.searchsorted(good_idx, s)
+        left = int(good_idx[k - 1]) if k > 0 else None
+        right = int(good_idx[k]) if k < good_idx.size else (int(good_idx[0]) + w if wrap else None)
+        if left is None or right is None or s - left > gap_px + 1 or right - e > gap_px + 1:
+            continue
+        if abs(rw[s] - rw[left]) > max_step_px or abs(rw[e] - rw[right % w]) > max_step_px:
+            continue
+        out[s : e + 1] = ex[s : e + 1]
+    return np.roll(out, shift)

@@ -263,3 +263,39 @@ def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confid
         dip = np.isfinite(line) & (np.where(np.isfinite(line), line, 0.0) - highest > DIP_PX)
         conf = np.where(dip, 0.0, conf)
     return np.asarray(conf)
+
+
+#: The colour crossing is looked for within this many rows of the placed line; the sky's colour is
+#: read COLOUR_SKY_ROWS above it, the snow's COLOUR_SNOW_ROWS below it.
+COLOUR_REACH_PX = 3
+COLOUR_SKY_ROWS = (5, 9)
+COLOUR_SNOW_ROWS = (2, 6)
+
+
+def colour_rows(chroma: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The fractional row near each of ``rows`` (NaN = none) where blue minus red (``chroma``) first
+    falls, from the top, below halfway between the sky's (the mean of rows 5-9 above) and the
+    ground's (the median of rows 2-6 below); ``rows`` where it does not within COLOUR_REACH_PX rows.
+
+    Under a pale sky the snow's brightness is near the sky's, and the brightness departure wanders
+    a row or two either side of the boundary; the colour step onto the white snow, or onto a dark
+    rock standing on the skyline, is there in every column."""
+    h, w = chroma.shape
+    cols = np.arange(w)
+    ok = np.isfinite(rows)
+    reach = COLOUR_REACH_PX
+    margin = max(COLOUR_SKY_ROWS[1], COLOUR_SNOW_ROWS[1], reach) + 1
+    r0 = np.clip(np.round(np.nan_to_num(rows, nan=float(margin))).astype(np.int64), margin, h - 1 - margin)
+    sky = np.mean([chroma[r0 - k, cols] for k in range(COLOUR_SKY_ROWS[0], COLOUR_SKY_ROWS[1] + 1)], axis=0)
+    ground = np.median([chroma[r0 + k, cols] for k in range(COLOUR_SNOW_ROWS[0], COLOUR_SNOW_ROWS[1] + 1)], axis=0)
+    half = 0.5 * (sky + ground)
+    win = np.stack([chroma[r0 + k, cols] for k in range(-reach - 1, reach + 1)])
+    crossed = win <= half[None, :]
+    first = np.argmax(crossed, axis=0)
+    found = crossed.any(axis=0) & (first > 0) & (sky - ground >= MIN_CHROMA_STEP)
+    prev = win[np.maximum(first - 1, 0), cols]
+    cur = win[first, cols]
+    frac = np.where(prev > cur, (prev - half) / np.maximum(prev - cur, 1e-6), 0.0)
+    # pixel centres at integers: the crossing lies between the rows first - 1 and first of the window
+    crossing = r0 - reach - 2 + first + np.clip(frac, 0.0, 1.0)
+    return np.asarray(np.where(ok & found, crossing, rows))
