@@ -84,6 +84,20 @@ def test_the_credible_region_holds_its_level_and_splits_into_modes():
     assert confidence.modes(two, n_rows, n_cols, 10.0, 12.0, reach_cells=40.0).rivals.size == 0
 
 
+def test_few_independent_azimuths_widen_the_ellipse_as_students_t():
+    from scipy import stats
+
+    # sigma learned from 12 independent azimuths, three taken by the fit: t with 9 degrees of freedom,
+    # whose squared radius at 95 % is 2 F(2, 9) against chi-square's 5.99
+    nu = 12 - confidence.FITTED_PARAMETERS
+    assert confidence.few_azimuths_factor(12) == pytest.approx(2 * stats.f.ppf(0.95, 2, nu) / 5.991465, rel=1e-6)
+    assert confidence.few_azimuths_factor(40, level=0.99) == pytest.approx(
+        2 * stats.f.ppf(0.99, 2, 40 - confidence.FITTED_PARAMETERS) / stats.chi2.ppf(0.99, 2), rel=1e-6)
+    factors = [confidence.few_azimuths_factor(n) for n in (6, 10, 20, 50, 200, 100_000)]
+    assert all(a > b for a, b in zip(factors, factors[1:]))
+    assert factors[-1] == pytest.approx(1.0, abs=1e-4)
+
+
 def test_grid_covariance_turns_into_east_and_north():
     cov_rc = np.diag([4.0, 1.0])  # rows (south) 2 cells, columns (east) 1 cell, 1 sigma
     en = confidence.grid_to_east_north(cov_rc, dx_m=30.0, dy_m=90.0, convergence_deg=0.0)

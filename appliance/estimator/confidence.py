@@ -50,6 +50,20 @@ SIGMA_Z = 1.959964
 MIN_INDEPENDENT = 4.0
 
 
+#: Parameters a fit takes from its residuals before they tell the noise: position (2) and heading.
+FITTED_PARAMETERS = 3
+
+
+def few_azimuths_factor(independent: float, level: float = LEVEL) -> float:
+    """How much wider (in variance) a position's ellipse at ``level`` must be when sigma was learned
+    from ``independent`` azimuths, less the FITTED_PARAMETERS a fit takes: the position then follows
+    Student's t with nu = independent - FITTED_PARAMETERS degrees of freedom, whose squared radius at
+    ``level`` is nu ((1 - level)^(-2/nu) - 1) (2 F(2, nu)) against chi-square's -2 ln(1 - level).  One
+    for many azimuths."""
+    nu = max(independent - FITTED_PARAMETERS, 1.0)
+    return nu * ((1.0 - level) ** (-2.0 / nu) - 1.0) / chi2_2dof(level)
+
+
 def independent_azimuths(residual_deg: np.ndarray) -> float:
     """How many independent azimuths the residuals (deg on a full-circle azimuth grid, NaN where
     missing) are worth: n / (1 + 2 sum of the autocorrelation over its initial positive sequence).

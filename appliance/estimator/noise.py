@@ -41,11 +41,14 @@ def learned_noise(residual_deg: np.ndarray, floor_deg: float, default_deg: float
 
 def tempered_covariance(fit: Fit, sigma_deg: float, temper: float) -> np.ndarray | None:
     """The exact fit's (row, col) covariance (cells^2) from its curvature at ``sigma_deg``, its
-    likelihood counting ``temper`` of itself, with its priors (None: no curvature, or singular)."""
+    likelihood counting ``temper`` of itself, with its priors (None: no curvature, or singular),
+    widened for the few independent azimuths sigma was learned from
+    (:func:`confidence.few_azimuths_factor`)."""
     if fit.curvature is None or fit.prior_information is None:
         return None
     sig2 = sigma_deg**2 * confidence.COVARIANCE_SCALE
-    return marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+    cov = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+    return None if cov is None else cov * confidence.few_azimuths_factor(temper * fit.n)
 
 
 def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[Measurement, float]:
