@@ -34,6 +34,10 @@ share, truth in region and in the 95 % ellipse (the JSON's truth block), median 
 |roll| and |focal| errors of the answers within two cells, median and 90th percentile of timing.total_s.
 Targets (issue 31): >= 90 % within two cells at 60 deg, wrong-and-ok = 0; success against the field of
 view (30, 45, 60, 90) is reported with --fov-sweep.
+Each seed's row also carries near_share: the share of the view (yaw +- half the field of view) whose
+skyline is terrain within 150 m of the camera, from the world's render at the truth; the printed
+summary gives the within-two-cells share of the photos with at most 25 % of it ("near-slope photos"
+have more: their skyline moves by degrees within a node's cell).
 
 Seeds 1000-1059 are the reported set: they were not used while the locator was developed, which used
 seeds 1-20.  A row per (world, fov) is appended to bench/results/photo_locate.md; per-seed JSON lines
