@@ -34,6 +34,10 @@ share, truth in region and in the 95 % ellipse (the JSON's truth block), median 
 |roll| and |focal| errors of the answers within two cells, median and 90th percentile of timing.total_s.
 Targets (issue 31): >= 90 % within two cells at 60 deg, wrong-and-ok = 0; success against the field of
 view (30, 45, 60, 90) is reported with --fov-sweep.
+Each seed's row also carries near_share: the share of the view (yaw +- half the field of view) whose
+skyline is terrain within 150 m of the camera, from the world's render at the truth; the printed
+summary gives the within-two-cells share of the photos with at most 25 % of it ("near-slope photos"
+have more: their skyline moves by degrees within a node's cell).
 
 Seeds 1000-1059 are the reported set: they were not used while the locator was developed, which used
 seeds 1-20.  A row per (world, fov) is appended to bench/results/photo_locate.md; per-seed JSON lines
@@ -117,6 +121,9 @@ REPORTED_SEEDS = "1000-1059"
 WORLD_KEYS = {"jacksboro": 1, "forest": 2}
 SKYLINE_STEP_DEG = 360.0 / MAX_SKYLINE_SAMPLES  # how finely the renderer samples the skyline
 NO_SKYLINE = 0.5  # a photo whose skyline crosses fewer columns than this share "has no skyline"
+NEAR_RANGE_M = 150.0  # terrain this close forms a "near" skyline: it moves by degrees within a node's cell
+NEAR_VIEW_SHARE = 0.25  # a photo whose view has more than this share of near skyline is a "near-slope" photo
+NEAR_STEP_DEG = 0.5  # the azimuth step of the view's skyline ranges
 
 
 # ----------------------------------------------------------------------------- the photo
@@ -370,6 +377,16 @@ def skyline_check(image_bgr: np.ndarray, skyline_fn: SkylineFn, spec: PhotoSpec,
             "within_1_5_px": round(float(np.mean(np.abs(fin) <= 1.5)), 3)}
 
 
+def near_share(world_dem: Dem, spec: PhotoSpec) -> float:
+    """The share of the photo's horizontal view (yaw +- half the field of view) whose skyline is
+    terrain within NEAR_RANGE_M of the camera, from the world's own render at the truth (no objects)."""
+    half = 0.5 * spec.fov_deg
+    az = np.mod(spec.yaw_deg + np.arange(-half, half + NEAR_STEP_DEG / 2, NEAR_STEP_DEG), 360.0)
+    _, dist = dem_skyline_fn(world_dem, spec.lat, spec.lon, CAMERA_HEIGHT_M)(az)
+    d = np.asarray(dist, dtype=np.float64)
+    return round(float(np.mean(np.isfinite(d) & (d < NEAR_RANGE_M))), 3)
+
+
 # ----------------------------------------------------------------------------- worlds and seeds
 
 
@@ -517,13 +534,14 @@ def angle_diff_deg(a: float, b: float) -> float:
 
 
 def score(spec: PhotoSpec, world: BenchWorld, answer: dict | None, exit_code: int, wall_s: float,
-          stderr: str, skyline_in_frame: float | None = None) -> dict:
+          stderr: str, skyline_in_frame: float | None = None, near: float | None = None) -> dict:
     """One seed's row: the answer against the truth (``skyline_in_frame``: the share of the photo's
-    columns the skyline crosses)."""
+    columns the skyline crosses; ``near``: :func:`near_share`)."""
     row: dict = {"world": spec.world, "seed": spec.seed, "fov_deg": spec.fov_deg, "site": spec.site,
                  "weather": spec.weather, "occluders": len(spec.occluders), "exif_f35_mm": spec.exif_f35_mm,
                  "f35_mm": round(spec.f35_mm, 3), "exif_focal_err": round(spec.exif_f35_mm / spec.f35_mm - 1.0, 4),
-                 "skyline_in_frame": skyline_in_frame, "exit": exit_code, "wall_s": round(wall_s, 2)}
+                 "skyline_in_frame": skyline_in_frame, "near_share": near, "exit": exit_code,
+                 "wall_s": round(wall_s, 2)}
     if answer is None or "lat" not in answer or "lon" not in answer:
         row["failed"] = stderr.strip().splitlines()[-1] if stderr.strip() else f"exit {exit_code}, no JSON answer"
         return row
@@ -596,7 +614,11 @@ def summarise(rows: list[dict]) -> dict[str, float]:
         return _median([abs(float(r[key])) for r in right if r.get(key) is not None])
 
     sky = [r for r in rows if (r.get("skyline_in_frame") or 0.0) >= NO_SKYLINE]
+    far = [r for r in rows if r.get("near_share") is not None and r["near_share"] <= NEAR_VIEW_SHARE]
     return {
+        "near_slope_photos": sum(1 for r in rows if (r.get("near_share") or 0.0) > NEAR_VIEW_SHARE),
+        "within_2_cells_not_near": (sum(1 for r in far if r.get("error_cells", math.inf) <= 2.0) / len(far)
+                                    if far else float("nan")),
         "photos": n, "failed": n - len(answered), "no_skyline": n - len(sky),
         "within_2_cells": len(right) / n if n else float("nan"),
         "within_2_cells_with_skyline": (sum(1 for r in sky if r.get("error_cells", math.inf) <= 2.0) / len(sky)
@@ -724,10 +746,12 @@ def main() -> int:
                 except subprocess.TimeoutExpired:
                     code, stdout, stderr = -1, "", f"timed out after {args.timeout:.0f} s"
                 row = score(spec, world, parse_answer(stdout) if code == 0 else None, code,
-                            time.perf_counter() - t1, stderr, check.get("skyline_in_frame"))
+                            time.perf_counter() - t1, stderr, check.get("skyline_in_frame"),
+                            near_share(world.world, spec))
                 rows.append(row)
                 runs.parent.mkdir(parents=True, exist_ok=True)
                 write_text_atomic(runs, "".join(json.dumps(r) + "\n" for r in rows))
+                print(f"  near-slope share of the view {row['near_share']}", flush=True)
                 if "failed" in row:
                     print(f"  failed: {row['failed']}", flush=True)
                 else:

@@ -17,6 +17,7 @@ from bench.photo_locate import (
     RecordedSkylineFn,
     exif_f35_mm,
     f35_from_px,
+    near_share,
     photo_skyline_fn,
     px_from_f35,
     skyline_check,
@@ -91,3 +92,14 @@ def test_the_near_objects_stand_above_the_terrain_in_the_photo(photo):
     off = skyline_offsets_px(image, rows)
     assert abs(off[u_pole]) < 1.0
     assert rows[u_pole] < rows[u_pole - 30] - 15  # 30 columns to the left (4 deg): the terrain, well below
+
+
+def test_the_near_slope_share_tells_a_slope_in_front_from_a_far_ridge():
+    """A camera facing up a slope 55-80 m away sees only near terrain; the camera of SPEC sees the
+    ridge kilometres to the east."""
+    dem = load_dem("jacksboro")
+    slope = dataclasses.replace(SPEC, lat=36.55693, lon=-84.17902, yaw_deg=32.5, occluders=())
+    assert near_share(dem, slope) == 1.0
+    assert near_share(dem, dataclasses.replace(SPEC, occluders=())) == 0.0
+    _, dist = dem_skyline_fn(dem, slope.lat, slope.lon, CAMERA_HEIGHT_M)(np.array([2.5, 32.5, 62.5]))
+    assert np.all(dist < 150.0)
