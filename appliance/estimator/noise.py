@@ -46,9 +46,9 @@ def tempered_covariance(fit: Fit, sigma_deg: float, temper: float) -> np.ndarray
     (:func:`confidence.few_azimuths_factor`)."""
     if fit.curvature is None or fit.prior_information is None:
         return None
-    sig2 = sigma_deg**2 * confidence.COVARIANCE_SCALE
-    cov = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
-    return None if cov is None else cov * confidence.few_azimuths_factor(temper * fit.n)
+    # the likelihood's information alone is widened: a prior's (a traverse's, the eye's) is not
+    sig2 = sigma_deg**2 * confidence.COVARIANCE_SCALE * confidence.few_azimuths_factor(temper * fit.n)
+    return marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
 
 
 def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[Measurement, float]:
