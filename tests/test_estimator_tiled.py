@@ -149,6 +149,24 @@ def test_near_a_tile_border(built):
     assert 0.0 <= rec["lower"] <= rec["upper"] <= 1.0
 
 
+def test_the_first_round_weighs_every_tile_at_the_given_noise(built):
+    """The best tile's refinement learns the noise, which puts its posteriors on another scale than
+    the other tiles' grid searches: the first round still picks its answer and the tiles to search
+    again at the given noise (here, on a tile border, the refined tile weighed at the noise it
+    learned would fall below its neighbour, whose grid search carries no region)."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = 36.5653, -84.2638
+    sky = _skyline(lat, lon)
+    res = locate_tiled(index, sky, PARAMS)
+    assert res.tiled.noise is not None
+    assert res.tiled.truth_error_m((lat, lon)) <= 2 * _cell_m(whole)
+    assert res.tiled.status(index, (lat, lon)) == "ok"
+    # the learned interval is the noise added (0.2 deg) and the tempering a share
+    lo, hi, temper = res.tiled.noise
+    assert lo < 0.2 < hi < 0.3 and 0.0 < temper <= 1.0
+
+
 def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):
     distributed = pytest.importorskip("distributed")
     folder, _ = built

@@ -127,6 +127,13 @@ def _searched(index: TiledIndex, tiles: list[TileEntry], skyline: Skyline, param
             return fitted
     refined = _run(index, search_tile, best_tiles, client, skyline, params, source=source, refine=True,
                    rescore_floor=floor, placed=placed, learn_noise=learn_noise)
+    learned = refined[0].noise if refined[0].error is None else None
+    if learned is not None:
+        # the refined tile's posteriors are at the noise it learned, on another scale than the other
+        # tiles': weighed with theirs it may no longer be the best.  The round's answer only tells
+        # the noise and which tiles to search again, weighed at the given noise as on the grid
+        on_grid = next(o for o in first if o.file == best)
+        return combine_tiles([dataclasses.replace(on_grid, has_region=True, noise=learned)] + others, index.body)
     return combine_tiles(refined + others, index.body)
 
 
