@@ -167,6 +167,24 @@ def test_the_first_round_weighs_every_tile_at_the_given_noise(built):
     assert lo < 0.2 < hi < 0.3 and 0.0 < temper <= 1.0
 
 
+def test_a_skyline_noisier_than_the_sigma_given_is_a_poor_match_as_on_one_file(built):
+    """A skyline with three times the noise the sigma given allows fits no place as it should: the
+    second round, weighed at the wider noise the first round learned, still judges the fit by the
+    interval given, as the single file's estimate does."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    el = render_skyline(load_dem("jacksboro"), lat, lon, max_range_m=MAX_RANGE_M).elevation_deg
+    sky = Skyline(np.arange(360.0), el + np.random.default_rng(0).normal(0.0, 0.3, 360))
+    narrow = SearchParams((0.05, 0.1), 4.0)
+    single = locate(load_database(whole), sky, narrow.sigma_deg, narrow.heading_tolerance_deg)
+    res = locate_tiled(index, sky, narrow)
+    assert res.tiled.noise is not None and res.tiled.noise[1] > 0.2  # learned: about the noise added
+    for notes, ambiguous in ((single.result.notes, single.result.ambiguous), (res.tiled.notes, res.tiled.ambiguous)):
+        assert ambiguous and any(n.startswith("ambiguous: poor match: residual") for n in notes)
+    assert res.to_json(index, (lat, lon))["status"] == "ambiguous"
+
+
 def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):
     distributed = pytest.importorskip("distributed")
     folder, _ = built

@@ -62,7 +62,10 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
     found = _searched(index, tiles, skyline, params, client, source, surface, placed, learn_noise, floor_deg)
     noise = _learned(found, floor_deg) if learn_noise else None
     if noise is not None:
-        again = dataclasses.replace(params, sigma_deg=(noise[0], noise[1]), temper=noise[2])
+        # the fits are still judged by the interval given: a skyline no place fits is no better a
+        # match for the wider interval its own residuals give
+        again = dataclasses.replace(params, sigma_deg=(noise[0], noise[1]), temper=noise[2],
+                                    allowed_sigma_deg=params.sigma_deg[1])
         held = {found.best.file} | {c.tile for c in found.region} | ({found.fit.tile} if found.fit else set())
         near = [t for t in tiles if t.file in held]
         second = _searched(index, near, skyline, again, client, source, None, placed, False, floor_deg)
