@@ -20,7 +20,7 @@ from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
 from appliance.estimator.likelihood import log_upper_with_others
 from appliance.estimator.rescore import MIN_RESCORE, RESCORE_MARGIN_NATS
-from appliance.locating import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
+from appliance.locating import surface_fit, tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
 from appliance.locating.position import locate, skyline_grid
 from appliance.locating.tile_cache import SearchParams
 from appliance.locating.tiled_index import box_around, open_tiled
@@ -371,6 +371,31 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
     assert tile_combination.combine([best, failed], "earth").tiled.tiles_failed == ("c.viperdb",)
     with pytest.raises(EstimationError):
         tile_combination.combine([failed], "earth")
+
+
+def test_a_fit_on_the_maps_surface_keeps_no_note_of_the_grid_fits_it_overrules():
+    """Where the fit on the map's own surface learned the noise, the best tile's own verdicts (its
+    grid fit's match, its rival fits on the facets' grid) no longer decide whether the answer is
+    ambiguous: an answer that says ok carries none of their 'ambiguous' notes; the combination's
+    own (a rival tile) still decide, with their note."""
+    rival_note = "ambiguous: exact renders at another place, more than 2 cells away, fit as well as the best"
+    best = _made_up_tile("a.viperdb", 0.0, -10.0, -9.0)
+    best = dataclasses.replace(best, ambiguous=True,
+                               record={**best.record, "notes": ["occluded: 3 of 360", rival_note]})
+    weak = _made_up_tile("b.viperdb", 0.01, -40.0, -38.0)
+    est = tile_combination.combine_tiles([best, weak], "earth")
+    assert est.ambiguous and rival_note in est.notes
+    fit = tiled_answer.SurfaceFit(0.0, 0.0, 0.0, 0.0, "EPSG:4326", "a.viperdb", 0, 0.0, 0.2, 24, 0.0, 40,
+                                  np.eye(2), (0.18, 0.22, 0.5), 24)
+    index = dataclasses.make_dataclass("Index", ["body"])("earth")
+    res = surface_fit.with_surface_fit(index, est, fit, 1.2)
+    assert not res.ambiguous and res.status() == "ok"
+    assert "occluded: 3 of 360" in res.notes and not any(n.startswith("ambiguous") for n in res.notes)
+    # a rival tile's note stays with its verdict
+    rival = _made_up_tile("b.viperdb", 0.01, -11.0, -9.0)
+    res = surface_fit.with_surface_fit(index, tile_combination.combine_tiles([best, rival], "earth"), fit, 1.2)
+    assert res.ambiguous and rival_note not in res.notes
+    assert any(n.startswith("ambiguous: tile b.viperdb holds a place") for n in res.notes)
 
 
 def test_refining_only_the_best_tile_gives_the_answer_of_refining_all(built):
