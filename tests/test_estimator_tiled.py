@@ -123,12 +123,13 @@ def test_one_tile_combines_to_its_own_estimate(built):
     assert (lo, hi) == pytest.approx(learned.result.sigma_deg, rel=1e-6)
     assert temper == pytest.approx(learned.result.temper, rel=1e-6)
     own = locate(db, sky, (lo, hi), PARAMS.heading_tolerance_deg, occlusion_weight=PARAMS.occlusion_weight,
-                 learn_noise=False, temper=temper)
+                 learn_noise=False, temper=temper, allowed_sigma_deg=PARAMS.sigma_deg[1], polish=True)
     assert res.tiled.log_lower == pytest.approx(own.result.log_lower, abs=1e-9)
     assert res.tiled.log_upper == pytest.approx(math.log(own.result.upper), abs=1e-9)
     assert sorted(c.node for c in res.tiled.region) == sorted(int(v) for v in own.result.region_nodes)
     assert res.tiled.ambiguous == own.result.ambiguous
     assert res.tiled.covariance_m2 == pytest.approx(own.result.covariance_m2, abs=1e-4)  # as the record rounds it
+    assert (res.lat, res.lon) == (pytest.approx(own.lat, abs=1e-8), pytest.approx(own.lon, abs=1e-8))
 
 
 def test_near_a_tile_border(built):
@@ -183,6 +184,27 @@ def test_a_skyline_noisier_than_the_sigma_given_is_a_poor_match_as_on_one_file(b
     for notes, ambiguous in ((single.result.notes, single.result.ambiguous), (res.tiled.notes, res.tiled.ambiguous)):
         assert ambiguous and any(n.startswith("ambiguous: poor match: residual") for n in notes)
     assert res.to_json(index, (lat, lon))["status"] == "ambiguous"
+
+
+def test_a_tilted_heads_answer_is_the_single_files(built):
+    """A levelled head's errors (a residual tilt of 0.28 deg, noise correlated over 6 deg): the second
+    round polishes its best fit at the noise learned, with the tilt, as the single file's search
+    does; its answer and covariance are then the single file's, and the truth lies in its ellipse."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = 36.5543, -84.2840
+    az = np.arange(360.0)
+    el = render_skyline(load_dem("jacksboro"), lat, lon, max_range_m=MAX_RANGE_M).elevation_deg
+    noise = np.convolve(np.random.default_rng(101).normal(0.0, 0.12, 366), np.ones(6) / math.sqrt(6.0), "valid")[:360]
+    sky = Skyline(az, el + noise - 0.055 * np.cos(np.radians(az)) - 0.273 * np.sin(np.radians(az)))
+    wdb = load_database(whole)
+    single = locate(wdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    res = locate_tiled(index, sky, PARAMS)
+    body = body_named(wdb.header["body"])
+    assert not res.tiled.ambiguous and not single.result.ambiguous
+    assert geodesic_distance_m(res.lat, res.lon, single.lat, single.lon, body) < 1.0
+    assert res.tiled.covariance_m2 == pytest.approx(single.result.covariance_m2, rel=0.1, abs=0.5)
+    assert res.tiled.truth_in_ellipse((lat, lon))
 
 
 def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):

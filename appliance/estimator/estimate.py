@@ -165,6 +165,7 @@ def estimate(
     sigma_floor_deg: float | None = None,
     temper: float = 1.0,
     allowed_sigma_deg: float | None = None,
+    polish: bool = False,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -192,7 +193,10 @@ def estimate(
     search: a search over several grids made again at the noise its first round's answer left.
     ``allowed_sigma_deg`` is the most noise a fit may leave before the skyline is a poor match (None:
     the upper end of the interval searched); such a search's second round judges its fits by the
-    interval its first round was given, not by the one learned from them.
+    interval its first round was given, not by the one learned from them.  ``polish`` (with
+    ``learn_noise`` False) fits the best exact fit again from where it stands at the sigma given,
+    with the head's residual tilt, as a search that learns the noise does at the noise learned: such
+    a second round's answer and covariance are then those of one grid's search.
 
     When the best fit leaves far more of the skyline to occluders than ``occlusion_weight`` says (a
     forest's edge, buildings), the search is made once more with the share it found.  When the sigma
@@ -208,7 +212,7 @@ def estimate(
                      occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
                      position_prior=position_prior, rescore_floor=rescore_floor, first=first,
                      learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg, temper=temper,
-                     allowed_sigma_deg=allowed_sigma_deg)
+                     allowed_sigma_deg=allowed_sigma_deg, polish=polish)
     if not 0.0 < temper <= 1.0 or (learn_noise and temper != 1.0):
         raise ValueError(f"temper {temper}: expected 0 < temper <= 1, and 1 where the noise is learned here")
     again = learn_noise and first is None and rescore_floor is None
@@ -307,6 +311,7 @@ class _Search:
     sigma_floor_deg: float | None
     temper: float = 1.0
     allowed_sigma_deg: float | None = None
+    polish: bool = False
 
     @property
     def floor_deg(self) -> float:
@@ -362,6 +367,12 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
     learned = search.learn_noise and best_fit is not None and best_fit.residual_deg is not None
     if learned:
         found = _with_learned_noise(grid, found, search)
+    elif search.polish and best_fit is not None:
+        polished = polished_fit(grid, found.meas, best_fit, search.heading_tolerance_deg, search.height_m,
+                                search.position_prior)
+        if polished is not None:
+            found = replace(found, best_fit=polished, answer=Answer(polished.row, polished.col, polished.heading_deg,
+                                                                    polished.rms_deg, polished.covariance_cells))
     return _result(grid, found, searched, learned, search, t0)
 
 

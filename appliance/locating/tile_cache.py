@@ -40,6 +40,9 @@ class SearchParams:
     #: the most noise (deg) a fit may leave before the skyline is a poor match; None: the upper end
     #: of ``sigma_deg`` (a second round's is the interval its first round was given)
     allowed_sigma_deg: float | None = None
+    #: whether a refined tile polishes its best fit at ``sigma_deg`` (a second round: as one grid's
+    #: search polishes it at the noise it learned)
+    polish: bool = False
 
 
 #: Candidate nodes of the tiles a process keeps mapped between searches (checksums verified once,

@@ -48,7 +48,9 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
     noise, as one grid's search does (:func:`appliance.estimator.estimate`).  Only the tiles that
     held the first round's region are searched again: at the narrower noise the others stand
     further below the best.  The second round's region and rivals decide whether the answer is
-    ambiguous; the answer's covariance is its exact fit's at that noise.
+    ambiguous (its fit judged by the interval given); its best tile's fit is polished at that noise,
+    with the head's residual tilt, as one grid's search polishes it, and the answer's covariance is
+    that fit's at that noise.
 
     With the ``surface`` a whole-body database was built from
     (:func:`appliance.locating.tiled_index.open_surface`), the answer is fitted on that map itself
@@ -65,7 +67,7 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
         # the fits are still judged by the interval given: a skyline no place fits is no better a
         # match for the wider interval its own residuals give
         again = dataclasses.replace(params, sigma_deg=(noise[0], noise[1]), temper=noise[2],
-                                    allowed_sigma_deg=params.sigma_deg[1])
+                                    allowed_sigma_deg=params.sigma_deg[1], polish=True)
         held = {found.best.file} | {c.tile for c in found.region} | ({found.fit.tile} if found.fit else set())
         near = [t for t in tiles if t.file in held]
         second = _searched(index, near, skyline, again, client, source, None, placed, False, floor_deg)
