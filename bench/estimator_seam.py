@@ -218,8 +218,8 @@ def main() -> int:
     errors = np.array([geodesic_distance_m(e.lat, e.lon, t[0], t[1], body) for e, t in zip(e_serial, truths)])
     for k, (e, t, err, sec) in enumerate(zip(e_serial, truths, errors, t_serial)):
         side = "E" if t[1] >= SEAM_LON else "W"
-        print(f"{k:2d} truth {t[0]:.5f},{t[1]:.5f} ({side}) -> {e.lat:.5f},{e.lon:.5f} in {e.tile}: "
-              f"{err:7.1f} m ({err / cell:5.2f} cells), {a_serial[k]['status']}, region {len(e.region)} cells, "
+        print(f"{k:2d} truth {t[0]:.5f},{t[1]:.5f} ({side}) -> {e.lat:.5f},{e.lon:.5f} in {e.tiled.tile}: "
+              f"{err:7.1f} m ({err / cell:5.2f} cells), {a_serial[k]['status']}, region {len(e.tiled.region)} cells, "
               f"heading {e.heading_correction_deg:+.2f} (true {offsets[k]:+.2f}), {sec:.2f} s", flush=True)
     load_mid = uptime()
     prof = profile(index, skies[: args.profile], params) if args.profile else {}

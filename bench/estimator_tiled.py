@@ -94,6 +94,10 @@ def main() -> int:
                   "|---|---|---|---|---|---|---|---|\n", "".join(rows))
     sys.stdout.writelines(rows)
     print(f"cores {len(os.sched_getaffinity(0))}, {len(skies)} skylines x {args.repeats} repeats, compass +-4 deg")
+    print("in process, per skyline: " + "; ".join(
+        f"{r['status']} {r['rms_residual_deg']:.3f} deg RMS, sigma {r['sigma_deg']}, "
+        f"region {r['region']['n_cells']} cells"
+        for r in serial[2][: len(skies)]))
     return 0 if same else 1
 
 

@@ -20,7 +20,7 @@ from appliance.errors import DatabaseError, EstimationError
 from appliance.estimator import first_pass
 from appliance.estimator.likelihood import log_upper_with_others
 from appliance.estimator.rescore import MIN_RESCORE, RESCORE_MARGIN_NATS
-from appliance.locating import tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
+from appliance.locating import surface_fit, tile_cache, tile_combination, tile_search, tiled_answer, tiled_search
 from appliance.locating.position import locate, skyline_grid
 from appliance.locating.tile_cache import SearchParams
 from appliance.locating.tiled_index import box_around, open_tiled
@@ -123,12 +123,13 @@ def test_one_tile_combines_to_its_own_estimate(built):
     assert (lo, hi) == pytest.approx(learned.result.sigma_deg, rel=1e-6)
     assert temper == pytest.approx(learned.result.temper, rel=1e-6)
     own = locate(db, sky, (lo, hi), PARAMS.heading_tolerance_deg, occlusion_weight=PARAMS.occlusion_weight,
-                 learn_noise=False, temper=temper)
+                 learn_noise=False, temper=temper, allowed_sigma_deg=PARAMS.sigma_deg[1], polish=True)
     assert res.tiled.log_lower == pytest.approx(own.result.log_lower, abs=1e-9)
     assert res.tiled.log_upper == pytest.approx(math.log(own.result.upper), abs=1e-9)
     assert sorted(c.node for c in res.tiled.region) == sorted(int(v) for v in own.result.region_nodes)
     assert res.tiled.ambiguous == own.result.ambiguous
     assert res.tiled.covariance_m2 == pytest.approx(own.result.covariance_m2, abs=1e-4)  # as the record rounds it
+    assert (res.lat, res.lon) == (pytest.approx(own.lat, abs=1e-8), pytest.approx(own.lon, abs=1e-8))
 
 
 def test_near_a_tile_border(built):
@@ -147,6 +148,63 @@ def test_near_a_tile_border(built):
     rec = res.to_json(index, (lat, lon))
     assert rec["tile"] == res.tiled.tile and rec["status"] in ("ok", "ambiguous")
     assert 0.0 <= rec["lower"] <= rec["upper"] <= 1.0
+
+
+def test_the_first_round_weighs_every_tile_at_the_given_noise(built):
+    """The best tile's refinement learns the noise, which puts its posteriors on another scale than
+    the other tiles' grid searches: the first round still picks its answer and the tiles to search
+    again at the given noise (here, on a tile border, the refined tile weighed at the noise it
+    learned would fall below its neighbour, whose grid search carries no region)."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = 36.5653, -84.2638
+    sky = _skyline(lat, lon)
+    res = locate_tiled(index, sky, PARAMS)
+    assert res.tiled.noise is not None
+    assert res.tiled.truth_error_m((lat, lon)) <= 2 * _cell_m(whole)
+    assert res.tiled.status(index, (lat, lon)) == "ok"
+    # the learned interval is the noise added (0.2 deg) and the tempering a share
+    lo, hi, temper = res.tiled.noise
+    assert lo < 0.2 < hi < 0.3 and 0.0 < temper <= 1.0
+
+
+def test_a_skyline_noisier_than_the_sigma_given_is_a_poor_match_as_on_one_file(built):
+    """A skyline with three times the noise the sigma given allows fits no place as it should: the
+    second round, weighed at the wider noise the first round learned, still judges the fit by the
+    interval given, as the single file's estimate does."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = INTERIOR
+    el = render_skyline(load_dem("jacksboro"), lat, lon, max_range_m=MAX_RANGE_M).elevation_deg
+    sky = Skyline(np.arange(360.0), el + np.random.default_rng(0).normal(0.0, 0.3, 360))
+    narrow = SearchParams((0.05, 0.1), 4.0)
+    single = locate(load_database(whole), sky, narrow.sigma_deg, narrow.heading_tolerance_deg)
+    res = locate_tiled(index, sky, narrow)
+    assert res.tiled.noise is not None and res.tiled.noise[1] > 0.2  # learned: about the noise added
+    for notes, ambiguous in ((single.result.notes, single.result.ambiguous), (res.tiled.notes, res.tiled.ambiguous)):
+        assert ambiguous and any(n.startswith("ambiguous: poor match: residual") for n in notes)
+    assert res.to_json(index, (lat, lon))["status"] == "ambiguous"
+
+
+def test_a_tilted_heads_answer_is_the_single_files(built):
+    """A levelled head's errors (a residual tilt of 0.28 deg, noise correlated over 6 deg): the second
+    round polishes its best fit at the noise learned, with the tilt, as the single file's search
+    does; its answer and covariance are then the single file's, and the truth lies in its ellipse."""
+    folder, whole = built
+    index = open_tiled(folder)
+    lat, lon = 36.5543, -84.2840
+    az = np.arange(360.0)
+    el = render_skyline(load_dem("jacksboro"), lat, lon, max_range_m=MAX_RANGE_M).elevation_deg
+    noise = np.convolve(np.random.default_rng(101).normal(0.0, 0.12, 366), np.ones(6) / math.sqrt(6.0), "valid")[:360]
+    sky = Skyline(az, el + noise - 0.055 * np.cos(np.radians(az)) - 0.273 * np.sin(np.radians(az)))
+    wdb = load_database(whole)
+    single = locate(wdb, sky, PARAMS.sigma_deg, PARAMS.heading_tolerance_deg)
+    res = locate_tiled(index, sky, PARAMS)
+    body = body_named(wdb.header["body"])
+    assert not res.tiled.ambiguous and not single.result.ambiguous
+    assert geodesic_distance_m(res.lat, res.lon, single.lat, single.lon, body) < 1.0
+    assert res.tiled.covariance_m2 == pytest.approx(single.result.covariance_m2, rel=0.1, abs=0.5)
+    assert res.tiled.truth_in_ellipse((lat, lon))
 
 
 def test_dask_and_in_process_answers_are_identical(built, tmp_path, capsys):
@@ -335,6 +393,31 @@ def test_a_rival_in_another_tile_makes_the_answer_ambiguous():
     assert tile_combination.combine([best, failed], "earth").tiled.tiles_failed == ("c.viperdb",)
     with pytest.raises(EstimationError):
         tile_combination.combine([failed], "earth")
+
+
+def test_a_fit_on_the_maps_surface_keeps_no_note_of_the_grid_fits_it_overrules():
+    """Where the fit on the map's own surface learned the noise, the best tile's own verdicts (its
+    grid fit's match, its rival fits on the facets' grid) no longer decide whether the answer is
+    ambiguous: an answer that says ok carries none of their 'ambiguous' notes; the combination's
+    own (a rival tile) still decide, with their note."""
+    rival_note = "ambiguous: exact renders at another place, more than 2 cells away, fit as well as the best"
+    best = _made_up_tile("a.viperdb", 0.0, -10.0, -9.0)
+    best = dataclasses.replace(best, ambiguous=True,
+                               record={**best.record, "notes": ["occluded: 3 of 360", rival_note]})
+    weak = _made_up_tile("b.viperdb", 0.01, -40.0, -38.0)
+    est = tile_combination.combine_tiles([best, weak], "earth")
+    assert est.ambiguous and rival_note in est.notes
+    fit = tiled_answer.SurfaceFit(0.0, 0.0, 0.0, 0.0, "EPSG:4326", "a.viperdb", 0, 0.0, 0.2, 24, 0.0, 40,
+                                  np.eye(2), (0.18, 0.22, 0.5), 24)
+    index = dataclasses.make_dataclass("Index", ["body"])("earth")
+    res = surface_fit.with_surface_fit(index, est, fit, 1.2)
+    assert not res.ambiguous and res.status() == "ok"
+    assert "occluded: 3 of 360" in res.notes and not any(n.startswith("ambiguous") for n in res.notes)
+    # a rival tile's note stays with its verdict
+    rival = _made_up_tile("b.viperdb", 0.01, -11.0, -9.0)
+    res = surface_fit.with_surface_fit(index, tile_combination.combine_tiles([best, rival], "earth"), fit, 1.2)
+    assert res.ambiguous and rival_note not in res.notes
+    assert any(n.startswith("ambiguous: tile b.viperdb holds a place") for n in res.notes)
 
 
 def test_refining_only_the_best_tile_gives_the_answer_of_refining_all(built):

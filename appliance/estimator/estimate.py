@@ -164,6 +164,8 @@ def estimate(
     learn_noise: bool = True,
     sigma_floor_deg: float | None = None,
     temper: float = 1.0,
+    allowed_sigma_deg: float | None = None,
+    polish: bool = False,
 ) -> EstimateResult:
     """Estimate the position from one skyline.
 
@@ -189,6 +191,12 @@ def estimate(
     quantisation, ``confidence.SIGMA_FLOOR_DEG``).  ``temper`` (0 < temper <= 1, with ``learn_noise``
     False) is the share of an independent azimuth each measured one counts for, learned by an earlier
     search: a search over several grids made again at the noise its first round's answer left.
+    ``allowed_sigma_deg`` is the most noise a fit may leave before the skyline is a poor match (None:
+    the upper end of the interval searched); such a search's second round judges its fits by the
+    interval its first round was given, not by the one learned from them.  ``polish`` (with
+    ``learn_noise`` False) fits the best exact fit again from where it stands at the sigma given,
+    with the head's residual tilt, as a search that learns the noise does at the noise learned: such
+    a second round's answer and covariance are then those of one grid's search.
 
     When the best fit leaves far more of the skyline to occluders than ``occlusion_weight`` says (a
     forest's edge, buildings), the search is made once more with the share it found.  When the sigma
@@ -203,7 +211,8 @@ def estimate(
                      min_field_of_view_deg=min_field_of_view_deg, refine=refine, height_m=height_m,
                      occlusion_weight=occlusion_weight, weights=weights, map_sigma_m=map_sigma_m,
                      position_prior=position_prior, rescore_floor=rescore_floor, first=first,
-                     learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg, temper=temper)
+                     learn_noise=learn_noise, sigma_floor_deg=sigma_floor_deg, temper=temper,
+                     allowed_sigma_deg=allowed_sigma_deg, polish=polish)
     if not 0.0 < temper <= 1.0 or (learn_noise and temper != 1.0):
         raise ValueError(f"temper {temper}: expected 0 < temper <= 1, and 1 where the noise is learned here")
     again = learn_noise and first is None and rescore_floor is None
@@ -301,6 +310,8 @@ class _Search:
     learn_noise: bool
     sigma_floor_deg: float | None
     temper: float = 1.0
+    allowed_sigma_deg: float | None = None
+    polish: bool = False
 
     @property
     def floor_deg(self) -> float:
@@ -356,6 +367,12 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
     learned = search.learn_noise and best_fit is not None and best_fit.residual_deg is not None
     if learned:
         found = _with_learned_noise(grid, found, search)
+    elif search.polish and best_fit is not None:
+        polished = polished_fit(grid, found.meas, best_fit, search.heading_tolerance_deg, search.height_m,
+                                search.position_prior)
+        if polished is not None:
+            found = replace(found, best_fit=polished, answer=Answer(polished.row, polished.col, polished.heading_deg,
+                                                                    polished.rms_deg, polished.covariance_cells))
     return _result(grid, found, searched, learned, search, t0)
 
 
@@ -446,11 +463,12 @@ def _result(grid: SkylineGrid, found: _Found, searched: Measurement, learned: bo
     fit_cells = [nearest_node(grid, f.row, f.col) for f in rivals]
     cell_area = grid.dx_m * grid.dy_m
     hidden = 0.0 if best_fit is None else best_fit.occluded / max(best_fit.n, 1)
+    allowed = searched.sigma_hi_deg if search.allowed_sigma_deg is None else search.allowed_sigma_deg
     if learned:
         region = learned_region(conf, fit_cells, answer_node, cov_m2, cell_area, answer.heading_deg, answer.rms_deg,
-                                searched.sigma_hi_deg, hidden, bool(rivals), search.heading_tolerance_deg)
+                                allowed, hidden, bool(rivals), search.heading_tolerance_deg)
     else:
-        region = given_region(post.region, fit_cells, answer_node, cell_area, answer.rms_deg, searched.sigma_hi_deg,
+        region = given_region(post.region, fit_cells, answer_node, cell_area, answer.rms_deg, allowed,
                               hidden, bool(rivals))
     plausible = found.plausible
     return EstimateResult(

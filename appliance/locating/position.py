@@ -263,18 +263,21 @@ def locate(
     learn_noise: bool = True,
     sigma_floor_deg: float | None = None,
     temper: float = 1.0,
+    allowed_sigma_deg: float | None = None,
+    polish: bool = False,
 ) -> Position:
     """Estimate where ``skyline`` was seen; ``height_m`` is the camera's height above the map's
     surface for the exact refinement (default: the database's).  The skyline's confidence weighs
     its azimuths; ``occlusion_weight``, ``map_sigma_m``, ``position_prior``, ``refine``,
-    ``rescore_floor``, ``first``, ``learn_noise``, ``sigma_floor_deg`` and ``temper`` are those of
+    ``rescore_floor``, ``first``, ``learn_noise``, ``sigma_floor_deg``, ``temper``,
+    ``allowed_sigma_deg`` and ``polish`` are those of
     :func:`appliance.estimator.estimate`."""
     g = skyline_grid(db) if grid is None else grid
     res = estimate(g, skyline.azimuth_deg, skyline.elevation_deg, sigma_deg, heading_tolerance_deg, log_prior,
                    height_m=height_m, weights=skyline.confidence, occlusion_weight=occlusion_weight,
                    map_sigma_m=map_sigma_m, position_prior=position_prior, refine=refine,
                    rescore_floor=rescore_floor, first=first, learn_noise=learn_noise, temper=temper,
-                   sigma_floor_deg=sigma_floor_deg)
+                   sigma_floor_deg=sigma_floor_deg, allowed_sigma_deg=allowed_sigma_deg, polish=polish)
     return place(db, res, source)
 
 

@@ -125,7 +125,10 @@ def with_surface_fit(index: TiledIndex, est: TileCombination, fit: SurfaceFit,
     ambiguous = est.ambiguous
     if fit.noise is not None:
         ambiguous = est.rival_tiles or bool(est.overflowed) or len(est.region) > AMBIGUOUS_CELLS
-        notes = [n for n in notes if not n.startswith("ambiguous: poor match")]
+        # the best tile's own verdicts on the grid (its fit's match, its rival fits) decide no more:
+        # their notes go with them, the combination's own stay
+        own = {n for n in est.best.record.get("notes", []) if n.startswith("ambiguous")}
+        notes = [n for n in notes if n not in own]
         if fit.rms_deg > sigma_hi_deg:
             ambiguous = True
             notes.append(f"ambiguous: poor match: fitted on the map's own surface, residual {fit.rms_deg:.2f} deg "

@@ -37,6 +37,12 @@ class SearchParams:
     #: the share of an independent azimuth each measured one counts for: below 1 in a search's
     #: second round, made at the noise its first round's answer left (:func:`appliance.estimator.estimate`)
     temper: float = 1.0
+    #: the most noise (deg) a fit may leave before the skyline is a poor match; None: the upper end
+    #: of ``sigma_deg`` (a second round's is the interval its first round was given)
+    allowed_sigma_deg: float | None = None
+    #: whether a refined tile polishes its best fit at ``sigma_deg`` (a second round: as one grid's
+    #: search polishes it at the noise it learned)
+    polish: bool = False
 
 
 #: Candidate nodes of the tiles a process keeps mapped between searches (checksums verified once,

@@ -61,7 +61,8 @@ def search_tile(folder: str, tile: TileEntry, skyline: Skyline, params: SearchPa
         pos = locate(db, skyline, params.sigma_deg, params.heading_tolerance_deg, source=source, grid=grid,
                      height_m=params.height_m, occlusion_weight=params.occlusion_weight,
                      map_sigma_m=params.map_sigma_m, refine=refine, rescore_floor=rescore_floor, first=first,
-                     learn_noise=learn_noise, temper=params.temper)
+                     learn_noise=learn_noise, temper=params.temper, allowed_sigma_deg=params.allowed_sigma_deg,
+                     polish=params.polish)
     except EstimationError as exc:
         return TileOutcome(tile.file, str(exc), elapsed_s=time.perf_counter() - t0)
     r = pos.result

@@ -48,7 +48,9 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
     noise, as one grid's search does (:func:`appliance.estimator.estimate`).  Only the tiles that
     held the first round's region are searched again: at the narrower noise the others stand
     further below the best.  The second round's region and rivals decide whether the answer is
-    ambiguous; the answer's covariance is its exact fit's at that noise.
+    ambiguous (its fit judged by the interval given); its best tile's fit is polished at that noise,
+    with the head's residual tilt, as one grid's search polishes it, and the answer's covariance is
+    that fit's at that noise.
 
     With the ``surface`` a whole-body database was built from
     (:func:`appliance.locating.tiled_index.open_surface`), the answer is fitted on that map itself
@@ -62,7 +64,10 @@ def locate_tiled(index: TiledIndex, skyline: Skyline, params: SearchParams, *, b
     found = _searched(index, tiles, skyline, params, client, source, surface, placed, learn_noise, floor_deg)
     noise = _learned(found, floor_deg) if learn_noise else None
     if noise is not None:
-        again = dataclasses.replace(params, sigma_deg=(noise[0], noise[1]), temper=noise[2])
+        # the fits are still judged by the interval given: a skyline no place fits is no better a
+        # match for the wider interval its own residuals give
+        again = dataclasses.replace(params, sigma_deg=(noise[0], noise[1]), temper=noise[2],
+                                    allowed_sigma_deg=params.sigma_deg[1], polish=True)
         held = {found.best.file} | {c.tile for c in found.region} | ({found.fit.tile} if found.fit else set())
         near = [t for t in tiles if t.file in held]
         second = _searched(index, near, skyline, again, client, source, None, placed, False, floor_deg)
@@ -127,6 +132,13 @@ def _searched(index: TiledIndex, tiles: list[TileEntry], skyline: Skyline, param
             return fitted
     refined = _run(index, search_tile, best_tiles, client, skyline, params, source=source, refine=True,
                    rescore_floor=floor, placed=placed, learn_noise=learn_noise)
+    learned = refined[0].noise if refined[0].error is None else None
+    if learned is not None:
+        # the refined tile's posteriors are at the noise it learned, on another scale than the other
+        # tiles': weighed with theirs it may no longer be the best.  The round's answer only tells
+        # the noise and which tiles to search again, weighed at the given noise as on the grid
+        on_grid = next(o for o in first if o.file == best)
+        return combine_tiles([dataclasses.replace(on_grid, has_region=True, noise=learned)] + others, index.body)
     return combine_tiles(refined + others, index.body)
 
 
