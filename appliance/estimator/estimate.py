@@ -402,7 +402,7 @@ def _searched(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndar
     else:
         lo, up, scored = first_pass_bounds(first.scores, meas)
         bounds = (lo * temper + lp, up * temper + lp, scored)
-    plausible = plausible_nodes(bounds, search.rescore_floor)
+    plausible = plausible_nodes(bounds, search.rescore_floor, temper)
     rescored = rescore_nodes(grid, meas, plausible.nodes, first.scores.shifts(plausible.nodes))
     post = posteriors(meas, lp, plausible, rescored, temper)
     answer = grid_answer(grid, meas, rescored, post)

@@ -36,15 +36,18 @@ class Plausible:
     scored_nodes: int  # nodes with a finite first-pass score
 
 
-def plausible_nodes(bounds: tuple[np.ndarray, np.ndarray, int], floor: float | None) -> Plausible:
+def plausible_nodes(bounds: tuple[np.ndarray, np.ndarray, int], floor: float | None,
+                    temper: float = 1.0) -> Plausible:
     """Step 2, the nodes worth every azimuth: those whose first-pass upper log-posterior (nats,
     ``bounds``: :func:`first_pass_bounds`, which the result takes over) comes within
     RESCORE_MARGIN_NATS of the best lower one (or of ``floor``, when higher: a lower bound reached
-    elsewhere on the lattice), at least MIN_RESCORE of them."""
+    elsewhere on the lattice), at least MIN_RESCORE of them.  Bounds tempered by ``temper`` are
+    held to the margin tempered alike: the nodes a search at the given noise would rescore, as a
+    single grid's search weighs its learned noise over the nodes it rescored at the given one."""
     node_lo, node_up, scored = bounds
     n_nodes = node_lo.size
     best_lo = float(np.max(node_lo)) if floor is None else max(float(np.max(node_lo)), floor)
-    rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS)[0]
+    rescore = np.nonzero(node_up >= best_lo - RESCORE_MARGIN_NATS * temper)[0]
     if rescore.size < MIN_RESCORE:
         rescore = np.sort(np.argpartition(-node_up, min(MIN_RESCORE, n_nodes) - 1)[:MIN_RESCORE])
     return Plausible(rescore, node_lo, node_up, scored)
