@@ -278,6 +278,10 @@ def test_near_searches_only_the_tiles_within_the_radius(built, tmp_path, capsys)
     assert rec["tiles_searched"] == [_tile_holding(index, lat, lon)]
     assert rec["tile"] == _tile_holding(index, lat, lon)
     assert rec["status"] == "ok" and rec["truth"]["error_m"] <= 2 * rec["region"]["cell_size_m"][1]
+    # the line a person reads says how sure, as for one file: "ok ± R m", R the record's 95 % radius
+    assert main(["estimate", str(folder), str(sky_path), "--near", f"{lat},{lon},200"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert f"ok ± {rec['radius95_m']:.1f} m" in line and rec["radius95_m"] > 0.0, line
 
 
 def test_global_upper_bound_is_exact_for_one_heading_and_never_below():

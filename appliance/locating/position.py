@@ -223,7 +223,10 @@ def answer_text(pos: Position, record: dict) -> str:
         status = fix_status(pos) if record["status"] == "ok" else record["status"]
         tile, area, cells, residual = "", area_text(r.region_area_m2), int(r.region_nodes.size), r.rms_residual_deg
     else:
-        status, tile = record["status"], f"  tile {pos.tiled.tile}"
+        cov = pos.tiled.covariance_m2
+        status = (f"ok ± {confidence.radius_m(cov):.1f} m" if record["status"] == "ok" and cov is not None
+                  else record["status"])
+        tile = f"  tile {pos.tiled.tile}"
         area, cells = f"{pos.tiled.region_area_m2 / 1e6:.3f} km^2", len(pos.tiled.region)
         residual = record["rms_residual_deg"]
     return (f"{pos.lat:.6f}, {pos.lon:.6f}  {status}{tile}  heading correction {pos.heading_correction_deg:+.1f} deg"
