@@ -31,7 +31,6 @@ sys.path.insert(0, str(HERE.parent))
 
 from appliance.atomic import write_text_atomic  # noqa: E402
 from appliance.bodies import geodesic_distance_m  # noqa: E402
-from appliance.estimator import confidence  # noqa: E402
 from appliance.locating.surface_fit import SCREEN_PLACES, SURFACE_PLACES  # noqa: E402
 from appliance.locating.tile_cache import SearchParams  # noqa: E402
 from appliance.locating.tiled_index import box_around, open_surface, open_tiled  # noqa: E402
@@ -61,16 +60,6 @@ def measured(dem, lat: float, lon: float, max_range_m: float, rng: np.random.Gen
     truth = render_skyline(dem, lat, lon, HEIGHT_M, az, max_range_m).elevation_deg
     el = np.interp((az + err) % 360.0, az, truth, period=360.0) + rng.normal(0.0, NOISE_DEG, az.size)
     return Skyline(az, el)
-
-
-def in_ellipse(pos, lat: float, lon: float, body) -> bool:
-    """Whether the truth (lat, lon) lies inside the answer's 95 % covariance ellipse (False without one)."""
-    cov = pos.tiled.covariance_m2
-    if cov is None or not np.all(np.isfinite(cov)):
-        return False
-    az, _, dist = body.geod.inv(pos.lon, pos.lat, lon, lat)
-    offset = np.array([dist * np.sin(np.radians(az)), dist * np.cos(np.radians(az))])
-    return confidence.inside_ellipse(offset, cov)
 
 
 def main() -> int:
@@ -140,7 +129,8 @@ def main() -> int:
             r = locate_tiled(index, sky, PARAMS, box=box_around(float(lat), float(lon), args.box_km * 1e3, "moon"),
                              surface=surface)
             row["box"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
-                          r.tiled.status() != "ok", len(r.tiled.tiles_searched), in_ellipse(r, lat, lon, dem.body))
+                          r.tiled.status() != "ok", len(r.tiled.tiles_searched),
+                          r.tiled.truth_in_ellipse((float(lat), float(lon))))
             rows.append(row)
             print(k, "box", [round(v, 2) if isinstance(v, float) else v for v in row["box"]], flush=True)
             write()
@@ -151,7 +141,7 @@ def main() -> int:
             r = locate_tiled(index, skies[k], PARAMS, client=client, surface=surface)
             rows[k]["whole"] = (geodesic_distance_m(lat, lon, r.lat, r.lon, dem.body), time.perf_counter() - t0,
                                 r.tiled.status() != "ok", len(r.tiled.tiles_searched),
-                                in_ellipse(r, lat, lon, dem.body))
+                                r.tiled.truth_in_ellipse((float(lat), float(lon))))
             print(k, "whole", [round(v, 2) if isinstance(v, float) else v for v in rows[k]["whole"]], flush=True)
             write()
     return 0

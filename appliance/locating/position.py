@@ -202,9 +202,15 @@ def area_text(area_m2: float) -> str:
 def fix_status(pos: Position) -> str:
     """"ok +- R m" (R: the 95 % ellipse's semi-major axis) or "ambiguous": what a person reads."""
     r = pos.result
-    if r.ambiguous or r.covariance_m2 is None or not np.all(np.isfinite(r.covariance_m2)):
+    return "ambiguous" if r.ambiguous else sure_text(r.covariance_m2)
+
+
+def sure_text(cov: np.ndarray | None) -> str:
+    """"ok +- R m" for an answer that is not ambiguous with the covariance ``cov`` (m^2), R its 95 %
+    ellipse's semi-major axis; "ambiguous" without a finite one."""
+    if cov is None or not np.all(np.isfinite(cov)):
         return "ambiguous"
-    return f"ok ± {confidence.radius_m(r.covariance_m2):.1f} m"
+    return f"ok ± {confidence.radius_m(cov):.1f} m"
 
 
 def status_text(db: SkylineDatabase, pos: Position, truth: tuple[float, float] | None = None) -> str:
@@ -223,9 +229,7 @@ def answer_text(pos: Position, record: dict) -> str:
         status = fix_status(pos) if record["status"] == "ok" else record["status"]
         tile, area, cells, residual = "", area_text(r.region_area_m2), int(r.region_nodes.size), r.rms_residual_deg
     else:
-        cov = pos.tiled.covariance_m2
-        status = (f"ok ± {confidence.radius_m(cov):.1f} m" if record["status"] == "ok" and cov is not None
-                  else record["status"])
+        status = sure_text(pos.tiled.covariance_m2) if record["status"] == "ok" else record["status"]
         tile = f"  tile {pos.tiled.tile}"
         area, cells = f"{pos.tiled.region_area_m2 / 1e6:.3f} km^2", len(pos.tiled.region)
         residual = record["rms_residual_deg"]

@@ -62,7 +62,7 @@ def fit_on_surface(index: TiledIndex, est: TileCombination, surface: Dem, skylin
     if not fits:
         return None
     w = min(fits, key=lambda f: f.cost)
-    best = surface_fit(index, w, len(places), len(fits), len(candidates), floor_deg, (est.best.lat, est.best.lon))
+    best = surface_fit(index, w, len(places), len(fits), len(candidates), floor_deg)
     return with_surface_fit(index, est, dataclasses.replace(best, rivals=_rival_fits(fits, w, best, spacing, surface)),
                             params.sigma_deg[1])
 
@@ -75,27 +75,25 @@ def _rival_fits(fits: list[PlaceFit], w: PlaceFit, best: SurfaceFit, spacing_m: 
         return 0
     lo, hi, temper = best.noise
     sig2 = sigma_midpoint(lo, hi) ** 2
-    body = surface.body
     reach = -2.0 * math.log(RIVAL_SHARE)
     out = 0
     for f in fits:
         if f is w or f.exact is None:
             continue
-        far = geodesic_distance_m(w.lat, w.lon, f.lat, f.lon, body) > SAME_ANSWER_CELLS * spacing_m
+        far = geodesic_distance_m(w.lat, w.lon, f.lat, f.lon, surface.body) > SAME_ANSWER_CELLS * spacing_m
         if far and temper * (f.exact.ssd - w.exact.ssd) / sig2 < reach:
             out += 1
     return out
 
 
-def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidates: int, floor_deg: float,
-                grid_lat_lon: tuple[float, float]) -> SurfaceFit:
+def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidates: int,
+                floor_deg: float) -> SurfaceFit:
     """The fit ``w`` (the best of ``fits``) as the answer records it, with the noise its residuals
     give (sigma's interval at least ``floor_deg``, the tempering) and its covariance at that noise;
-    ``grid_lat_lon`` is the grid's best place, which the fit's distance is measured from."""
+    its distance from the grid's best place is measured by :func:`with_surface_fit`."""
     tile = next(t for t in index.tiles if t.file == w.place.tile)
     db = open_tile(str(index.folder), tile, None)[0]
     x, y = db.grid.lonlat_to_xy(w.lon, w.lat)
-    off = geodesic_distance_m(grid_lat_lon[0], grid_lat_lon[1], w.lat, w.lon, body_named(index.body))
     noise: tuple[float, float, float] | None = None
     cov_m2 = None
     if w.exact is not None and w.exact.residual_deg is not None:
@@ -104,7 +102,7 @@ def surface_fit(index: TiledIndex, w: PlaceFit, places: int, fits: int, candidat
         if cov is not None:
             cov_m2 = confidence.grid_to_east_north(cov, w.cell_m, w.cell_m, w.grid_north_deg)
     return SurfaceFit(w.lat, w.lon, float(x), float(y), crs_name(db), w.place.tile, w.place.node,
-                      w.heading_correction_deg, w.rms_deg, places, off, candidates, cov_m2, noise, fits)
+                      w.heading_correction_deg, w.rms_deg, places, math.nan, candidates, cov_m2, noise, fits)
 
 
 def with_surface_fit(index: TiledIndex, est: TileCombination, fit: SurfaceFit,
