@@ -98,6 +98,18 @@ def test_few_independent_azimuths_widen_the_ellipse_as_students_t():
     assert factors[-1] == pytest.approx(1.0, abs=1e-4)
 
 
+def test_a_fit_with_no_residual_left_still_tempers_by_a_positive_share():
+    from appliance.estimator.noise import learned_noise
+
+    # every azimuth taken for an occluder: no residual, the search's sigma, and a tempering that
+    # keeps the bounds finite
+    lo, hi, temper = learned_noise(np.full(360, np.nan), 0.02, 0.5)
+    assert lo < 0.5 < hi and temper == 1.0
+    few = np.full(360, np.nan)
+    few[[10, 200]] = [0.1, -0.2]
+    assert 0.0 < learned_noise(few, 0.02, 0.5)[2] <= 1.0
+
+
 def test_grid_covariance_turns_into_east_and_north():
     cov_rc = np.diag([4.0, 1.0])  # rows (south) 2 cells, columns (east) 1 cell, 1 sigma
     en = confidence.grid_to_east_north(cov_rc, dx_m=30.0, dy_m=90.0, convergence_deg=0.0)

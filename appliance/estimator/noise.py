@@ -36,6 +36,9 @@ def learned_noise(residual_deg: np.ndarray, floor_deg: float, default_deg: float
     rms = math.sqrt(float(np.nanmean(r * r))) if finite.any() else default_deg
     independent = confidence.independent_azimuths(r)
     lo, hi = confidence.sigma_interval(rms, independent, floor_deg)
+    # a fit left with fewer than MIN_INDEPENDENT residuals (every azimuth taken for an occluder)
+    # counts as that many: a tempering of 0 would turn every bound into 0 * -inf
+    independent = max(independent, confidence.MIN_INDEPENDENT)
     return lo, hi, min(1.0, independent / max(float(finite.sum()), 1.0))
 
 
