@@ -186,19 +186,26 @@ def _fixture_skyline(name: str) -> tuple[np.ndarray, np.ndarray]:
     return az, el
 
 
-def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_place(tmp_path):
+@pytest.fixture(scope="module")
+def forest_db(tmp_path_factory):
+    """The database of bench/world_gap.py's forest window, built from the bare SRTM tile N44W072."""
+    from appliance.terrain.database import build_database, load_database
+    from appliance.terrain.dem import load_dem
+
+    tile = load_dem(data_file("dem_srtm_hgt/N44W072.hgt"))
+    path = tmp_path_factory.mktemp("forest") / "forest.viperdb"
+    build_database(tile, path, search_bounds=(-71.35, 44.20, -71.20, 44.35), progress=None)
+    return load_database(path, tile)
+
+
+def test_a_skyline_raised_by_trees_the_map_lacks_never_says_ok_at_the_wrong_place(forest_db):
     """A camera in a forest clearing sees treetops over much of its skyline; fitted as terrain, the
     skyline matches a place 280 m away with the compass's error at its bound.  Searched again with half of
     the skyline allowed to stand above the map, the best place moves: the answer is ambiguous, never ok."""
     from appliance.estimator import estimate
     from appliance.locating.position import place, skyline_grid, truth_error_m
-    from appliance.terrain.database import build_database, load_database
-    from appliance.terrain.dem import load_dem
 
-    tile = load_dem(data_file("dem_srtm_hgt/N44W072.hgt"))
-    path = tmp_path / "forest.viperdb"
-    build_database(tile, path, search_bounds=(-71.35, 44.20, -71.20, 44.35), progress=None)
-    db = load_database(path, tile)
+    db = forest_db
     az, el = _fixture_skyline("forest_clearing_skyline.csv")
     res = estimate(skyline_grid(db), az, el)
     truth = (44.21750349, -71.27563203)
@@ -232,3 +239,47 @@ def test_a_clean_skyline_is_not_lost_to_a_place_that_fits_it_poorly_everywhere(d
     # the search at the default interval alone (the narrower one is what finds the place)
     wide = estimate(grid, az, el, learn_noise=False)
     assert truth_error_m(db, place(db, wide), truth) > 1000.0
+
+
+def test_a_better_fit_at_the_same_place_found_by_the_narrower_search_is_the_answer(dem, tmp_path):
+    """A levelled head's skyline (residual tilt, compass error, correlated noise, occluders) whose search at
+    the default interval settles 1.6 cells from the truth on a fit of 0.61 deg RMS.  The narrower search
+    finds the true place's fit, about five times closer, within two cells of the first: being that near
+    does not make the poorer fit the answer."""
+    from appliance.estimator import estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m
+    from appliance.terrain.database import build_database, load_database
+
+    path = tmp_path / "west.viperdb"
+    build_database(dem, path, search_bounds=(-84.47, 36.54, -84.34, 36.64), progress=None)
+    db = load_database(path, dem)
+    grid = skyline_grid(db)
+    az, el = _fixture_skyline("levelled_head_skyline.csv")
+    truth = (36.59032114, -84.40465454)
+    res = estimate(grid, az, el)
+    assert truth_error_m(db, place(db, res), truth) < 10.0 and not res.ambiguous
+    assert res.rms_residual_deg < 0.2
+    # the search at the default interval alone: a poor fit over a hundred metres off
+    wide = estimate(grid, az, el, learn_noise=False)
+    assert truth_error_m(db, place(db, wide), truth) > 100.0 and wide.rms_residual_deg > 0.4
+
+
+def test_rival_places_the_first_search_found_stand_when_the_narrower_one_fits_better_there(forest_db):
+    """A forest camera whose skyline fits best 350 m from the truth (the trees and the map's height noise
+    move it).  The search at the default interval finds exact renders at another place that fit as well:
+    ambiguous.  The narrower search fits the same place better but never looks at that rival; the answer is
+    its fit, still ambiguous, with the rival's cells in its region."""
+    from appliance.estimator import estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m
+
+    db = forest_db
+    grid = skyline_grid(db)
+    az, el = _fixture_skyline("forest_rival_skyline.csv")
+    res = estimate(grid, az, el)
+    cell_m = math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert truth_error_m(db, place(db, res), (44.254957, -71.321851)) > 2.0 * cell_m
+    assert res.ambiguous and any("exact renders at another place" in n for n in res.notes)
+    assert res.rival_nodes.size and np.all(np.isin(res.rival_nodes, res.region_nodes))
+    # the wide search alone: the same place, its fit poorer
+    wide = estimate(grid, az, el, learn_noise=False)
+    assert math.hypot(wide.row - res.row, wide.col - res.col) <= 2.0

@@ -80,6 +80,9 @@ POOR_FIT_RATIO = 1.0
 #: NARROW_CLIP times the first fit's RMS.
 NARROW_SHARE = 1.0 / 3.0
 NARROW_CLIP = 3.0
+#: What the notes of region.py say of a fit itself (not of rival places): a search made again at the same
+#: place answers these with its own fit.
+FIT_DOUBTS = ("poor match", "reaches the compass's tolerance", "covariance cannot be formed")
 
 
 @dataclass(frozen=True)
@@ -228,8 +231,11 @@ def estimate(
         search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
         res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     if again and res.sigma_learned and _poor_fit(res, sigma_deg):
+        # the narrower search's fits are judged poor against the interval given, as this one's are
+        allowed = float(sigma_deg[1]) if search.allowed_sigma_deg is None else search.allowed_sigma_deg
         res = _narrowed(grid, azimuth_deg, elevation_deg, res, (NARROW_SHARE * float(sigma_deg[0]),
-                                                                float(sigma_deg[0])), search)
+                                                                float(sigma_deg[0])),
+                        replace(search, allowed_sigma_deg=allowed))
     if again and res.heading_at_limit and heading_tolerance_deg is not None:
         res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
             heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
@@ -247,19 +253,42 @@ def _poor_fit(res: EstimateResult, sigma_deg: tuple[float, float]) -> bool:
 def _narrowed(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
               sigma_deg: tuple[float, float], search: _Search) -> EstimateResult:
     """``res``, whose best fit stays above the noise the search assumed, against the search made with
-    the narrower ``sigma_deg``: a best place elsewhere (more than SAME_ANSWER_CELLS) whose fit explains
-    the skyline better is the answer, its confidence its own; otherwise ``res``.  "Better": the mean
+    the narrower ``sigma_deg``: the answer whose fit explains the skyline better, its confidence its
+    own, except that rival places either search found stand: the narrower search's answer at
+    ``res``'s place (SAME_ANSWER_CELLS) is ambiguous where ``res`` had rivals.  "Better": the mean
     squared residual with each fit's occluded azimuths counted at NARROW_CLIP times ``res``'s RMS, so
     that a fit does not win by leaving more of the skyline to occluders."""
     narrow = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
-    if math.hypot(narrow.row - res.row, narrow.col - res.col) <= SAME_ANSWER_CELLS:
-        return res
     clip2 = (NARROW_CLIP * res.rms_residual_deg) ** 2
 
     def cost(r: EstimateResult) -> float:
         return (1.0 - r.occluded_share) * r.rms_residual_deg**2 + r.occluded_share * clip2
 
-    return narrow if cost(narrow) < cost(res) else res
+    moved = math.hypot(narrow.row - res.row, narrow.col - res.col)
+    if cost(narrow) >= cost(res):
+        if moved <= SAME_ANSWER_CELLS or narrow.rms_residual_deg >= res.rms_residual_deg:
+            return res
+        note = (f"ambiguous: searched with a narrower sigma, the skyline fits {moved:.0f} cells away more closely "
+                f"with {narrow.occluded_share:.0%} of it left to occluders; what the map lacks decides where it is")
+        return replace(res, ambiguous=True, notes=[*res.notes, note])
+    if moved <= SAME_ANSWER_CELLS and res.rival_nodes.size:
+        return _with_rivals(grid, narrow, res)
+    return narrow
+
+
+def _with_rivals(grid: SkylineGrid, answer: EstimateResult, earlier: EstimateResult) -> EstimateResult:
+    """``answer``, a search made again at ``earlier``'s place, keeping the rival places ``earlier``
+    found: their nodes (added to the region) and the notes saying so.  Doubts about ``earlier``'s own
+    fit (FIT_DOUBTS) are the new fit's to answer."""
+    doubts = [n for n in earlier.notes if n.startswith("ambiguous") and n not in answer.notes
+              and not any(d in n for d in FIT_DOUBTS)]
+    if not doubts:
+        return answer
+    added = np.setdiff1d(earlier.rival_nodes, answer.region_nodes)
+    return replace(answer, ambiguous=True, rival_nodes=np.union1d(answer.rival_nodes, earlier.rival_nodes),
+                   region_nodes=np.union1d(answer.region_nodes, added),
+                   region_area_m2=answer.region_area_m2 + added.size * grid.dx_m * grid.dy_m,
+                   notes=[*answer.notes, *doubts])
 
 
 def _occluders_checked(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
@@ -285,7 +314,7 @@ def _widened(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarr
     better fit of the two is given, ambiguous."""
     wide = _estimate_once(grid, azimuth_deg, elevation_deg, res.sigma_deg_searched, search)
     if math.hypot(wide.row - res.row, wide.col - res.col) <= SAME_ANSWER_CELLS:
-        return wide
+        return _with_rivals(grid, wide, res)
     best = wide if wide.rms_residual_deg < res.rms_residual_deg else res
     note = ("ambiguous: with a wider compass tolerance the best place moves "
             f"{math.hypot(wide.row - res.row, wide.col - res.col):.0f} cells; the compass decides where it is")
