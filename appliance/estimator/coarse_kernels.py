@@ -286,7 +286,8 @@ def _add_singles(mt: np.ndarray, w: np.ndarray, cf: np.ndarray, vf: np.ndarray, 
                  t_start: int, d: int, k_pad: int, cap_c: np.float32, rank_cap: bool) -> None:
     """The terms of azimuths ``t_start`` on added to every shift's sum ``acc``, one azimuth per pass;
     with ``rank_cap`` a term above the model whose weighted square passes ``cap_c`` is an occluder,
-    its weight added to ``occ`` instead (``d`` azimuths, ``k_pad`` shifts)."""
+    its weight added to ``occ`` instead (``d`` azimuths, ``k_pad`` shifts).  The loop over shifts
+    compiles to vector loads and stores only while nothing in it branches (``is_occluded``)."""
     for t in range(t_start, d):
         wt = w[t]
         if wt == 0:
