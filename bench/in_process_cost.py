@@ -263,15 +263,14 @@ def alternate(cases: Path, checkouts: list[tuple[str, Path]], rounds: int, names
                 print(f"round {r + 1} {name} {label}: {m:.1f} ms (load {got['load'][0]:.1f}-{got['load'][1]:.1f})",
                       flush=True)
     labels = [label for label, _ in checkouts]
-    print("\n| in-process cost (CPU ms, median) | " + " | ".join(labels) + " | "
-          + " | ".join(f"{x}/{labels[0]}" for x in labels[1:]) + " | load |")
-    print("|---" * (len(labels) * 2 + 1) + "|")
+    heads = ["in-process cost (CPU ms, median)", *labels, *(f"{x}/{labels[0]}" for x in labels[1:]), "load"]
+    print("\n| " + " | ".join(heads) + " |\n" + "|---" * len(heads) + "|")
     for name in names:
         cells = [", ".join(f"{v:.1f}" for v in med[(name, x)]) for x in labels]
         ratios = [", ".join(f"{v / b:.2f}" for v, b in zip(med[(name, x)], med[(name, labels[0])])) for x in labels[1:]]
         ld = [v for x in labels for v in loads[(name, x)]]
-        print(f"| {name} ({len(med[(name, labels[0])])} rounds) | " + " | ".join(cells) + " | " + " | ".join(ratios)
-              + f" | {min(ld):.1f}-{max(ld):.1f} |")
+        row = [f"{name} ({rounds} rounds)", *cells, *ratios, f"{min(ld):.1f}-{max(ld):.1f}"]
+        print("| " + " | ".join(row) + " |")
 
 
 def main() -> int:
