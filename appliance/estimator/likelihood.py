@@ -169,8 +169,11 @@ def kernel_cap(cap_deg2: float) -> float:
 def is_occluded(residual: float | np.floating, weighted_square: float | np.floating,
                 cap: float | np.floating) -> bool | np.bool_:
     """Whether one measurement is taken for an occluder: above the model (``residual``, measured
-    minus model, > 0) with its weighted square past the cap (the kernels' form, any float type)."""
-    return residual > 0 and weighted_square > cap
+    minus model, > 0) with its weighted square past the cap (the kernels' form, any float type).
+    Both tests are made, not one after the other (``&``, not ``and``): with no branch in it, a loop
+    over shifts compiles to plain vector loads and stores (with ``and`` the every-heading first pass
+    stored its sums by scatter, at 2.5 times the cost; the same numbers)."""
+    return (residual > 0) & (weighted_square > cap)
 
 
 def occluded_mask(residual: np.ndarray, weighted_square: np.ndarray, cap_deg2: float) -> np.ndarray:
