@@ -110,6 +110,67 @@ def test_a_fit_with_no_residual_left_still_tempers_by_a_positive_share():
     assert 0.0 < learned_noise(few, 0.02, 0.5)[2] <= 1.0
 
 
+def test_the_envelope_of_two_covariances_holds_both_along_every_direction():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a, b = (m @ m.T + 1e-3 * np.eye(2) for m in rng.normal(size=(2, 2, 2)))
+        out = confidence.envelope(a, b)
+        x = rng.normal(size=(100, 2))
+        va, vb, vo = (np.einsum("ij,jk,ik->i", x, c, x) for c in (a, b, out))
+        assert np.all(vo >= np.maximum(va, vb) * (1 - 1e-9))
+        # and no wider than the two together
+        assert np.all(vo <= (va + vb) * (1 + 1e-9))
+    a = np.diag([4.0, 1.0])
+    np.testing.assert_allclose(confidence.envelope(a, 0.5 * a), a)
+    np.testing.assert_allclose(confidence.envelope(a, 3.0 * a), 3.0 * a)
+
+
+def test_the_sector_jackknife_is_the_spread_of_the_fits_made_without_each_sector():
+    """On a linear model (elevations linear in row, col, heading, eye), the jackknife from the fit's
+    stored sector pulls and curvatures equals the one made by fitting again without each sector."""
+    from appliance.estimator.exact import Fit, _sectors
+    from appliance.estimator.noise import sector_jackknife
+
+    rng = np.random.default_rng(5)
+    n, sigma = 360, 0.2
+    J = rng.normal(size=(n, 4)) * np.array([0.5, 0.5, 1.0, 0.1])
+    u = rng.uniform(0.5, 1.0, n)
+    explained = rng.uniform(size=n) > 0.1
+    # errors that differ by sector: a sector-wide offset plus white noise
+    y = np.repeat(rng.normal(0.0, 0.3, 12), 30) + rng.normal(0.0, sigma, n)
+    P = np.diag([0.0, 0.0, 0.0, 1.0 / 0.5**2])
+    w = np.where(explained, u, 0.0)
+
+    def solve(weights):
+        return np.linalg.solve(J.T @ (J * weights[:, None]) / sigma**2 + P, J.T @ (weights * y) / sigma**2)
+
+    theta = solve(w)
+    r = np.where(explained, y - J @ theta, 0.0)
+    pulls, curvatures = _sectors(J, w, r, explained, 1.0)
+    fit = Fit(0.0, 0.0, 0.0, 0.0, n, 1, curvature=J.T @ (J * w[:, None]), prior_information=P,
+              sector_pulls=pulls, sector_curvatures=curvatures)
+    got = sector_jackknife(fit, sigma)
+    moves = np.array([solve(np.where(np.arange(n) // 30 == k, 0.0, w))[:2] - theta[:2] for k in range(12)])
+    moves -= moves.mean(axis=0)
+    np.testing.assert_allclose(got, 11.0 / 12.0 * moves.T @ moves, rtol=1e-9, atol=1e-15)
+    # the sectors disagree far more than the white noise alone would have them
+    model = np.linalg.inv(J.T @ (J * w[:, None]) / sigma**2 + P)[:2, :2]
+    assert np.trace(got) > 3.0 * np.trace(model)
+    # the answer's covariance takes the sectors' spread where it exceeds the curvature's
+    from dataclasses import replace
+
+    from appliance.estimator.noise import tempered_covariance
+
+    alone = tempered_covariance(replace(fit, sector_pulls=None, sector_curvatures=None), sigma, 0.5)
+    both = tempered_covariance(fit, sigma, 0.5)
+    assert alone is not None and both is not None
+    x = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
+    widest = np.maximum(np.einsum("ij,jk,ik->i", x, alone, x),
+                        np.einsum("ij,jk,ik->i", x, got, x))
+    assert np.all(np.einsum("ij,jk,ik->i", x, both, x) >= widest * (1 - 1e-9))
+    assert np.trace(both) > 1.2 * np.trace(alone)
+
+
 def test_grid_covariance_turns_into_east_and_north():
     cov_rc = np.diag([4.0, 1.0])  # rows (south) 2 cells, columns (east) 1 cell, 1 sigma
     en = confidence.grid_to_east_north(cov_rc, dx_m=30.0, dy_m=90.0, convergence_deg=0.0)

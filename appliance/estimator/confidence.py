@@ -244,3 +244,17 @@ def inside_ellipse(offset: np.ndarray, covariance: np.ndarray, level: float = LE
     except np.linalg.LinAlgError:
         return False
     return d2 <= chi2_2dof(level)
+
+
+def envelope(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The covariance that is at least ``a`` and at least ``b`` along every direction (2 x 2, both
+    positive definite): ``b`` seen in the frame where ``a`` is the identity, its variances below one raised
+    to one."""
+    w, v = np.linalg.eigh(a)
+    half = v * np.sqrt(w)
+    inv_half = v / np.sqrt(w)
+    m = inv_half.T @ b @ inv_half
+    mw, mv = np.linalg.eigh(0.5 * (m + m.T))
+    lifted = (mv * np.maximum(mw, 1.0)) @ mv.T
+    out = half @ lifted @ half.T
+    return 0.5 * (out + out.T)

@@ -45,6 +45,10 @@ ANNEAL = 0.1
 SCREEN_SCAN_DEG = 8.0
 #: How far (cells) a fit may wander from the node it started at.
 MAX_OFFSET_CELLS = 2.0
+#: The sectors of azimuth (deg) whose pulls on a fit are compared (:attr:`Fit.sector_scores`): several
+#: times the correlation of a levelled head's and a stitched panorama's errors (a few degrees), so that
+#: sectors' errors are nearly independent, and at least a dozen around a panorama.
+SECTOR_DEG = 30.0
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,11 @@ class Fit:
     prior_information: np.ndarray | None = None
     #: the head's residual tilt fitted (deg): the elevation change t1 cos(a) + t2 sin(a) over azimuth a
     tilt_deg: tuple[float, float] = (0.0, 0.0)
+    #: per SECTOR_DEG sector of azimuth holding explained azimuths, its pull on the parameters
+    #: J^T diag(u) r (k, p) and its share of the curvature J^T diag(u) J (k, p, p), at unit sigma as
+    #: ``curvature``: what the fit would do without each sector (a jackknife over sectors)
+    sector_pulls: np.ndarray | None = None
+    sector_curvatures: np.ndarray | None = None
 
     @property
     def rms_deg(self) -> float:
@@ -519,12 +528,29 @@ class _Fitter:
         okd = ok & np.isfinite(t.d)
         explained = okd & ~self.mdl.hidden(r, u)
         J = self.jacobian(t, self.az - self.gamma + p[2], okd)
-        H = J.T @ (J * np.where(explained, u, 0.0)[:, None])
+        ue = np.where(explained, u, 0.0)
+        H = J.T @ (J * ue[:, None])
         cov = _position_covariance(H, self.P, sig2, ssd, n_valid)
         tilt_cost = sig2 * float(np.sum(p[4:] ** 2)) / self.tilt_sigma_deg**2 if self.tilted else 0.0
+        pulls, curvatures = _sectors(J, ue, np.where(explained, r, 0.0), explained, self.step)
         return Fit(float(p[0]), float(p[1]), float(p[2]), ssd + sig2 * p[3] ** 2 / self.eye2 + tilt_cost, n_valid,
                    iterations, float(p[3]), occ, cov, np.where(explained, r, np.nan), H, self.P.copy(),
-                   (float(p[4]), float(p[5])) if self.tilted else (0.0, 0.0))
+                   (float(p[4]), float(p[5])) if self.tilted else (0.0, 0.0), pulls, curvatures)
+
+
+def _sectors(J: np.ndarray, u: np.ndarray, r: np.ndarray, explained: np.ndarray,
+             step_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """:attr:`Fit.sector_pulls` and :attr:`Fit.sector_curvatures`: the azimuth grid cut into SECTOR_DEG
+    sectors, those without an explained azimuth left out."""
+    per = max(1, int(round(SECTOR_DEG / step_deg)))
+    sector = np.arange(J.shape[0]) // per
+    k = int(sector[-1]) + 1
+    g = np.zeros((k, J.shape[1]))
+    np.add.at(g, sector, J * (u * r)[:, None])
+    h = np.zeros((k, J.shape[1], J.shape[1]))
+    np.add.at(h, sector, J[:, :, None] * (J * u[:, None])[:, None, :])
+    held = np.bincount(sector, weights=explained.astype(float), minlength=k) > 0
+    return g[held], h[held]
 
 
 def _position_covariance(H: np.ndarray, P: np.ndarray, sig2: float, ssd: float, n_valid: int) -> np.ndarray | None:

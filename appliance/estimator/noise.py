@@ -25,6 +25,8 @@ from appliance.estimator.skyline_grid import SkylineGrid, nearest_node
 TILT_SIGMA_DEG = 0.3
 #: The position's spread (cells) when the best fit is fitted again at the learned sigma.
 POLISH_SPREAD_CELLS = 0.05
+#: The fewest sectors of the skyline whose disagreement widens a covariance (a 360 deg panorama has 12).
+MIN_SECTORS = 6
 
 
 def learned_noise(residual_deg: np.ndarray, floor_deg: float, default_deg: float) -> tuple[float, float, float]:
@@ -42,16 +44,54 @@ def learned_noise(residual_deg: np.ndarray, floor_deg: float, default_deg: float
     return lo, hi, min(1.0, independent / max(float(finite.sum()), 1.0))
 
 
+def sector_jackknife(fit: Fit, sigma_deg: float) -> np.ndarray | None:
+    """The (row, col) covariance (cells^2) of the fit's position from a jackknife over its sectors of
+    azimuth: each sector left out in turn, the fit's Gauss-Newton step from the optimum without it
+    (at ``sigma_deg``, with the priors), and the spread of those steps, (k - 1) / k times the sum of their
+    squares about their mean.  It shows how far the sectors disagree about the position, whatever made
+    them (the map's error under near horizons, correlated noise and tilt that the fit's position
+    absorbs).  None without sectors, or where a step cannot be solved."""
+    if (fit.sector_pulls is None or fit.sector_curvatures is None or fit.curvature is None
+            or fit.prior_information is None or fit.sector_pulls.shape[0] < 2):
+        return None
+    s2 = sigma_deg**2
+    information = fit.curvature / s2 + fit.prior_information
+    moves = []
+    for g, h in zip(fit.sector_pulls, fit.sector_curvatures):
+        try:
+            moves.append(np.linalg.solve(information - h / s2, -g / s2)[:2])
+        except np.linalg.LinAlgError:
+            return None
+    d = np.asarray(moves)
+    d -= d.mean(axis=0)
+    k = d.shape[0]
+    spread = (k - 1.0) / k * (d.T @ d)
+    return 0.5 * (spread + spread.T)
+
+
 def tempered_covariance(fit: Fit, sigma_deg: float, temper: float) -> np.ndarray | None:
     """The exact fit's (row, col) covariance (cells^2) from its curvature at ``sigma_deg``, its
     likelihood counting ``temper`` of itself, with its priors (None: no curvature, or singular),
     widened for the few independent azimuths sigma was learned from
-    (:func:`confidence.few_azimuths_factor`)."""
+    (:func:`confidence.few_azimuths_factor`); then, without a position prior, widened along any
+    direction in which the sectors of the skyline disagree about the position more than that
+    (:func:`sector_jackknife`, with MIN_SECTORS sectors at least).  Where the noise is as the
+    curvature assumes, the sectors' spread is about half that covariance (COVARIANCE_SCALE), so its
+    sampling noise seldom widens it."""
     if fit.curvature is None or fit.prior_information is None:
         return None
     # the likelihood's information alone is widened: a prior's (a traverse's, the eye's) is not
     sig2 = sigma_deg**2 * confidence.COVARIANCE_SCALE * confidence.few_azimuths_factor(temper * fit.n)
-    return marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+    model = marginal_position_covariance(temper * fit.curvature / sig2 + fit.prior_information)
+    # the sectors' spread is the skyline's alone: a position prior (a traverse's) pulls the fit off the
+    # skyline's own optimum, and every sector's pull then carries that
+    if (model is None or fit.sector_pulls is None or fit.sector_pulls.shape[0] < MIN_SECTORS
+            or np.any(fit.prior_information[:2, :2] != 0.0)):
+        return model
+    spread = sector_jackknife(fit, sigma_deg)
+    if spread is None:
+        return model
+    return confidence.envelope(model, spread)
 
 
 def learned_measurement(meas: Measurement, fit: Fit, floor_deg: float) -> tuple[Measurement, float]:
