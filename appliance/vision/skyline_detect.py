@@ -65,7 +65,7 @@ from appliance.vision.skyline_pixels import (
     _texture,
     _to_float,
 )
-from appliance.vision.skyline_snow import colour_rows, place_rows, snow_checks, snow_evidence
+from appliance.vision.skyline_snow import colour_rows, snow_checks, snow_evidence
 
 
 class Method(enum.Enum):
@@ -373,21 +373,23 @@ def _snow_rows(
     trusted boundary as its regions; its rows and confidence.  None where the ground is not snowy.
 
     Snow under a pale sky is brighter than the sky: the drop the first path follows is at the top of
-    the first dark rock below the skyline.  The rows are placed where the brightness first departs
-    from the sky's (a rise onto snow, a drop onto a rock), then where the colour crosses halfway from
-    the sky's to the ground's within three rows of that; a line with a colour step onto snow above
-    it, or snow-coloured pixels just above it, is left out.
+    the first dark rock below the skyline.  The rows are placed where the colour crosses halfway from
+    the sky's to the ground's within three rows of the path (the brightness of snow under a pale sky
+    departs from the sky's a few rows off the boundary, or not at all), and judged there, with the
+    colour step onto the snow as an edge beside the brightness drop and the boundary's score; a line
+    with a colour step onto snow above it, or snow-coloured pixels just above it, is left out.
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
         return None
     edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
     path = _run_dp(_path_cost(edge, ev.llr, cfg, masked, cfg.edge_weight), cfg, wrap)
-    # the boundary's score peaks at the brightness rise, a row either side of the path's row
-    near_edge = cv2.dilate(edge, np.ones((3, 1), np.uint8))
-    conf = _confidence(near_edge, ev.llr, path, cfg, prior_t, haze_below=True)
-    placed = place_rows(ev.lum, path.astype(np.float64))
-    placed = colour_rows(ev.chroma, placed)
+    placed = colour_rows(ev.chroma, path.astype(np.float64))
+    # the boundary's score peaks at the brightness rise, the colour step a row either side of the crossing
+    step = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * ev.colour_step)
+    near_edge = cv2.dilate(step, np.ones((3, 1), np.uint8))
+    at = np.round(np.where(np.isfinite(placed), placed, path)).astype(np.int64)
+    conf = _confidence(near_edge, ev.llr, at, cfg, prior_t, haze_below=True)
     return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
 
 

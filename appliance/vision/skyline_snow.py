@@ -17,10 +17,12 @@ On plain arrays (an image's rows, the detector's line and confidence); the path 
   line (or the line was not found there);
 - with a quarter of the columns trusted (a snowy image whose snow is darker than its sky, as in the
   Finse photos, has a few candidates on cloud tops only and is left alone), sky and snow models are
-  learnt on both sides of the trusted rows (:func:`snow_evidence`); the path is run again with the
-  boundary's score beside the brightness drop as its edge and those models as its regions, and
-  placed where the brightness first departs from the sky's (:func:`place_rows`: a rise onto snow,
-  a drop onto a rock standing on the skyline);
+  learnt on both sides of the trusted rows (:func:`snow_evidence`: the candidates are placed where
+  the brightness first departs from the sky's, :func:`place_rows`); the path is run again with the
+  boundary's score beside the brightness drop as its edge and those models as its regions, placed
+  where blue minus red crosses halfway from the sky's to the ground's (:func:`colour_rows`) and
+  judged there with the colour step onto the snow as an edge too (snow barely brighter than the
+  sky has a weak score but a full colour step);
 - a line is left out where a boundary lies above it, where the pixels just above it have the snow's
   colour rather than the sky's (the top of a rock a few rows below the skyline) or where it dips
   well below its neighbours (:func:`snow_checks`).  Where a white cloud stands behind the ridge
@@ -71,8 +73,11 @@ SKY_ROWS = (3, 12)
 SNOW_ROWS = (3, 30)
 #: The colour 2-3 rows above a line must lie above this share of the way from the snow's to the sky's.
 CHROMA_CUT = 0.35
-#: A boundary this many rows or more above a line puts the line below the skyline.
+#: A candidate this many rows or more above the detector's line shows that line to be below the skyline.
 STEP_ABOVE_PX = 3.0
+#: A boundary more than this many rows above a line puts the line below the skyline (the boundary's
+#: score reaches about three rows above the colour step itself: its bands are read from three rows away).
+BOUNDARY_ABOVE_PX = 4.0
 #: A line more than DIP_PX rows below the highest line within DIP_COLUMNS columns is left out.
 DIP_COLUMNS = 5
 DIP_PX = 8.0
@@ -123,7 +128,8 @@ def snowy_ground_share(f: np.ndarray, lum: np.ndarray, rows: np.ndarray) -> floa
 def snow_score(chroma: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel, from the blurred blue minus red and the luminance (:func:`_chroma_luma`): the sky/snow
     boundary's score in [0, 1] (the colour step times the brightness rise, where nothing below is as blue
-    as the sky and the ground is not darker), and whether the colour conditions hold at all (``ok``)."""
+    as the sky and the ground is not darker), and the colour step's own score in [0, 1] under the same
+    conditions (under a pale sky the snow may be no brighter than the sky: no rise, the colour step alone)."""
     h, w = chroma.shape
     lum_h = cv2.blur(lum, (5, 1))
     ca, cb = _band_mean(chroma, -8, -3), _band_max(chroma, 3, 8)
@@ -137,8 +143,9 @@ def snow_score(chroma: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndar
     ok[h - EDGE_ROWS :] = False
     pad = np.concatenate([np.repeat(lum_h[:1], 2, 0), lum_h, np.repeat(lum_h[-1:], 2, 0)])
     rise = pad[4:] - pad[:-4]
-    score = np.clip(step / FULL_CHROMA_STEP, 0.0, 1.0) * np.clip(rise / FULL_RISE, 0.0, 1.0) * ok
-    return np.asarray(score, dtype=np.float32), ok
+    colour = np.clip(step / FULL_CHROMA_STEP, 0.0, 1.0) * ok
+    score = colour * np.clip(rise / FULL_RISE, 0.0, 1.0)
+    return np.asarray(score, dtype=np.float32), np.asarray(colour, dtype=np.float32)
 
 
 def snow_candidates(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -151,10 +158,10 @@ def snow_candidates(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def step_above(score: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Per column: whether a sky/snow boundary (``score`` at least MIN_SCORE) lies more than
-    STEP_ABOVE_PX rows above ``rows``: the line is then below the skyline."""
+    BOUNDARY_ABOVE_PX rows above ``rows``: the line is then below the skyline."""
     h = score.shape[0]
     r = np.where(np.isfinite(rows), rows, -10.0 * h)
-    return np.asarray(((score >= MIN_SCORE) & (np.arange(h)[:, None] < (r - STEP_ABOVE_PX)[None, :])).any(axis=0))
+    return np.asarray(((score >= MIN_SCORE) & (np.arange(h)[:, None] < (r - BOUNDARY_ABOVE_PX)[None, :])).any(axis=0))
 
 
 def _agree_with_neighbours(cand: np.ndarray, wrap: bool) -> np.ndarray:
@@ -197,6 +204,7 @@ class SnowEvidence:
     """What a snowy image shows of its sky/snow boundary (HxW maps, per-column rows)."""
 
     score: np.ndarray  # per pixel: the boundary's score in [0, 1] (:func:`snow_score`)
+    colour_step: np.ndarray  # per pixel: the colour step's own score in [0, 1] (:func:`snow_score`)
     llr: np.ndarray  # per pixel: sky-vs-snow log-likelihood ratio of models learnt at the trusted rows
     lum: np.ndarray  # the blue-weighted intensity
     chroma: np.ndarray  # blue minus red, smoothed
@@ -215,7 +223,7 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     if snowy_ground_share(f, luma, rows) < SNOWY_SHARE:
         return None
     chroma, lum = _chroma_luma(f, luma)
-    score, _ = snow_score(chroma, lum)
+    score, colour_step = snow_score(chroma, lum)
     cand, _ = snow_candidates(score)
     trusted = _agree_with_neighbours(cand, wrap)
     placed = place_rows(lum, np.where(trusted, cand, np.nan))
@@ -233,7 +241,7 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
         return None
     sky_chroma = float(np.median(chroma[(rr >= t - 8) & (rr <= t - 4)]))
     snow_chroma = float(np.median(chroma[(rr >= t + 4) & (rr <= t + 8)]))
-    return SnowEvidence(score, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma))
+    return SnowEvidence(score, colour_step, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma))
 
 
 def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
