@@ -23,8 +23,9 @@ hypothesis is weighed twice: by its exact fit (the yaw nudged, the EXIF focal le
 its orientation and focal length solved on its render as the answer's are (:func:`refit_rivals`),
 so that a place is not ruled out by a focal length or a tilt that the answer was given room for.
 The second weighing is the fits' own robust likelihood (Cauchy) with its scale profiled out at
-each place, counted for the skyline's independent azimuths: a ratio of fits, not of costs at
-the noise learned at the answer, which the hypotheses' cruder fits do not reach.  A hypothesis
+each place, counted for the skyline's independent azimuths less the six parameters each fit takes
+from them (position, yaw, pitch, roll, focal length): a ratio of fits, not of costs at the noise
+learned at the answer, which the hypotheses' cruder fits do not reach.  A hypothesis
 inside the answer's own ellipse that fits clearly better than the answer also makes it
 ambiguous: the answer is then not where the photo fits best.
 """
@@ -115,6 +116,9 @@ RIVAL_CLIP_DEG = 1.0
 #: under it counts as this residual (the orientation fit's clip).
 PROFILE_SCALE_DEG = (confidence.SIGMA_FLOOR_DEG, 3.0)
 NO_TERRAIN_RESIDUAL_DEG = 30.0
+#: The parameters a photo's fit takes from its skyline before what is left tells places apart: the
+#: estimate's (position and heading) and the camera's pitch, roll and focal length.
+PHOTO_FITTED_PARAMETERS = confidence.FITTED_PARAMETERS + 3
 #: The photo's covariance is its fit's times this: on development photos (jacksboro, 60 deg, seeds 1-40)
 #: the truth's squared Mahalanobis distance under the unscaled covariance had its 95th percentile at
 #: 27 against chi-square's 5.99 (the truth inside the 95 % ellipse for 62 % of the right answers).
@@ -683,10 +687,12 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
     """Each hypothesis farther than SAME_PLACE_CELLS from the answer, its yaw, pitch, roll and focal
     length solved on its own render as the answer's were (:func:`solve_orientation`), weighed
     against the answer (``pose``, ``scale`` at the estimate's place) by :func:`profiled_cauchy_nats`
-    over ``rays``, each ray counting for the skyline's independent azimuths spread over the rays."""
+    over ``rays``, the rays counting together for the skyline's independent azimuths less the
+    PHOTO_FITTED_PARAMETERS each place's fit takes from them (at least one): a photo's few azimuths
+    tell places apart only by what its orientation and lens cannot absorb."""
     res = pos.result
     independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
-    independent = max(independent, confidence.MIN_INDEPENDENT)
+    independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
     az, el = directions(rays, pose, scale)
     answer = profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m))
     rivals = better = 0
