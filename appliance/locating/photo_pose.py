@@ -686,15 +686,22 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
                  same_place_cells: float) -> RefitRivals:
     """Each hypothesis farther than SAME_PLACE_CELLS from the answer, its yaw, pitch, roll and focal
     length solved on its own render as the answer's were (:func:`solve_orientation`), weighed
-    against the answer (``pose``, ``scale`` at the estimate's place) by :func:`profiled_cauchy_nats`
+    against the answer (``pose``, ``scale`` at the estimate's place, or its orientation solved there
+    again where that fits better) by :func:`profiled_cauchy_nats`
     over ``rays``, the rays counting together for the skyline's independent azimuths less the
     PHOTO_FITTED_PARAMETERS each place's fit takes from them (at least one): a photo's few azimuths
     tell places apart only by what its orientation and lens cannot absorb."""
     res = pos.result
     independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
     independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
+    # the answer weighed as the hypotheses are: its orientation solved again on its own render (its pose
+    # came from the joint fit, made before the estimate placed it where it stands), the better of the two
     az, el = directions(rays, pose, scale)
     answer = profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m))
+    az_grid, el_grid = _rendered_view(render_at, res.row, res.col, rays, pose, scale, eye_offset_m)
+    again = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
+    az, el = directions(rays, again.pose, again.focal_scale)
+    answer = max(answer, profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m)))
     rivals = better = 0
     nats: list[float] = []
     for h, f in fitted:
