@@ -18,7 +18,16 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
 
 The answer is ambiguous when the estimate says so, or when another hypothesis, at a place away
 from the answer, fits the photo about as well with its own orientation: the estimate's region
-is conditional on the orientation it was given, so rival orientations are weighed here.
+is conditional on the orientation it was given, so rival orientations are weighed here.  Each
+hypothesis is weighed twice: by its exact fit (the yaw nudged, the EXIF focal length), and with
+its orientation and focal length solved on its render as the answer's are (:func:`refit_rivals`),
+so that a place is not ruled out by a focal length or a tilt that the answer was given room for.
+The second weighing is the fits' own robust likelihood (Cauchy) with its scale profiled out at
+each place, counted for the skyline's independent azimuths less the six parameters each fit takes
+from them (position, yaw, pitch, roll, focal length): a ratio of fits, not of costs at the noise
+learned at the answer, which the hypotheses' cruder fits do not reach.  A hypothesis
+inside the answer's own ellipse that fits clearly better than the answer also makes it
+ambiguous: the answer is then not where the photo fits best.
 """
 
 from __future__ import annotations
@@ -28,7 +37,7 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize_scalar
 
 from appliance.errors import InputError
 from appliance.estimator import SkylineGrid, confidence
@@ -102,6 +111,14 @@ SAME_PLACE_CELLS = 2.5
 RIVAL_NATS = math.log(20.0)
 #: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
 RIVAL_CLIP_DEG = 1.0
+#: The refitted rivals' robust likelihood: the scale (deg) of its Cauchy density is profiled between
+#: these (the database's quantisation; a residual this large is no fit), and a ray with no terrain
+#: under it counts as this residual (the orientation fit's clip).
+PROFILE_SCALE_DEG = (confidence.SIGMA_FLOOR_DEG, 3.0)
+NO_TERRAIN_RESIDUAL_DEG = 30.0
+#: The parameters a photo's fit takes from its skyline before what is left tells places apart: the
+#: estimate's (position and heading) and the camera's pitch, roll and focal length.
+PHOTO_FITTED_PARAMETERS = confidence.FITTED_PARAMETERS + 3
 #: The photo's covariance is its fit's times this: on development photos (jacksboro, 60 deg, seeds 1-40)
 #: the truth's squared Mahalanobis distance under the unscaled covariance had its 95th percentile at
 #: 27 against chi-square's 5.99 (the truth inside the 95 % ellipse for 62 % of the right answers).
@@ -305,6 +322,13 @@ def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: floa
     yaw, a focal length and a move trade against each other.  Robust (Cauchy), the tolerances as
     bounds and priors; the move is bounded to JOINT_REACH_CELLS.  Returns the orientation (the
     estimate then places the camera with it)."""
+    _, _, pose, scale = fit_jointly(render_at, rays, row, col, eye_offset_m, pose, scale, prior)
+    return pose, scale
+
+
+def fit_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
+                pose: CameraPose, scale: float, prior: OrientationPrior) -> tuple[float, float, CameraPose, float]:
+    """:func:`refine_jointly`'s fit: the place it moved to (fractional row, column) and the orientation."""
     use_scale = prior.focal_sigma > 0.0
 
     # parameters: moves from the start (rows, columns, yaw in deg), then pitch, roll and log focal scale
@@ -322,8 +346,8 @@ def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: floa
     fit = least_squares(residuals, p0, loss=ROBUST_LOSS, f_scale=3.0, bounds=(lower, upper), method="trf",
                         x_scale=np.array([0.2, 0.2, 0.1, 0.1, 0.1, 0.005]), diff_step=JOINT_STEP, max_nfev=60)
     x = fit.x
-    return CameraPose((pose.yaw_deg + float(x[2])) % 360.0, float(x[3]), float(x[4])), (
-        float(math.exp(x[5])) if use_scale else 1.0)
+    return row + float(x[0]), col + float(x[1]), CameraPose((pose.yaw_deg + float(x[2])) % 360.0, float(x[3]),
+                                                            float(x[4])), (float(math.exp(x[5])) if use_scale else 1.0)
 
 
 def _joint_residual_deg(render_at: _Renderer, rays: np.ndarray, p: np.ndarray, eye_offset_m: float) -> np.ndarray:
@@ -417,6 +441,15 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if rivals:
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
+    refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same)
+    if refit.rivals:
+        notes.append(f"{refit.rivals} other place(s) fit the photo about as well with their own orientation and "
+                     f"focal length solved (within {RIVAL_NATS:.1f} nats of the answer)")
+    if refit.better:
+        notes.append(f"{refit.better} place(s) inside the answer's ellipse, more than {SAME_PLACE_CELLS:g} cells "
+                     f"from it, fit the photo better than the answer by more than {RIVAL_NATS:.1f} nats: the "
+                     "answer is not where the photo fits best")
+    rivals += refit.rivals
     limit = _at_tolerance(pose, scale, prior)
     if limit:
         notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
@@ -612,3 +645,86 @@ def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGr
         if nats < RIVAL_NATS:
             count += 1
     return count
+
+
+def profiled_cauchy_nats(residual_deg: np.ndarray) -> float:
+    """The mean log-likelihood per ray (nats) of residuals (deg; NaN where no terrain, counted as
+    NO_TERRAIN_RESIDUAL_DEG) under a Cauchy density, its scale at its most likely within
+    PROFILE_SCALE_DEG.  Cauchy is the orientation fits' own loss: a near object or a cloud taken for
+    terrain costs the log of its residual, not its square, so it weighs alike at every place."""
+    e = np.abs(np.nan_to_num(np.asarray(residual_deg, dtype=np.float64), nan=NO_TERRAIN_RESIDUAL_DEG))
+    e = np.minimum(e, NO_TERRAIN_RESIDUAL_DEG)
+    if e.size == 0:
+        return -math.inf
+
+    def minus_mean_ll(log_s: float) -> float:
+        s = math.exp(log_s)
+        return float(np.mean(np.log(math.pi * s * (1.0 + (e / s) ** 2))))
+
+    lo, hi = (math.log(v) for v in PROFILE_SCALE_DEG)
+    best = minimize_scalar(minus_mean_ll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+    return -min(float(best.fun), minus_mean_ll(lo), minus_mean_ll(hi))
+
+
+@dataclass(frozen=True)
+class RefitRivals:
+    """What the hypotheses refitted with their own orientation say of the answer: how many lie
+    beyond the same place and fit within RIVAL_NATS of it (``rivals``), how many lie inside it
+    but more than SAME_PLACE_CELLS away and fit better than it by more than RIVAL_NATS
+    (``better``), and each hypothesis' nats below the answer (negative: it fits better; NaN
+    at the same place).  A hypothesis within JOINT_REACH_CELLS of the same place whose joint fit of
+    position and orientation comes back to the answer (SAME_PLACE_CELLS) is neither: it lies on the
+    answer's own slope."""
+
+    rivals: int
+    better: int
+    nats: tuple[float, ...]
+
+
+def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypothesis, Fit]], pos: Position,
+                 grid: SkylineGrid, pose: CameraPose, scale: float, eye_offset_m: float, prior: OrientationPrior,
+                 same_place_cells: float) -> RefitRivals:
+    """Each hypothesis farther than SAME_PLACE_CELLS from the answer, its yaw, pitch, roll and focal
+    length solved on its own render as the answer's were (:func:`solve_orientation`), weighed
+    against the answer (``pose``, ``scale`` at the estimate's place, or its orientation solved there
+    again where that fits better) by :func:`profiled_cauchy_nats`
+    over ``rays``, the rays counting together for the skyline's independent azimuths less the
+    PHOTO_FITTED_PARAMETERS each place's fit takes from them (at least one): a photo's few azimuths
+    tell places apart only by what its orientation and lens cannot absorb."""
+    res = pos.result
+    independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
+    independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
+    # the answer weighed as the hypotheses are: its orientation solved again on its own render (its pose
+    # came from the joint fit, made before the estimate placed it where it stands), the better of the two
+    az, el = directions(rays, pose, scale)
+    answer = profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m))
+    az_grid, el_grid = _rendered_view(render_at, res.row, res.col, rays, pose, scale, eye_offset_m)
+    again = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
+    az, el = directions(rays, again.pose, again.focal_scale)
+    answer = max(answer, profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m)))
+    rivals = better = 0
+    nats: list[float] = []
+    for h, f in fitted:
+        d = math.hypot(f.row - res.row, f.col - res.col)
+        if d <= SAME_PLACE_CELLS:
+            nats.append(math.nan)
+            continue
+        start = _pose_of_fit(h, f)
+        az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
+        o = solve_orientation(rays, az_grid, el_grid, start, prior)
+        az, el = directions(rays, o.pose, o.focal_scale)
+        own = profiled_cauchy_nats(el - render_at(f.row, f.col, np.mod(az, 360.0), f.eye_offset_m))
+        n = independent * (answer - own)
+        nats.append(n)
+        rival = d > same_place_cells and n < RIVAL_NATS
+        fits_better = d <= same_place_cells and n < -RIVAL_NATS
+        if (rival or fits_better) and d <= same_place_cells + JOINT_REACH_CELLS:
+            # within reach of the answer: a rival only if the joint fit of position and orientation
+            # from it does not come back to the answer (another optimum, not the answer's slope)
+            row, col, _, _ = fit_jointly(render_at, rays, f.row, f.col, f.eye_offset_m, o.pose, o.focal_scale,
+                                         prior)
+            if math.hypot(row - res.row, col - res.col) <= SAME_PLACE_CELLS:
+                rival = fits_better = False
+        rivals += int(rival)
+        better += int(fits_better)
+    return RefitRivals(rivals, better, tuple(nats))
