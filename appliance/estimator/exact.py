@@ -45,7 +45,7 @@ ANNEAL = 0.1
 SCREEN_SCAN_DEG = 8.0
 #: How far (cells) a fit may wander from the node it started at.
 MAX_OFFSET_CELLS = 2.0
-#: The sectors of azimuth (deg) whose pulls on a fit are compared (:attr:`Fit.sector_scores`): several
+#: The sectors of azimuth (deg) whose pulls on a fit are compared (:attr:`Fit.sector_pulls`): several
 #: times the correlation of a levelled head's and a stitched panorama's errors (a few degrees), so that
 #: sectors' errors are nearly independent, and at least a dozen around a panorama.
 SECTOR_DEG = 30.0
@@ -542,14 +542,10 @@ def _sectors(J: np.ndarray, u: np.ndarray, r: np.ndarray, explained: np.ndarray,
              step_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """:attr:`Fit.sector_pulls` and :attr:`Fit.sector_curvatures`: the azimuth grid cut into SECTOR_DEG
     sectors, those without an explained azimuth left out."""
-    per = max(1, int(round(SECTOR_DEG / step_deg)))
-    sector = np.arange(J.shape[0]) // per
-    k = int(sector[-1]) + 1
-    g = np.zeros((k, J.shape[1]))
-    np.add.at(g, sector, J * (u * r)[:, None])
-    h = np.zeros((k, J.shape[1], J.shape[1]))
-    np.add.at(h, sector, J[:, :, None] * (J * u[:, None])[:, None, :])
-    held = np.bincount(sector, weights=explained.astype(float), minlength=k) > 0
+    starts = np.arange(0, J.shape[0], max(1, int(round(SECTOR_DEG / step_deg))))
+    g = np.add.reduceat(J * (u * r)[:, None], starts, axis=0)
+    h = np.add.reduceat(J[:, :, None] * (J * u[:, None])[:, None, :], starts, axis=0)
+    held = np.add.reduceat(explained.astype(np.int64), starts) > 0
     return g[held], h[held]
 
 

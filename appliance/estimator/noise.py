@@ -65,8 +65,7 @@ def sector_jackknife(fit: Fit, sigma_deg: float) -> np.ndarray | None:
     d = np.asarray(moves)
     d -= d.mean(axis=0)
     k = d.shape[0]
-    spread = (k - 1.0) / k * (d.T @ d)
-    return 0.5 * (spread + spread.T)
+    return (k - 1.0) / k * (d.T @ d)
 
 
 def tempered_covariance(fit: Fit, sigma_deg: float, temper: float) -> np.ndarray | None:

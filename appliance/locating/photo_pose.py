@@ -666,6 +666,14 @@ def profiled_cauchy_nats(residual_deg: np.ndarray) -> float:
     return -min(float(best.fun), minus_mean_ll(lo), minus_mean_ll(hi))
 
 
+def _nats_at(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pose: CameraPose, scale: float,
+             eye_offset_m: float) -> float:
+    """:func:`profiled_cauchy_nats` of the photo's rays seen with ``pose`` and focal ``scale`` against the
+    render at (``row``, ``col``)."""
+    az, el = directions(rays, pose, scale)
+    return profiled_cauchy_nats(el - render_at(row, col, np.mod(az, 360.0), eye_offset_m))
+
+
 @dataclass(frozen=True)
 class RefitRivals:
     """What the hypotheses refitted with their own orientation say of the answer: how many lie
@@ -696,12 +704,10 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
     independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
     # the answer weighed as the hypotheses are: its orientation solved again on its own render (its pose
     # came from the joint fit, made before the estimate placed it where it stands), the better of the two
-    az, el = directions(rays, pose, scale)
-    answer = profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m))
+    answer = _nats_at(render_at, rays, res.row, res.col, pose, scale, eye_offset_m)
     az_grid, el_grid = _rendered_view(render_at, res.row, res.col, rays, pose, scale, eye_offset_m)
     again = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
-    az, el = directions(rays, again.pose, again.focal_scale)
-    answer = max(answer, profiled_cauchy_nats(el - render_at(res.row, res.col, np.mod(az, 360.0), eye_offset_m)))
+    answer = max(answer, _nats_at(render_at, rays, res.row, res.col, again.pose, again.focal_scale, eye_offset_m))
     rivals = better = 0
     nats: list[float] = []
     for h, f in fitted:
@@ -712,8 +718,7 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
         start = _pose_of_fit(h, f)
         az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
         o = solve_orientation(rays, az_grid, el_grid, start, prior)
-        az, el = directions(rays, o.pose, o.focal_scale)
-        own = profiled_cauchy_nats(el - render_at(f.row, f.col, np.mod(az, 360.0), f.eye_offset_m))
+        own = _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
         n = independent * (answer - own)
         nats.append(n)
         rival = d > same_place_cells and n < RIVAL_NATS
