@@ -407,12 +407,15 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if nodes.size == 0:
         raise InputError("no node of the database lies inside the search area")
 
-    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]]]:
+    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
         return _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m, occlusion_weight, map_sigma_m)
 
-    screened, fits = hypotheses(level)
-    if not fits:
+    screened, found = hypotheses(level)
+    if found is None:
+        raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
+    if not found:
         raise InputError(f"{view.name}: no place of the search area fits the photo's skyline")
+    fits = found
     fit_rays = _fit_rays(view)
 
     def solve_at_best(fits: list[tuple[Hypothesis, Fit]], level: CameraPose) -> tuple[OrientationFit, float]:
@@ -562,11 +565,11 @@ def _levelled_lattice(rays: np.ndarray, confidence: np.ndarray, level: CameraPos
 
 def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
                     nodes: np.ndarray, prior: OrientationPrior, height_m: float, occlusion_weight: float,
-                    map_sigma_m: float) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]]]:
+                    map_sigma_m: float) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
     """Steps 1 and 2 of the module docstring on the rays levelled through ``level``: the screening of
     ``nodes`` at every yaw (its best nodes moved within their cells and their costs, for
-    :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best first (empty
-    when none sees terrain over the view)."""
+    :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best first (None
+    when no node sees terrain over the view, empty when no fit succeeds)."""
     step = grid.az_step_deg
     lattice, m, w = _levelled_lattice(rays, confidence, level, step)
     yaw_bounds = None
@@ -585,7 +588,7 @@ def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray,
                                                      occlusion_weight, map_sigma_m)
     hyps = distinct_hypotheses(found, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
-        return (found, cost), []
+        return (found, cost), None
     return (found, cost), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight, map_sigma_m)
 
 
