@@ -6,7 +6,12 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
 1. **Screening.**  The rays read through a level camera at yaw 0 give elevations at azimuths
    relative to the optical axis; every node of the search area is scored at every yaw with the
    camera's pitch and roll as a linear nuisance (:func:`appliance.estimator.orientation.screen`).
-   The best distinct (node, yaw, tilt) triples are the hypotheses.
+   The best distinct (node, yaw, tilt) triples are the hypotheses.  The tilt enters the screening
+   linearly (an elevation offset of pitch times the cosine of the ray's azimuth from the axis, roll
+   times its sine), which is exact only for a camera near level: at 7 deg of pitch over a 60-degree
+   view its neglected second-order terms reach a third of a degree.  So when the orientation solved
+   at the best hypothesis (step 2) is tilted by more than RELEVEL_DEG, the screening is made again on
+   the rays levelled through that pitch and roll, where the tilt left to it is small.
 2. **Orientation on renders.**  At a hypothesis' node the skyline is rendered exactly (the ray march
    of the refinement) and yaw, pitch, roll and the focal length's correction are fitted to the
    detected pixels by robust least squares, the level's and the lens's tolerances as priors
@@ -58,7 +63,13 @@ from appliance.locating.position import Position, locate
 from appliance.locating.search_grid import skyline_grid
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
-from appliance.vision.camera import CameraPose, enu_to_directions, pixels_to_rays, world_from_camera
+from appliance.vision.camera import (
+    CameraPose,
+    enu_to_directions,
+    pixels_to_rays,
+    pose_from_world_from_camera,
+    world_from_camera,
+)
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.photo import PhotoSkyline, resample_photo
 
@@ -103,6 +114,12 @@ BOUND_SIGMAS = 2.5
 #: An orientation within this of its bound (deg; share of the focal length's bound) is at the bound.
 AT_BOUND_DEG = 0.05
 AT_BOUND_SHARE = 0.02
+#: The screening and the hypotheses' fits are made again on the rays levelled through the orientation
+#: solved at the best hypothesis when its pitch or roll is larger than this (deg): their tilt is linear,
+#: whose neglected terms grow as its square (0.36 deg at 7 deg of pitch over a 60-degree view; 0.01 at 1).
+RELEVEL_DEG = 1.0
+#: A level camera looking north: the orientation the screening reads the rays through at first.
+LEVEL = CameraPose(0.0, 0.0, 0.0)
 #: The output skyline's azimuth step (deg).
 SKYLINE_STEP_DEG = 0.25
 #: Nodes within this many cells of the answer (or twice its 95 % radius) stand for the same place.
@@ -379,10 +396,9 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if view.column_px.size < 2:
         raise InputError(f"{view.name}: no skyline found (no column shows sky above ground)")
     rays = view.rays
-    rel_az, rel_el = directions(rays, CameraPose(0.0, 0.0, 0.0))
-    rel_az = np.mod(rel_az + 180.0, 360.0) - 180.0
     step = grid.az_step_deg
-    lattice, m, w = relative_on_lattice(rel_az, rel_el, view.confidence, step)
+    level = LEVEL
+    lattice, _, _ = _levelled_lattice(rays, view.confidence, level, step)
     if lattice.size * step < MIN_ARC_DEG:
         raise InputError(f"{view.name}: the skyline spans {lattice.size * step:.0f} deg of the view, less than the "
                          f"{MIN_ARC_DEG:.0f} deg needed to locate a photo")
@@ -390,33 +406,33 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     nodes = np.flatnonzero(usable if log_prior is None else usable & np.isfinite(log_prior))
     if nodes.size == 0:
         raise InputError("no node of the database lies inside the search area")
-    yaw_bounds = None
-    if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
-        yaw_bounds = (prior.heading_deg, prior.heading_tolerance_deg + step)
-    tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
-    tables = tau_codes = None
-    if grid.has_parallax:
-        tables, tau_codes = tau2_tables(SCREEN_NOISE_DEG), grid.coarse_tau2(map_sigma_m)
-    keep = max(SCREEN_KEEP_MIN, int(SCREEN_KEEP_SHARE * nodes.size))
-    nodes, cost, yaw, tilt = screen_in_two_stages(grid.codes, grid.coarse[0], grid.offset_deg, grid.step_deg, nodes,
-                                                  lattice, m, w, tilt_bounds, SCREEN_NOISE_DEG, yaw_bounds, tables,
-                                                  tau_codes, keep)
-    if grid.has_parallax:
-        nodes, cost, yaw, tilt = _moved_within_cells(grid, nodes, cost, yaw, tilt, lattice, m, w, prior,
-                                                     occlusion_weight, map_sigma_m)
-    screened = (nodes, cost)
-    hyps = distinct_hypotheses(nodes, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
-    if not hyps:
+
+    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
+        return _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m, occlusion_weight, map_sigma_m)
+
+    screened, found = hypotheses(level)
+    if found is None:
         raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
-    fits = _exact_hypotheses(grid, hyps, lattice, m, w, h_m, occlusion_weight, map_sigma_m)
-    if not fits:
+    if not found:
         raise InputError(f"{view.name}: no place of the search area fits the photo's skyline")
-    best_h, best_fit = fits[0]
+    fits = found
     fit_rays = _fit_rays(view)
-    start = _pose_of_fit(best_h, best_fit)
-    eye = best_fit.eye_offset_m
-    az_grid, el_grid = _rendered_view(render_at, best_fit.row, best_fit.col, fit_rays, start, 1.0, eye)
-    solved = solve_orientation(fit_rays, az_grid, el_grid, start, prior)
+
+    def solve_at_best(fits: list[tuple[Hypothesis, Fit]], level: CameraPose) -> tuple[OrientationFit, float]:
+        best_h, best_fit = fits[0]
+        start = _pose_of_fit(best_h, best_fit, level)
+        az_grid, el_grid = _rendered_view(render_at, best_fit.row, best_fit.col, fit_rays, start, 1.0,
+                                          best_fit.eye_offset_m)
+        return solve_orientation(fit_rays, az_grid, el_grid, start, prior), best_fit.eye_offset_m
+
+    solved, eye = solve_at_best(fits, level)
+    if max(abs(solved.pose.pitch_deg), abs(solved.pose.roll_deg)) > RELEVEL_DEG:
+        # the screening's linear tilt is good near level only: screen again with the rays levelled
+        relevel = CameraPose(0.0, solved.pose.pitch_deg, solved.pose.roll_deg)
+        screened_again, fits_again = hypotheses(relevel)
+        if fits_again:
+            level, screened, fits = relevel, screened_again, fits_again
+            solved, eye = solve_at_best(fits, level)
     pose, scale = solved.pose, solved.focal_scale
     sky = world_skyline(view, pose, scale)
     pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid, height_m=h_m,
@@ -441,7 +457,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if rivals:
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
-    refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same)
+    refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same, level)
     if refit.rivals:
         notes.append(f"{refit.rivals} other place(s) fit the photo about as well with their own orientation and "
                      f"focal length solved (within {RIVAL_NATS:.1f} nats of the answer)")
@@ -521,15 +537,59 @@ def _exact_hypotheses(grid: SkylineGrid, hyps: list[Hypothesis], lattice: np.nda
     return out
 
 
-def _pose_of_fit(h: Hypothesis, fit: Fit) -> CameraPose:
+def _pose_of_fit(h: Hypothesis, fit: Fit, level: CameraPose = LEVEL) -> CameraPose:
     """The camera's orientation a hypothesis' exact fit gives: the yaw turned by the fit's heading,
-    pitch and roll from its tilt (the tilt's terms turned into the camera's axes)."""
+    pitch and roll from its tilt (the tilt's terms turned into the camera's axes), and composed with
+    ``level`` (yaw 0), the pitch and roll the rays were levelled through before the screening."""
     yaw = h.yaw_deg + fit.heading_deg
     psi = math.radians(yaw)
     t1, t2 = fit.tilt_deg
     along = h.t1_deg + t1 * math.cos(psi) + t2 * math.sin(psi)
     across = h.t2_deg - t1 * math.sin(psi) + t2 * math.cos(psi)
-    return CameraPose(yaw % 360.0, -along, across)
+    pose = CameraPose(yaw % 360.0, -along, across)
+    if level.pitch_deg == 0.0 and level.roll_deg == 0.0:
+        return pose
+    # rays seen through `level` are a level camera's rays L^T M r: the camera's rotation is W(pose) L^T M
+    rotation = world_from_camera(pose) @ world_from_camera(CameraPose()).T @ world_from_camera(level)
+    return pose_from_world_from_camera(rotation)
+
+
+def _levelled_lattice(rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
+                      step_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rays' elevations on the lattice of azimuths (relative to the axis, ``step_deg``) seen through
+    ``level`` (yaw 0): :func:`appliance.estimator.orientation.relative_on_lattice`'s lattice, elevations
+    and weights."""
+    rel_az, rel_el = directions(rays, level)
+    return relative_on_lattice(np.mod(rel_az + 180.0, 360.0) - 180.0, rel_el, confidence, step_deg)
+
+
+def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
+                    nodes: np.ndarray, prior: OrientationPrior, height_m: float, occlusion_weight: float,
+                    map_sigma_m: float) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
+    """Steps 1 and 2 of the module docstring on the rays levelled through ``level``: the screening of
+    ``nodes`` at every yaw (its best nodes moved within their cells and their costs, for
+    :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best first (None
+    when no node sees terrain over the view, empty when no fit succeeds)."""
+    step = grid.az_step_deg
+    lattice, m, w = _levelled_lattice(rays, confidence, level, step)
+    yaw_bounds = None
+    if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
+        yaw_bounds = (prior.heading_deg, prior.heading_tolerance_deg + step)
+    tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
+    tables = tau_codes = None
+    if grid.has_parallax:
+        tables, tau_codes = tau2_tables(SCREEN_NOISE_DEG), grid.coarse_tau2(map_sigma_m)
+    keep = max(SCREEN_KEEP_MIN, int(SCREEN_KEEP_SHARE * nodes.size))
+    found, cost, yaw, tilt = screen_in_two_stages(grid.codes, grid.coarse[0], grid.offset_deg, grid.step_deg, nodes,
+                                                  lattice, m, w, tilt_bounds, SCREEN_NOISE_DEG, yaw_bounds, tables,
+                                                  tau_codes, keep)
+    if grid.has_parallax:
+        found, cost, yaw, tilt = _moved_within_cells(grid, found, cost, yaw, tilt, lattice, m, w, prior,
+                                                     occlusion_weight, map_sigma_m)
+    hyps = distinct_hypotheses(found, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
+    if not hyps:
+        return (found, cost), None
+    return (found, cost), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight, map_sigma_m)
 
 
 def joint_covariance_cells(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
@@ -691,14 +751,15 @@ class RefitRivals:
 
 def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypothesis, Fit]], pos: Position,
                  grid: SkylineGrid, pose: CameraPose, scale: float, eye_offset_m: float, prior: OrientationPrior,
-                 same_place_cells: float) -> RefitRivals:
+                 same_place_cells: float, level: CameraPose = LEVEL) -> RefitRivals:
     """Each hypothesis farther than SAME_PLACE_CELLS from the answer, its yaw, pitch, roll and focal
     length solved on its own render as the answer's were (:func:`solve_orientation`), weighed
     against the answer (``pose``, ``scale`` at the estimate's place, or its orientation solved there
     again where that fits better) by :func:`profiled_cauchy_nats`
     over ``rays``, the rays counting together for the skyline's independent azimuths less the
     PHOTO_FITTED_PARAMETERS each place's fit takes from them (at least one): a photo's few azimuths
-    tell places apart only by what its orientation and lens cannot absorb."""
+    tell places apart only by what its orientation and lens cannot absorb.  ``level``: the pitch and roll
+    the hypotheses' screening levelled the rays through (:func:`_pose_of_fit`)."""
     res = pos.result
     independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
     independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
@@ -715,7 +776,7 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
         if d <= SAME_PLACE_CELLS:
             nats.append(math.nan)
             continue
-        start = _pose_of_fit(h, f)
+        start = _pose_of_fit(h, f, level)
         az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
         o = solve_orientation(rays, az_grid, el_grid, start, prior)
         own = _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
