@@ -81,11 +81,11 @@ POOR_FIT_RATIO = 1.0
 NARROW_SHARE = 1.0 / 3.0
 NARROW_CLIP = 3.0
 #: Neither search is made for a poor fit whose residuals correlate less than this from one azimuth to the
-#: next (:func:`confidence.lag_one_correlation`): what such a fit leaves is the sensor's white noise, which no
-#: other place and no narrower interval fits more closely, and nothing stands above the map over runs of
-#: azimuths as trees or buildings do.  A wrong place, a residual tilt, occluders and the map's error all
-#: leave residuals that vary smoothly along the skyline (0.6-0.9 on the skylines those searches are for;
-#: a sensor's white noise at the true place, 0.2 at most).
+#: next (:func:`confidence.lag_one_correlation`) and that leaves no more of the skyline to occluders than the
+#: prior share allows (OCCLUSION_AGAIN_RATIO): what such a fit leaves is the sensor's white noise, which no
+#: other place and no narrower interval fits more closely, and nothing stands above the map.  A wrong place,
+#: a residual tilt, occluders and the map's error leave residuals that vary smoothly along the skyline
+#: (0.6-0.9 on the skylines those searches are for; a sensor's white noise at the true place, 0.2 at most).
 NOISE_LIMITED_CORRELATION = 0.5
 #: What the notes of region.py say of a fit itself (not of rival places): a search made again at the same
 #: place answers these with its own fit.
@@ -214,7 +214,9 @@ def estimate(
     but its best fit is not down to the floor (where nothing finer could be told apart), the search is
     made once more with the learned interval: a search that weighs every azimuth as loosely as the wide
     interval does can settle on a place that only the clean skyline tells apart.  The answer whose best
-    fit leaves the smaller residual is kept.
+    fit leaves the smaller residual is kept.  A best fit that stays above the interval's lower end is
+    searched again narrower (:func:`_narrowed`) and with half the skyline allowed to occluders
+    (:func:`_occluders_checked`), unless its residuals are white noise (NOISE_LIMITED_CORRELATION).
     """
     t0 = time.perf_counter()
     search = _Search(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
@@ -237,8 +239,10 @@ def estimate(
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
         search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
         res, fit = _estimate_with_fit(grid, azimuth_deg, elevation_deg, sigma_deg, search)
-    # a poor fit that leaves white noise is checked no further (NOISE_LIMITED_CORRELATION)
-    noise_limited = _noise_limited(fit)
+    # a poor fit that leaves white noise, and no more to occluders than the prior share allows (else
+    # it was searched again for them above), is checked no further (NOISE_LIMITED_CORRELATION)
+    noise_limited = (search.occlusion_weight == occlusion_weight
+                     and res.occluded_share <= OCCLUSION_AGAIN_RATIO * occlusion_weight and _noise_limited(fit))
     if again and res.sigma_learned and _poor_fit(res, sigma_deg) and not noise_limited:
         # the narrower search's fits are judged poor against the interval given, as this one's are
         allowed = float(sigma_deg[1]) if search.allowed_sigma_deg is None else search.allowed_sigma_deg
