@@ -80,13 +80,15 @@ POOR_FIT_RATIO = 1.0
 #: NARROW_CLIP times the first fit's RMS.
 NARROW_SHARE = 1.0 / 3.0
 NARROW_CLIP = 3.0
-#: Neither search is made for a poor fit whose residuals correlate less than this from one azimuth to the
-#: next (:func:`confidence.lag_one_correlation`) and that leaves no more of the skyline to occluders than the
-#: prior share allows (OCCLUSION_AGAIN_RATIO): what such a fit leaves is the sensor's white noise, which no
-#: other place and no narrower interval fits more closely, and nothing stands above the map.  A wrong place,
-#: a residual tilt, occluders and the map's error leave residuals that vary smoothly along the skyline
-#: (0.6-0.9 on the skylines those searches are for; -0.15 to 0.22 on skylines with 0.5 deg of white noise).
+#: Neither search is made for a poor fit whose residuals are white: correlated less than NOISE_LIMITED_CORRELATION
+#: from one azimuth to the next (:func:`confidence.lag_one_correlation`), at least NOISE_LIMITED_INDEPENDENT of them
+#: independent (the likelihood's tempering, over every lag), and no more of the skyline left to occluders than the
+#: prior share allows (OCCLUSION_AGAIN_RATIO).  What such a fit leaves is the sensor's white noise, which no other
+#: place and no narrower interval fits more closely, and nothing stands above the map.  A wrong place, a residual
+#: tilt, occluders and the map's error leave residuals that vary smoothly along the skyline (on the skylines those
+#: searches are for, 0.6-0.9 and 0.04-0.24; on skylines with 0.5 deg of white noise, -0.15 to 0.22 and mostly 1).
 NOISE_LIMITED_CORRELATION = 0.5
+NOISE_LIMITED_INDEPENDENT = 0.5
 #: What the notes of region.py say of a fit itself (not of rival places): a search made again at the same
 #: place answers these with its own fit.
 FIT_DOUBTS = ("poor match", "reaches the compass's tolerance", "covariance cannot be formed")
@@ -216,7 +218,8 @@ def estimate(
     interval does can settle on a place that only the clean skyline tells apart.  The answer whose best
     fit leaves the smaller residual is kept.  A best fit that stays above the interval's lower end is
     searched again narrower (:func:`_narrowed`) and with half the skyline allowed to occluders
-    (:func:`_occluders_checked`), unless its residuals are white noise (NOISE_LIMITED_CORRELATION).
+    (:func:`_occluders_checked`), unless its residuals are white noise (NOISE_LIMITED_CORRELATION,
+    NOISE_LIMITED_INDEPENDENT).
     """
     t0 = time.perf_counter()
     search = _Search(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
@@ -242,7 +245,7 @@ def estimate(
     # a poor fit that leaves white noise, and no more to occluders than the prior share allows (else
     # it was searched again for them above), is checked no further (NOISE_LIMITED_CORRELATION)
     noise_limited = (search.occlusion_weight == occlusion_weight
-                     and res.occluded_share <= OCCLUSION_AGAIN_RATIO * occlusion_weight and _noise_limited(fit))
+                     and res.occluded_share <= OCCLUSION_AGAIN_RATIO * occlusion_weight and _noise_limited(res, fit))
     if again and res.sigma_learned and _poor_fit(res, sigma_deg) and not noise_limited:
         # the narrower search's fits are judged poor against the interval given, as this one's are
         allowed = float(sigma_deg[1]) if search.allowed_sigma_deg is None else search.allowed_sigma_deg
@@ -266,10 +269,11 @@ def _poor_fit(res: EstimateResult, sigma_deg: tuple[float, float]) -> bool:
     return res.rms_residual_deg > POOR_FIT_RATIO * float(sigma_deg[0])
 
 
-def _noise_limited(fit: Fit | None) -> bool:
-    """Whether the exact ``fit`` leaves residuals that barely correlate from one azimuth to the next
-    (NOISE_LIMITED_CORRELATION): a sensor's white noise, not a wrong place or what the map lacks."""
-    if fit is None or fit.residual_deg is None:
+def _noise_limited(res: EstimateResult, fit: Fit | None) -> bool:
+    """Whether ``res``'s exact ``fit`` leaves white residuals: barely correlated from one azimuth to the
+    next (NOISE_LIMITED_CORRELATION), and at least NOISE_LIMITED_INDEPENDENT of them independent (the
+    noise learned from them); a sensor's white noise, not a wrong place or what the map lacks."""
+    if fit is None or fit.residual_deg is None or not res.sigma_learned or res.temper < NOISE_LIMITED_INDEPENDENT:
         return False
     return confidence.lag_one_correlation(fit.residual_deg) < NOISE_LIMITED_CORRELATION
 
