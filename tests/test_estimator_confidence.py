@@ -36,6 +36,23 @@ def test_white_residuals_are_all_independent_and_smooth_ones_are_not():
     assert confidence.independent_azimuths(holed) == pytest.approx(260, rel=0.25)
 
 
+def test_white_residuals_barely_correlate_from_one_azimuth_to_the_next_and_smooth_ones_do():
+    rng = np.random.default_rng(3)
+    white = rng.normal(0.0, 0.5, 360)
+    # 1 / sqrt(360) = 0.053 is the correlation's standard error
+    assert abs(confidence.lag_one_correlation(white)) < 0.2
+    # a Gaussian autocorrelation of 6 azimuths: exp(-1 / 72) = 0.986 at one azimuth
+    smooth = gaussian_filter1d(rng.normal(0.0, 1.0, 3600), 6.0 / math.sqrt(2.0), mode="wrap")[:360]
+    assert confidence.lag_one_correlation(smooth) > 0.9
+    # about zero: an offset common to the residuals (a skyline raised by trees) counts as correlated
+    assert confidence.lag_one_correlation(white + 1.0) > 0.7
+    # missing azimuths are left out, not read as zeros; none left, no correlation
+    holed = white + 1.0
+    holed[::3] = np.nan
+    assert confidence.lag_one_correlation(holed) > 0.7
+    assert math.isnan(confidence.lag_one_correlation(np.full(360, np.nan)))
+
+
 def test_the_sigma_interval_covers_the_true_sigma_at_its_level():
     rng = np.random.default_rng(2)
     hits = 0
@@ -344,3 +361,25 @@ def test_rival_places_the_first_search_found_stand_when_the_narrower_one_fits_be
     # the wide search alone: the same place, its fit poorer
     wide = estimate(grid, az, el, learn_noise=False)
     assert math.hypot(wide.row - res.row, wide.col - res.col) <= 2.0
+
+
+def test_a_poor_fit_that_leaves_white_noise_is_the_answer_without_searching_again(dem, tmp_path):
+    """A skyline read at an unknown heading with 0.5 deg of white noise: its best fit, at the truth, stays above
+    the search's lower sigma (0.3 deg), but what it leaves is the sensor's noise, uncorrelated from one azimuth to
+    the next.  Searched again narrower, the skyline fitted a place 170 cells away more closely by leaving most of
+    it to occluders, and the answer said ambiguous; no place fits white noise more closely than the truth does,
+    and the answer is the first search's, ok."""
+    from appliance.estimator.estimate import SIGMA_DEG, estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m
+    from appliance.terrain.database import build_database, load_database
+
+    path = tmp_path / "jacksboro.viperdb"
+    build_database(dem, path, progress=None)
+    db = load_database(path, dem)
+    grid = skyline_grid(db)
+    az, el = _fixture_skyline("white_noise_skyline.csv")
+    truth = (36.67708055, -84.15429494)
+    res = estimate(grid, az, el, heading_tolerance_deg=None)
+    cell_m = math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert truth_error_m(db, place(db, res), truth) < 2.0 * cell_m and not res.ambiguous
+    assert res.rms_residual_deg > SIGMA_DEG[0] and res.sigma_deg_searched == SIGMA_DEG

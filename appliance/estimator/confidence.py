@@ -88,6 +88,21 @@ def independent_azimuths(residual_deg: np.ndarray) -> float:
     return float(min(n, max(MIN_INDEPENDENT, n / (1.0 + 2.0 * total))))
 
 
+def lag_one_correlation(residual_deg: np.ndarray) -> float:
+    """The residuals' (deg on a full-circle azimuth grid, NaN where missing) autocorrelation from one
+    azimuth to the next, about zero as :func:`independent_azimuths` takes it: near 0 for a sensor's
+    white noise, near 1 where the residuals vary smoothly along the skyline (a wrong place, a tilt,
+    what the map lacks).  NaN with fewer than 8 pairs of neighbouring measured azimuths, or no residual."""
+    r = np.asarray(residual_deg, dtype=np.float64)
+    valid = np.isfinite(r)
+    n = int(valid.sum())
+    x = np.where(valid, r, 0.0)
+    var = float(np.sum(x * x)) / max(n, 1)
+    if not var > 0.0:
+        return math.nan
+    return _autocorrelation(x, valid, 1, var)
+
+
 def _autocorrelation(x: np.ndarray, valid: np.ndarray, lag: int, var: float) -> float:
     """The autocorrelation of ``x`` (zero where not ``valid``) at ``lag`` around the circle, over the
     pairs of valid azimuths; NaN with fewer than 8 such pairs."""

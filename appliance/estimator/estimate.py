@@ -80,6 +80,15 @@ POOR_FIT_RATIO = 1.0
 #: NARROW_CLIP times the first fit's RMS.
 NARROW_SHARE = 1.0 / 3.0
 NARROW_CLIP = 3.0
+#: Neither search is made for a poor fit whose residuals are white: correlated less than NOISE_LIMITED_CORRELATION
+#: from one azimuth to the next (:func:`confidence.lag_one_correlation`), at least NOISE_LIMITED_INDEPENDENT of them
+#: independent (the likelihood's tempering, over every lag), and no more of the skyline left to occluders than the
+#: prior share allows (OCCLUSION_AGAIN_RATIO).  What such a fit leaves is the sensor's white noise, which no other
+#: place and no narrower interval fits more closely, and nothing stands above the map.  A wrong place, a residual
+#: tilt, occluders and the map's error leave residuals that vary smoothly along the skyline (on the skylines those
+#: searches are for, 0.6-0.9 and 0.04-0.24; on skylines with 0.5 deg of white noise, -0.15 to 0.22 and mostly 1).
+NOISE_LIMITED_CORRELATION = 0.5
+NOISE_LIMITED_INDEPENDENT = 0.5
 #: What the notes of region.py say of a fit itself (not of rival places): a search made again at the same
 #: place answers these with its own fit.
 FIT_DOUBTS = ("poor match", "reaches the compass's tolerance", "covariance cannot be formed")
@@ -207,7 +216,10 @@ def estimate(
     but its best fit is not down to the floor (where nothing finer could be told apart), the search is
     made once more with the learned interval: a search that weighs every azimuth as loosely as the wide
     interval does can settle on a place that only the clean skyline tells apart.  The answer whose best
-    fit leaves the smaller residual is kept.
+    fit leaves the smaller residual is kept.  A best fit that stays above the interval's lower end is
+    searched again narrower (:func:`_narrowed`) and with half the skyline allowed to occluders
+    (:func:`_occluders_checked`), unless its residuals are white noise (NOISE_LIMITED_CORRELATION,
+    NOISE_LIMITED_INDEPENDENT).
     """
     t0 = time.perf_counter()
     search = _Search(heading_tolerance_deg=heading_tolerance_deg, log_prior=log_prior,
@@ -219,18 +231,22 @@ def estimate(
     if not 0.0 < temper <= 1.0 or (learn_noise and temper != 1.0):
         raise ValueError(f"temper {temper}: expected 0 < temper <= 1, and 1 where the noise is learned here")
     again = learn_noise and first is None and rescore_floor is None
-    res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
+    res, fit = _estimate_with_fit(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     lo, hi = res.sigma_deg
     at_floor = res.rms_residual_deg <= CONVERGED_RMS * search.floor_deg
     if again and res.sigma_learned and not at_floor and hi < SEARCH_AGAIN_RATIO * float(sigma_deg[0]):
-        second = _estimate_once(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), search)
+        second, second_fit = _estimate_with_fit(grid, azimuth_deg, elevation_deg, (lo, 2.0 * hi), search)
         if second.rms_residual_deg <= res.rms_residual_deg:
-            res = second
+            res, fit = second, second_fit
     elif again and res.sigma_learned and res.occluded_share > OCCLUSION_AGAIN_RATIO * occlusion_weight:
         # the occluders' share learned from the best fit (one step of EM on the occlusion mixture)
         search = replace(search, occlusion_weight=min(res.occluded_share, MAX_OCCLUDED_SHARE))
-        res = _estimate_once(grid, azimuth_deg, elevation_deg, sigma_deg, search)
-    if again and res.sigma_learned and _poor_fit(res, sigma_deg):
+        res, fit = _estimate_with_fit(grid, azimuth_deg, elevation_deg, sigma_deg, search)
+    # a poor fit that leaves white noise, and no more to occluders than the prior share allows (else
+    # it was searched again for them above), is checked no further (NOISE_LIMITED_CORRELATION)
+    noise_limited = (search.occlusion_weight == occlusion_weight
+                     and res.occluded_share <= OCCLUSION_AGAIN_RATIO * occlusion_weight and _noise_limited(res, fit))
+    if again and res.sigma_learned and _poor_fit(res, sigma_deg) and not noise_limited:
         # the narrower search's fits are judged poor against the interval given, as this one's are
         allowed = float(sigma_deg[1]) if search.allowed_sigma_deg is None else search.allowed_sigma_deg
         res = _narrowed(grid, azimuth_deg, elevation_deg, res, (NARROW_SHARE * float(sigma_deg[0]),
@@ -239,7 +255,10 @@ def estimate(
     if again and res.heading_at_limit and heading_tolerance_deg is not None:
         res = _widened(grid, azimuth_deg, elevation_deg, res, replace(search, heading_tolerance_deg=min(
             heading_tolerance_deg + HEADING_WIDEN_DEG, 180.0)))
-    if again and not res.ambiguous and search.occlusion_weight < MAX_OCCLUDED_SHARE and _poor_fit(res, sigma_deg):
+        # the answer may now be another search's fit, whose residuals were not looked at
+        noise_limited = False
+    if (again and not res.ambiguous and search.occlusion_weight < MAX_OCCLUDED_SHARE and _poor_fit(res, sigma_deg)
+            and not noise_limited):
         res = _occluders_checked(grid, azimuth_deg, elevation_deg, res,
                                  replace(search, occlusion_weight=MAX_OCCLUDED_SHARE))
     return replace(res, elapsed_s=time.perf_counter() - t0)
@@ -248,6 +267,15 @@ def estimate(
 def _poor_fit(res: EstimateResult, sigma_deg: tuple[float, float]) -> bool:
     """Whether ``res``'s best fit stays above the noise the search assumed (POOR_FIT_RATIO)."""
     return res.rms_residual_deg > POOR_FIT_RATIO * float(sigma_deg[0])
+
+
+def _noise_limited(res: EstimateResult, fit: Fit | None) -> bool:
+    """Whether ``res``'s exact ``fit`` leaves white residuals: barely correlated from one azimuth to the
+    next (NOISE_LIMITED_CORRELATION), and at least NOISE_LIMITED_INDEPENDENT of them independent (the
+    noise learned from them); a sensor's white noise, not a wrong place or what the map lacks."""
+    if fit is None or fit.residual_deg is None or not res.sigma_learned or res.temper < NOISE_LIMITED_INDEPENDENT:
+        return False
+    return confidence.lag_one_correlation(fit.residual_deg) < NOISE_LIMITED_CORRELATION
 
 
 def _narrowed(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray, res: EstimateResult,
@@ -389,6 +417,13 @@ class _Found:
 def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
                    sigma_deg: tuple[float, float], search: _Search) -> EstimateResult:
     """One search and its confidence (:func:`estimate`'s arguments)."""
+    return _estimate_with_fit(grid, azimuth_deg, elevation_deg, sigma_deg, search)[0]
+
+
+def _estimate_with_fit(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
+                       sigma_deg: tuple[float, float], search: _Search) -> tuple[EstimateResult, Fit | None]:
+    """One search and its confidence (:func:`estimate`'s arguments), and the exact fit its answer is
+    (None without one)."""
     t0 = time.perf_counter()
     found = _searched(grid, azimuth_deg, elevation_deg, sigma_deg, search)
     searched = found.meas
@@ -402,7 +437,7 @@ def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np
         if polished is not None:
             found = replace(found, best_fit=polished, answer=Answer(polished.row, polished.col, polished.heading_deg,
                                                                     polished.rms_deg, polished.covariance_cells))
-    return _result(grid, found, searched, learned, search, t0)
+    return _result(grid, found, searched, learned, search, t0), found.best_fit
 
 
 def _searched(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
