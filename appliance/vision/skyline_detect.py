@@ -25,7 +25,10 @@ are missing too.
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
 then at the rocks below the skyline) is handled by a second path on the sky/snow colour boundary
-(:mod:`appliance.vision.skyline_snow`).
+(:mod:`appliance.vision.skyline_snow`).  There, a panorama stitched from the capture ring's frames
+also says which pixels moved between overlapping frames (:attr:`Panorama.motion`,
+:mod:`appliance.vision.temporal`): a drifting cloud is sky even where it is as white as the snow.
+Motion is evidence of sky only; a panorama without it (a file, one photo) is detected as before.
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.
