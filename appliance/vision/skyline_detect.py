@@ -69,7 +69,7 @@ from appliance.vision.skyline_pixels import (
     _to_float,
 )
 from appliance.vision.skyline_snow import colour_rows, snow_checks, snow_evidence
-from appliance.vision.temporal import moving_around, moving_pixels
+from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
 
 
 class Method(enum.Enum):
@@ -393,16 +393,22 @@ def _snow_rows(
 
     With ``moving`` (HxW boolean, :func:`appliance.vision.temporal.moving_pixels`: what drifted
     between the capture ring's frames), those pixels count as sky in the path's regions and its
-    confidence: a white cloud behind a snowy ridge has the snow's colour and brightness, but it
-    moves.  A line with moving pixels below it lies on a cloud, not the ground, and is left out; one
-    with moving pixels just above it and none below is not asked for the sky's colour above it.
+    confidence: a white cloud behind a snowy ridge has the snow's colour and nearly its brightness,
+    but it moves.  The brightness rise from the bottom of the moving pixels onto the snow is an edge
+    too (:func:`appliance.vision.temporal.motion_rise`).  A line with moving pixels below it lies on
+    a cloud, not the ground, and is left out; one with moving pixels just above it and none below is
+    judged with those pixels as sky and not by the colour above it (the snow below must still look
+    like the learnt snow, and the edge be there).
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
         return None
+    edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
     if moving is not None:
         ev = replace(ev, llr=np.where(moving, np.float32(MOVING_LLR), ev.llr).astype(np.float32))
-    edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
+        # under a white cloud there is no colour step onto the snow, only the brightness rise from the
+        # cloud's grey base: an edge where moving pixels lie just above and none just below
+        edge = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * motion_rise(ev.lum, moving))
     path = _run_dp(_path_cost(edge, ev.llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     placed = colour_rows(ev.chroma, path.astype(np.float64))
     # the boundary's score peaks at the brightness rise, the colour step a row either side of the crossing
@@ -410,7 +416,13 @@ def _snow_rows(
     near_edge = cv2.dilate(step, np.ones((3, 1), np.uint8))
     at = np.round(np.where(np.isfinite(placed), placed, path)).astype(np.int64)
     conf = _confidence(near_edge, ev.llr, at, cfg, prior_t, haze_below=True)
-    above, below = (None, None) if moving is None else moving_around(moving, placed)
+    if moving is None:
+        return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
+    above, below = moving_around(moving, placed)
+    # a drifting cloud just above the line and none below it: the pixels above are sky whatever
+    # their colour (the ground below must still look like the learnt snow)
+    vouched = above & ~below
+    conf = np.where(vouched, np.maximum(conf, _confidence(near_edge, ev.llr, at, cfg, prior_t, cloud=vouched)), conf)
     return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap, above, below)
 
 

@@ -177,3 +177,33 @@ def moving_around(moving: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     below = ok & (count(*BELOW_ROWS, 1) >= MIN_BELOW_PX)
     return above, below
 
+
+
+#: The brightness rise (rows +-2, luminance) at which a motion edge scores fully, and the rows above
+#: (moving pixels there) and below (none there) a pixel that make it the bottom of a moving cloud.
+FULL_RISE = 0.04
+EDGE_ABOVE_ROWS = (1, 4)
+EDGE_BELOW_ROWS = (1, 3)
+
+
+def _band_any(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """Per pixel, whether ``x`` holds anywhere in rows ``r + k0 .. r + k1`` of its column."""
+    h = x.shape[0]
+    out = np.zeros_like(x)
+    for k in range(k0, k1 + 1):
+        lo, hi = max(0, -k), min(h, h - k)
+        if hi > lo:
+            out[lo:hi] |= x[lo + k : hi + k]
+    return out
+
+
+def motion_rise(lum: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """Per pixel in [0, 1]: the brightness rise downwards (rows +-2, :data:`FULL_RISE` scores fully)
+    where moving pixels lie within EDGE_ABOVE_ROWS rows above and none within EDGE_BELOW_ROWS below:
+    the lower edge of a drifting cloud against ground brighter than its base (a white cloud behind
+    a snowy ridge)."""
+    lum_h = cv2.blur(np.asarray(lum, dtype=np.float32), (5, 1))
+    pad = np.concatenate([np.repeat(lum_h[:1], 2, 0), lum_h, np.repeat(lum_h[-1:], 2, 0)])
+    rise = np.clip((pad[4:] - pad[:-4]) / FULL_RISE, 0.0, 1.0)
+    at_bottom = _band_any(moving, -EDGE_ABOVE_ROWS[1], -EDGE_ABOVE_ROWS[0]) & ~_band_any(moving, *EDGE_BELOW_ROWS)
+    return np.asarray(np.where(at_bottom & ~moving, rise, 0.0), dtype=np.float32)
