@@ -19,6 +19,7 @@ from appliance.vision.camera import CameraPose
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama, Projection
 from appliance.vision.posed_stitch import PosedImage, stitch_posed
+from appliance.vision.skyline_detect import DetectionConfig, detect_columns
 from appliance.vision.synth import analytic_skyline_fn
 from appliance.vision.temporal import MOVING_SHIFT_PX, moving_around, moving_pixels
 
@@ -136,3 +137,30 @@ def test_moving_around_a_line() -> None:
     above, below = moving_around(moving, np.array([np.nan, np.nan, np.nan]))
     assert not above.any() and not below.any()
 
+
+
+def test_a_snowy_ring_with_white_cloud_behind_the_ridges_is_found_further_with_the_motion() -> None:
+    # the full capture ring (nine frames 40 deg apart) over snow with drifting cumulus behind the ridges
+    scene = replace(draw_weather("snow", 12, FN), cloud_cover=0.4, drift_deg_per_frame=0.8)
+    world = SimWorld(45.0, 6.0, 1000.0)
+    cam = SimVideoCapture(world, CAMERA, skyline_fn=FN, seed=5, weather=scene)
+    shots = []
+    for stage in range(0, 360, 40):
+        world.stage_deg = float(stage)
+        ok, img = cam.read()
+        assert ok and img is not None
+        shots.append(PosedImage(img, CameraPose(world.head_heading_deg, 0.0, 0.0)))
+    pano = stitch_posed(shots, CAMERA)
+    assert pano.motion is not None
+    az = pano.column_azimuth_deg(np.arange(pano.width, dtype=np.float64))
+    true_row = pano.elevation_to_row(FN(az)[0])
+    with_motion = detect_columns(pano)
+    without = detect_columns(replace(pano, motion=None))
+    # the same image with the motion switched off in the detector is the same as without the map
+    off = detect_columns(pano, DetectionConfig(motion=False))
+    np.testing.assert_array_equal(off.row, without.row)
+    err_with, err_without = with_motion.row - true_row, without.row - true_row
+    # nothing drawn half a degree (5 rows) or more below the true skyline, with or without
+    assert not (err_with > 5.0).any() and not (err_without > 5.0).any()
+    # more of the skyline within 2 rows: the columns whose white cloud behind the ridge moved
+    assert (np.abs(err_with) < 2.0).sum() >= (np.abs(err_without) < 2.0).sum() + 100
