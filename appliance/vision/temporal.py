@@ -156,7 +156,7 @@ MIN_BELOW_PX = 2
 
 
 def moving_pixels(motion: np.ndarray) -> np.ndarray:
-    """Where a disagreement map (:func:`frame_disagreement`) shows a pixel moved (boolean, HxW)."""
+    """Where a shift map (:func:`frame_disagreement`, px) shows a pixel moved (boolean, HxW)."""
     return np.asarray(np.nan_to_num(motion, nan=0.0) >= MOVING_SHIFT_PX)
 
 
@@ -176,7 +176,6 @@ def moving_around(moving: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     above = ok & (count(*ABOVE_ROWS, -1) > 0)
     below = ok & (count(*BELOW_ROWS, 1) >= MIN_BELOW_PX)
     return above, below
-
 
 
 #: The brightness rise (rows +-2, luminance) at which a motion edge scores fully, and the rows above
