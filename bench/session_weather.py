@@ -55,8 +55,9 @@ BINS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 1.01)
 
 def weather_panorama(seed: int, condition: str, cache: Path | None = None) -> dict:
     """The stitched panorama of ``seed``'s session under ``condition``, the truth (lat, lon) and the
-    weather twin's skyline at each panorama column (elevation, visible); with ``cache``, kept there
-    (``<condition>_<seed>.png`` and ``.npz``) and read back on later runs."""
+    weather twin's skyline at each panorama column (elevation, visible) and the frames' motion map
+    (:attr:`Panorama.motion`); with ``cache``, kept there (``<condition>_<seed>.png`` and ``.npz``)
+    and read back on later runs."""
     st = chain._STATE
     dem, db, intr, ses = st["dem"], st["db"], st["intr"], st["ses"]
     png = None if cache is None else cache / f"{condition}_{seed}.png"
@@ -82,6 +83,9 @@ def weather_panorama(seed: int, condition: str, cache: Path | None = None) -> di
     az = pano.column_azimuth_deg(np.arange(pano.width, dtype=np.float64))
     true_el, visible = weather_truth(scene, fn, az - compass_error)
     meta = dict(lat=np.float64(lat), lon=np.float64(lon), true_el=true_el, visible=visible)
+    if pano.motion is not None:
+        # the frames' disagreement (appliance.vision.temporal) goes with the image: detection reads it
+        meta["motion"] = pano.motion
     if png is not None:
         ok, buf = cv2.imencode(".png", pano.image)
         if ok:
@@ -101,7 +105,9 @@ def weather_session(seed: int, condition: str, cache: Path | None = None) -> dic
     lat, lon = float(got["lat"]), float(got["lon"])
     # the geometry stitch_frames gives every panorama of this camera (posed_stitch.stitch_posed)
     width = int(round(2 * math.pi * intr.fx))
-    pano = Panorama(got["image"], Projection.CYLINDRICAL, width / (2 * math.pi), 0.0, (intr.height - 1) / 2.0, True)
+    # (a panorama kept by an earlier version of this bench has no motion map: detected without it)
+    pano = Panorama(got["image"], Projection.CYLINDRICAL, width / (2 * math.pi), 0.0, (intr.height - 1) / 2.0, True,
+                    motion=got.get("motion"))
     if st.get("only"):
         return {}
     sky = detect_skyline(pano)

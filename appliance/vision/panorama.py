@@ -57,12 +57,18 @@ class Panorama:
     #: Columns that no photo covers (one flag per column), where a panorama is stitched from too
     #: few frames; None when every column holds pixels.
     empty_columns: np.ndarray | None = None
+    #: Per pixel, how far the overlapping frames it was stitched from appear shifted (px; NaN where
+    #: fewer than two frames cover it; :mod:`appliance.vision.temporal`): a drifting cloud moves,
+    #: terrain does not.  None for a panorama read from a file or made of one photo.
+    motion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.image.ndim != 3 or self.image.shape[2] != 3 or self.image.dtype != np.uint8:
             raise InputError(f"panorama: expected an HxWx3 uint8 image, got {self.image.shape} {self.image.dtype}")
         if self.empty_columns is not None and self.empty_columns.shape != (self.width,):
             raise InputError(f"panorama: {self.empty_columns.shape} empty-column flags for {self.width} columns")
+        if self.motion is not None and self.motion.shape != self.image.shape[:2]:
+            raise InputError(f"panorama: a {self.motion.shape} motion map for a {self.image.shape[:2]} image")
         if not (self.px_per_rad > 0 and math.isfinite(self.px_per_rad)):
             raise InputError(f"panorama: px_per_rad must be positive, got {self.px_per_rad}")
         span = self.width / self.px_per_rad

@@ -3,7 +3,9 @@
 No image features are used: every panorama pixel is a direction (azimuth clockwise from true
 north, elevation); each image's pose (yaw = true azimuth of the optical axis, pitch and roll from
 the inclinometers) says where that direction falls in the image; images are blended with weights
-that fall to zero at their side edges.  (:mod:`appliance.vision.stitching` registers images by
+that fall to zero at their side edges.  Where neighbouring images overlap, their disagreement is
+kept as the panorama's ``motion`` (:mod:`appliance.vision.temporal`: a cloud drifts between frames,
+terrain does not).  (:mod:`appliance.vision.stitching` registers images by
 their content instead, when the poses are only approximate.)
 """
 
@@ -20,6 +22,7 @@ from appliance.errors import InputError
 from appliance.vision.camera import CameraPose, directions_to_pixels
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Panorama, Projection
+from appliance.vision.temporal import frame_disagreement, luminance
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,7 @@ def stitch_posed(shots: Sequence[PosedImage], intrinsics: CameraIntrinsics,
     az_grid, el_grid = np.meshgrid(az, el)
     acc = np.zeros((height, width, 3), np.float64)
     wsum = np.zeros((height, width), np.float64)
+    warped: list[tuple[np.ndarray, np.ndarray]] = []
     for shot in shots:
         u, v = directions_to_pixels(intrinsics, shot.pose, az_grid.ravel(), el_grid.ravel())
         u = u.reshape(height, width).astype(np.float32)
@@ -58,6 +62,7 @@ def stitch_posed(shots: Sequence[PosedImage], intrinsics: CameraIntrinsics,
         u_safe = np.where(inside, u, -1).astype(np.float32)
         v_safe = np.where(inside, v, -1).astype(np.float32)
         img = cv2.remap(shot.image, u_safe, v_safe, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        warped.append((luminance(img), inside))
         wu = np.minimum(u_safe, intrinsics.width - 1 - u_safe) / (intrinsics.width / 2)
         w = np.where(inside, np.clip(wu, 1e-3, 1.0), 0.0)
         acc += img.astype(np.float64) * w[..., None]
@@ -67,5 +72,6 @@ def stitch_posed(shots: Sequence[PosedImage], intrinsics: CameraIntrinsics,
     image[covered] = np.clip(acc[covered] / wsum[covered][:, None] + 0.5, 0, 255).astype(np.uint8)
     # a column less than half covered (a frame missing from the turn) holds no skyline to find
     empty = covered.mean(axis=0) < 0.5
+    motion = frame_disagreement(warped) if len(warped) > 1 else None
     return Panorama(image, Projection.CYLINDRICAL, px_per_rad, 0.0, horizon_row, True,
-                    empty if empty.any() else None)
+                    empty if empty.any() else None, motion)

@@ -25,7 +25,10 @@ are missing too.
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
 then at the rocks below the skyline) is handled by a second path on the sky/snow colour boundary
-(:mod:`appliance.vision.skyline_snow`).
+(:mod:`appliance.vision.skyline_snow`).  There, a panorama stitched from the capture ring's frames
+also says which pixels moved between overlapping frames (:attr:`Panorama.motion`,
+:mod:`appliance.vision.temporal`): a drifting cloud is sky even where it is as white as the snow.
+Motion is evidence of sky only; a panorama without it (a file, one photo) is detected as before.
 
 Elevations come from the panorama's geometry (:class:`Panorama`), with sub-pixel refinement of
 the edge position.
@@ -35,7 +38,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -66,6 +69,7 @@ from appliance.vision.skyline_pixels import (
     _to_float,
 )
 from appliance.vision.skyline_snow import colour_rows, snow_checks, snow_evidence
+from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
 
 
 class Method(enum.Enum):
@@ -94,6 +98,7 @@ class DetectionConfig:
     max_slope_ratio: float = 0.3  # sharpness: fall per row above the line over that across it, at zero confidence
     cloud: bool = True  # dp: white cloud just above a line over dark ground counts as sky (skyline_edges.cloud_above)
     snow: bool = True  # dp: on snowy ground, find the sky/snow boundary by colour (appliance.vision.skyline_snow)
+    motion: bool = True  # dp, over snow: pixels that moved between the ring's frames are sky (vision.temporal)
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
     def __post_init__(self) -> None:
@@ -225,7 +230,8 @@ def detect_columns(
     if pano.empty_columns is not None:
         masked = masked | pano.empty_columns
     image, void = fill_void(np.ascontiguousarray(pano.image[top:bot]))
-    rows_local, conf = detect_rows(image, cfg, masked, wrap=pano.full_circle)
+    motion = None if pano.motion is None else np.ascontiguousarray(pano.motion[top:bot])
+    rows_local, conf = detect_rows(image, cfg, masked, wrap=pano.full_circle, motion=motion)
     # a line at the border of the area no photo reached (the padding) is that border's edge
     near_void = near_rows(void, rows_local, VOID_MARGIN_PX)
     rows_local = np.where(near_void, np.nan, rows_local)
@@ -237,12 +243,15 @@ def detect_columns(
 
 
 def detect_rows(
-    img8: np.ndarray, cfg: DetectionConfig, masked: np.ndarray | None = None, wrap: bool = False
+    img8: np.ndarray, cfg: DetectionConfig, masked: np.ndarray | None = None, wrap: bool = False,
+    motion: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The skyline's fractional row in every column of an HxWx3 uint8 image, and its confidence.
 
     Rows are NaN where the confidence is below ``cfg.min_confidence`` or the column is ``masked``
-    (a boolean per column); ``wrap`` joins the last column to the first (a full circle).
+    (a boolean per column); ``wrap`` joins the last column to the first (a full circle).  ``motion``
+    (HxW, :attr:`appliance.vision.panorama.Panorama.motion`) marks the pixels that moved between
+    the capture ring's frames: sky (used over snow, :func:`_snow_rows`).
     """
     masked = np.zeros(img8.shape[1], dtype=bool) if masked is None else np.asarray(masked, dtype=bool)
     weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
@@ -252,7 +261,7 @@ def detect_rows(
     if cfg.method is Method.GRADIENT:
         rows, conf = _gradient_rows(drop, cfg)
     else:
-        rows, conf = _dp_rows(img8, drop, cfg, masked, wrap=wrap)
+        rows, conf = _dp_rows(img8, drop, cfg, masked, wrap=wrap, motion=motion)
     valid = np.isfinite(rows) & (conf >= cfg.min_confidence) & ~masked
     return np.where(valid, rows, np.nan), np.where(masked, 0.0, conf)
 
@@ -266,7 +275,8 @@ def _gradient_rows(drop: np.ndarray, cfg: DetectionConfig) -> tuple[np.ndarray, 
 
 
 def _dp_rows(
-    img8: np.ndarray, drop: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, wrap: bool
+    img8: np.ndarray, drop: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, wrap: bool,
+    motion: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     h, w = drop.shape
     # the region terms are computed at half resolution: they are band averages anyway
@@ -321,7 +331,8 @@ def _dp_rows(
         dip = doubtful & ~take & (rows > line + DOUBTFUL_DIP_BANDS * cfg.band_px)
         conf = np.where(take, conf2, np.where(dip, 0.0, conf))
     if cfg.snow:
-        snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t)
+        moving = None if motion is None or not cfg.motion else moving_pixels(motion)
+        snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t, moving)
         if snowy is not None:
             rows, conf = snowy
     return rows, conf
@@ -367,6 +378,7 @@ def _snow_rows(
     masked: np.ndarray,
     wrap: bool,
     prior_t: np.ndarray,
+    moving: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """On snowy ground (:mod:`appliance.vision.skyline_snow`), the path run again with the sky/snow
     boundary's score beside the intensity drop as its edge and the sky and snow models learnt at the
@@ -378,11 +390,25 @@ def _snow_rows(
     departs from the sky's a few rows off the boundary, or not at all), and judged there, with the
     colour step onto the snow as an edge beside the brightness drop and the boundary's score; a line
     with a colour step onto snow above it, or snow-coloured pixels just above it, is left out.
+
+    With ``moving`` (HxW boolean, :func:`appliance.vision.temporal.moving_pixels`: what drifted
+    between the capture ring's frames), those pixels count as sky in the path's regions and its
+    confidence: a white cloud behind a snowy ridge has the snow's colour and nearly its brightness,
+    but it moves.  The brightness rise from the bottom of the moving pixels onto the snow is an edge
+    too (:func:`appliance.vision.temporal.motion_rise`).  A line with moving pixels below it lies on
+    a cloud, not the ground, and is left out; one with moving pixels just above it and none below is
+    judged with those pixels as sky and not by the colour above it (the snow below must still look
+    like the learnt snow, and the edge be there).
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
         return None
     edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
+    if moving is not None:
+        ev = replace(ev, llr=np.where(moving, np.float32(MOVING_LLR), ev.llr).astype(np.float32))
+        # under a white cloud there is no colour step onto the snow, only the brightness rise from the
+        # cloud's grey base: an edge where moving pixels lie just above and none just below
+        edge = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * motion_rise(ev.lum, moving))
     path = _run_dp(_path_cost(edge, ev.llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     placed = colour_rows(ev.chroma, path.astype(np.float64))
     # the boundary's score peaks at the brightness rise, the colour step a row either side of the crossing
@@ -390,7 +416,19 @@ def _snow_rows(
     near_edge = cv2.dilate(step, np.ones((3, 1), np.uint8))
     at = np.round(np.where(np.isfinite(placed), placed, path)).astype(np.int64)
     conf = _confidence(near_edge, ev.llr, at, cfg, prior_t, haze_below=True)
-    return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
+    if moving is None:
+        return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
+    above, below = moving_around(moving, placed)
+    # a drifting cloud just above the line and none below it: the pixels above are sky whatever
+    # their colour (the ground below must still look like the learnt snow)
+    vouched = above & ~below
+    conf = np.where(vouched, np.maximum(conf, _confidence(near_edge, ev.llr, at, cfg, prior_t, cloud=vouched)), conf)
+    return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap, above, below)
+
+
+#: Moving pixels (:func:`appliance.vision.temporal.moving_pixels`) are this sure to be sky (the
+#: region terms clip the log-likelihood ratio to +-1).
+MOVING_LLR = 1.0
 
 
 #: The sky/snow score (0..1) becomes an edge of this intensity drop (the path's edge saturates at 0.1).

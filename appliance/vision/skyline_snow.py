@@ -245,12 +245,18 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
 
 
 def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
-                wrap: bool) -> np.ndarray:
+                wrap: bool, moving_above: np.ndarray | None = None,
+                moving_below: np.ndarray | None = None) -> np.ndarray:
     """``conf`` set to 0 where the line at ``rows`` lies below a sky/snow boundary, where the pixels
     3-10 rows above it look more like snow than sky or those 2-3 rows above it are nearer the snow's
     colour than the sky's, or where it dips more than DIP_PX rows below
     the highest line within DIP_COLUMNS columns (the top of a rock in snow that looks like the sky:
-    far snow in haze takes the air's colour)."""
+    far snow in haze takes the air's colour).
+
+    Per column (from the capture ring's frames, :func:`appliance.vision.temporal.moving_around`):
+    a line with ``moving_below`` (a cloud below it) is left out; one with ``moving_above`` and not
+    ``moving_below`` (a drifting white cloud just above, static ground below) is not judged by the
+    colour above it nor by a boundary above it (the cloud's top)."""
     h, w = ev.llr.shape
     cols = np.arange(w)
     r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
@@ -260,7 +266,10 @@ def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confid
     # the skyline has snow just above its top)
     near = np.clip(r[None, :] - np.arange(2, 4)[:, None], 0, h - 1)
     snow_just_above = ev.chroma[near, cols[None, :]].mean(axis=0) < ev.chroma_cut
-    bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above | ~np.isfinite(rows)
+    colour_bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above
+    if moving_above is not None and moving_below is not None:
+        colour_bad = (colour_bad & ~(moving_above & ~moving_below)) | moving_below
+    bad = colour_bad | ~np.isfinite(rows)
     conf = np.where(bad, 0.0, conf)
     k = DIP_COLUMNS
     if w > 2 * k:
