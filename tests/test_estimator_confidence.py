@@ -363,6 +363,26 @@ def test_rival_places_the_first_search_found_stand_when_the_narrower_one_fits_be
     assert math.hypot(wide.row - res.row, wide.col - res.col) <= 2.0
 
 
+def test_rival_places_the_occluder_check_finds_at_the_same_place_stand(forest_db):
+    """A summit camera in the forest world whose skyline fits a place 1.2 km (15 cells) from the truth at
+    0.46 deg RMS, the truth's own place at 0.45.  The search at the default interval fits only the wrong
+    place's mode.  Searched again with half of the skyline allowed to stand above the map, its best place
+    stays, but places near the truth now fit as well: those rivals stand, and the answer is ambiguous with
+    the truth inside its region, never ok."""
+    from appliance.estimator import estimate
+    from appliance.locating.position import place, skyline_grid, truth_error_m, truth_in_region
+
+    db = forest_db
+    az, el = _fixture_skyline("summit_rival_skyline.csv")
+    truth = (44.254035, -71.326704)
+    res = estimate(skyline_grid(db), az, el)
+    pos = place(db, res)
+    cell_m = math.sqrt(db.grid.dx_m * db.grid.dy_m)
+    assert truth_error_m(db, pos, truth) > 10.0 * cell_m
+    assert res.ambiguous and res.rival_nodes.size
+    assert truth_in_region(db, pos, truth)
+
+
 def test_a_poor_fit_that_leaves_white_noise_is_the_answer_without_searching_again(dem, tmp_path):
     """A skyline read at an unknown heading with 0.5 deg of white noise: its best fit, at the truth, stays above
     the search's lower sigma (0.3 deg), but what it leaves is the sensor's noise, uncorrelated from one azimuth to

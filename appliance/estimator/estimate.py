@@ -323,12 +323,14 @@ def _occluders_checked(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg
                        search: _Search) -> EstimateResult:
     """``res``, whose best fit stays above the noise the search assumed, checked against the search
     that leaves as much of the skyline to occluders as ``search`` allows: the same place
-    (SAME_ANSWER_CELLS) keeps ``res``; another place means what the map lacks (a forest's edge, a
-    building) decides where the skyline was seen, and ``res`` is given, ambiguous."""
+    (SAME_ANSWER_CELLS) keeps ``res``, with the rival places that search found (:func:`_with_rivals`:
+    places it fits as well once what the map lacks may hide part of the skyline); another place means
+    what the map lacks (a forest's edge, a building) decides where the skyline was seen, and ``res`` is
+    given, ambiguous."""
     hidden = _estimate_once(grid, azimuth_deg, elevation_deg, res.sigma_deg_searched, search)
     moved = math.hypot(hidden.row - res.row, hidden.col - res.col)
     if moved <= SAME_ANSWER_CELLS:
-        return res
+        return _with_rivals(grid, res, hidden) if hidden.rival_nodes.size else res
     note = (f"ambiguous: with {100 * search.occlusion_weight:.0f} % of the skyline allowed to stand above the map "
             f"(trees, buildings) the best place moves {moved:.0f} cells; what the map lacks decides where it is")
     return replace(res, ambiguous=True, notes=[*res.notes, note])
