@@ -68,19 +68,13 @@ def independent_azimuths(residual_deg: np.ndarray) -> float:
     """How many independent azimuths the residuals (deg on a full-circle azimuth grid, NaN where
     missing) are worth: n / (1 + 2 sum of the autocorrelation over its initial positive sequence).
     The autocorrelation is taken about zero, so a common offset counts as correlated."""
-    r = np.asarray(residual_deg, dtype=np.float64)
-    valid = np.isfinite(r)
-    n = int(valid.sum())
-    if n < 3:
-        return float(n)
-    x = np.where(valid, r, 0.0)
-    var = float(np.sum(x * x)) / n
-    if not var > 0.0:
+    x, valid, n, var = _about_zero(residual_deg)
+    if n < 3 or not var > 0.0:
         return float(n)
     # the lags in pairs, each made only when the sum has come to it (the sequence ends at the first
     # pair not positive, at the first lag with fewer than 8 pairs of azimuths, or at a quarter turn)
     total = 0.0
-    for lag in range(1, r.size // 4 - 1, 2):
+    for lag in range(1, x.size // 4 - 1, 2):
         pair = _autocorrelation(x, valid, lag, var) + _autocorrelation(x, valid, lag + 1, var)
         if not pair > 0.0:
             break
@@ -93,14 +87,20 @@ def lag_one_correlation(residual_deg: np.ndarray) -> float:
     azimuth to the next, about zero as :func:`independent_azimuths` takes it: near 0 for a sensor's
     white noise, near 1 where the residuals vary smoothly along the skyline (a wrong place, a tilt,
     what the map lacks).  NaN with fewer than 8 pairs of neighbouring measured azimuths, or no residual."""
+    x, valid, _, var = _about_zero(residual_deg)
+    if not var > 0.0:
+        return math.nan
+    return _autocorrelation(x, valid, 1, var)
+
+
+def _about_zero(residual_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """The residuals (NaN where missing) as the autocorrelations take them: zero where missing, which
+    azimuths hold one, how many, and their mean square about zero (0 with none)."""
     r = np.asarray(residual_deg, dtype=np.float64)
     valid = np.isfinite(r)
     n = int(valid.sum())
     x = np.where(valid, r, 0.0)
-    var = float(np.sum(x * x)) / max(n, 1)
-    if not var > 0.0:
-        return math.nan
-    return _autocorrelation(x, valid, 1, var)
+    return x, valid, n, float(np.sum(x * x)) / max(n, 1)
 
 
 def _autocorrelation(x: np.ndarray, valid: np.ndarray, lag: int, var: float) -> float:

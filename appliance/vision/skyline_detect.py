@@ -67,6 +67,7 @@ from appliance.vision.skyline_pixels import (
     _sky_prior,
     _texture,
     _to_float,
+    intensity,
 )
 from appliance.vision.skyline_snow import colour_rows, snow_checks, snow_evidence
 from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
@@ -254,9 +255,7 @@ def detect_rows(
     the capture ring's frames: sky (used over snow, :func:`_snow_rows`).
     """
     masked = np.zeros(img8.shape[1], dtype=bool) if masked is None else np.asarray(masked, dtype=bool)
-    weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
-    lum = cv2.transform(img8.astype(np.float32), weights)
-    lum = cv2.GaussianBlur(lum, (0, 0), sigmaX=0.7, sigmaY=cfg.smooth_sigma_px)
+    lum = cv2.GaussianBlur(intensity(img8), (0, 0), sigmaX=0.7, sigmaY=cfg.smooth_sigma_px)
     drop = _downward_drop(lum)
     if cfg.method is Method.GRADIENT:
         rows, conf = _gradient_rows(drop, cfg)

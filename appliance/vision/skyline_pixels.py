@@ -24,6 +24,13 @@ def _to_float(image: np.ndarray) -> np.ndarray:
     return image.astype(np.float32) * np.float32(1.0 / 255.0)
 
 
+def intensity(img8: np.ndarray) -> np.ndarray:
+    """The intensity (0..1, float32) the detector's brightness drop and the frames' comparison are made
+    of, of an HxWx3 uint8 BGR image: 0.3 blue, 0.35 green, 0.35 red."""
+    weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
+    return np.asarray(cv2.transform(img8.astype(np.float32), weights), dtype=np.float32)
+
+
 def _luma(bgr: np.ndarray) -> np.ndarray:
     """A blue-weighted intensity: the sky/ground contrast is strongest in blue."""
     return np.asarray(0.5 * bgr[..., 0] + 0.35 * bgr[..., 1] + 0.15 * bgr[..., 2], dtype=np.float32)

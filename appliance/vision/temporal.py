@@ -40,6 +40,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from appliance.vision.skyline_pixels import intensity
+
 #: The smallest noise (luminance, 0..1) assumed of a frame difference, whatever the overlap shows.
 NOISE_FLOOR = 0.002
 #: Horizontal Gaussian window (px) over which the difference and the texture are summed.
@@ -56,9 +58,7 @@ MIN_OVERLAP_COLUMNS = 8
 
 def luminance(image: np.ndarray) -> np.ndarray:
     """The smoothed luminance (0..1, float32) of an HxWx3 uint8 BGR image, as frames are compared."""
-    weights = np.array([[0.3, 0.35, 0.35]], dtype=np.float32) / np.float32(255.0)
-    lum = cv2.transform(image.astype(np.float32), weights)
-    return np.asarray(cv2.GaussianBlur(lum, (0, 0), sigmaX=1.0), dtype=np.float32)
+    return np.asarray(cv2.GaussianBlur(intensity(image), (0, 0), sigmaX=1.0), dtype=np.float32)
 
 
 def _gain(a: np.ndarray, b: np.ndarray, both: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
