@@ -1,6 +1,6 @@
 """Placing the sky/snow boundary by colour (appliance.vision.skyline_snow.colour_rows), finding it where the snow
 is barely brighter than the sky (appliance.vision.skyline_detect.detect_rows), and telling a line under the boundary
-from one on it (appliance.vision.skyline_snow.step_above)."""
+from one on it (appliance.vision.skyline_snow.step_above); snow as bright as the sky found by its colour step."""
 
 from __future__ import annotations
 
@@ -86,3 +86,33 @@ def test_a_line_within_the_target_is_not_taken_for_one_under_the_boundary(seed: 
     assert not step_above(score, ridge + 1.5)[inner].any()
     # 0.5 deg below it (4.8 rows): the boundary above the line shows it to be under the skyline
     assert step_above(score, ridge + 4.8)[inner].all()
+
+
+def bluish_snow_ridge(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A BGR uint8 image of a ridge of shaded, bluish snow ((0.81, 0.84, 0.89) RGB: as bright as the pale
+    sky (0.75, 0.81, 0.91) above it, less blue) with a band of dark rocks 9-15 rows under the skyline and
+    more below, sensor noise; and the skyline's row per column."""
+    h, w = 140, 480
+    cols = np.arange(w)
+    ridge = 60.0 + 10.0 * np.sin(cols / 45.0) + 4.0 * np.sin(cols / 13.0)
+    rr = np.arange(h)[:, None]
+    share_sky = np.clip(ridge[None, :] - rr + 0.5, 0.0, 1.0)[..., None]
+    ground = np.array([0.89, 0.84, 0.81]) * np.ones((h, w, 1))
+    rock = (rr - ridge[None, :] - 12.0) ** 2 / 9.0 + ((cols[None, :] % 40) - 20.0) ** 2 / 196.0 < 1.0
+    rock |= (rr - ridge[None, :] - 35.0) ** 2 / 36.0 + ((cols[None, :] % 60) - 30.0) ** 2 / 100.0 < 1.0
+    ground[rock] = (0.15, 0.20, 0.15)
+    img = np.array([0.91, 0.81, 0.75]) * share_sky + ground * (1.0 - share_sky)
+    img = np.clip(img + np.random.default_rng(seed).normal(0.0, 0.01, img.shape), 0.0, 1.0)
+    return (img * 255.0 + 0.5).astype(np.uint8), ridge
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_snow_as_bright_as_the_sky_is_found_at_its_colour_step_not_on_the_rocks_below(seed: int) -> None:
+    # no brightness rise onto the snow: the brightness drop is at the rocks' tops, about a degree under
+    # the skyline, and only the colour step marks the skyline
+    img, ridge = bluish_snow_ridge(seed)
+    rows, _ = detect_rows(img, DetectionConfig(), wrap=False)
+    inner = slice(20, 460)
+    err = rows[inner] - ridge[inner]
+    assert np.mean(np.abs(np.nan_to_num(err, nan=99.0)) <= 1.0) >= 0.9
+    assert not np.any(np.nan_to_num(err, nan=0.0) > 2.0)

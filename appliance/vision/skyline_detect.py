@@ -69,7 +69,7 @@ from appliance.vision.skyline_pixels import (
     _to_float,
     intensity,
 )
-from appliance.vision.skyline_snow import colour_rows, snow_checks, snow_evidence
+from appliance.vision.skyline_snow import SnowEvidence, colour_rows, snow_checks, snow_evidence
 from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
 
 
@@ -402,7 +402,9 @@ def _snow_rows(
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
         return None
-    edge = np.maximum(drop, np.float32(SNOW_EDGE_SCALE) * ev.score)
+    # a brightness drop onto a rock below the skyline has snow above it, not sky: only a drop under
+    # sky-coloured pixels is an edge here
+    edge = np.maximum(drop * _sky_coloured_above(ev), np.float32(SNOW_EDGE_SCALE) * ev.score)
     if moving is not None:
         ev = replace(ev, llr=np.where(moving, np.float32(MOVING_LLR), ev.llr).astype(np.float32))
         # under a white cloud there is no colour step onto the snow, only the brightness rise from the
@@ -414,7 +416,7 @@ def _snow_rows(
     step = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * ev.colour_step)
     near_edge = cv2.dilate(step, np.ones((3, 1), np.uint8))
     at = np.round(np.where(np.isfinite(placed), placed, path)).astype(np.int64)
-    conf = _confidence(near_edge, ev.llr, at, cfg, prior_t, haze_below=True)
+    conf = _confidence(near_edge, ev.llr, at, cfg, prior_t, haze_below=True, ground=_snow_coloured_below(ev, at))
     if moving is None:
         return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap)
     above, below = moving_around(moving, placed)
@@ -423,6 +425,31 @@ def _snow_rows(
     vouched = above & ~below
     conf = np.where(vouched, np.maximum(conf, _confidence(near_edge, ev.llr, at, cfg, prior_t, cloud=vouched)), conf)
     return placed, snow_checks(ev, placed, conf, cfg.min_confidence, wrap, above, below)
+
+
+def _snow_coloured_below(ev: SnowEvidence, rows: np.ndarray) -> np.ndarray:
+    """Per column in [0, 1]: how much the colour says the line at ``rows`` (integer) is the sky/snow
+    boundary: the share of pixels 2-9 rows below it nearer the snow's colour than the sky's (blue
+    minus red under the evidence's cut), where the pixels 2-9 rows above it are all nearer the sky's
+    (0 otherwise).  Shaded snow near a skyline can be as blue as the learnt sky's brightness and
+    texture make it look, but not as blue as the sky's colour."""
+    h, w = ev.chroma.shape
+    cols = np.arange(w)
+    offs = np.arange(2, 10)
+    up = np.clip(rows[None, :] - offs[:, None], 0, h - 1)
+    dn = np.clip(rows[None, :] + offs[:, None], 0, h - 1)
+    sky = (ev.chroma[up, cols[None, :]] >= ev.chroma_cut).all(axis=0)
+    snow = (ev.chroma[dn, cols[None, :]] < ev.chroma_cut).mean(axis=0)
+    return np.where(sky, snow, 0.0)
+
+
+def _sky_coloured_above(ev: SnowEvidence) -> np.ndarray:
+    """Per pixel, 1 where the pixels 2-3 rows above it are nearer the sky's colour than the snow's
+    (blue minus red above the evidence's cut), else 0 (float32)."""
+    above = np.empty_like(ev.chroma)
+    above[3:] = 0.5 * (ev.chroma[:-3] + ev.chroma[1:-2])
+    above[:3] = ev.chroma[:1]
+    return (above >= ev.chroma_cut).astype(np.float32)
 
 
 #: Moving pixels (:func:`appliance.vision.temporal.moving_pixels`) are this sure to be sky (the
@@ -548,6 +575,7 @@ def _confidence(
     prior_t: np.ndarray,
     haze_below: bool = False,
     cloud: np.ndarray | None = None,
+    ground: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per column in [0, 1]: sky-like above the line, ground-like below it, and a real edge.
 
@@ -556,7 +584,8 @@ def _confidence(
 
     With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
     sky and clearly less sky-like than those above it (far terrain seen through haze), while those
-    above it must look like the learnt sky.
+    above it must look like the learnt sky.  ``ground`` (per column in [0, 1]) vouches for the ground
+    below the line by other means (the snow's colour, :func:`_snow_coloured_below`).
     """
     h, w = drop.shape
     cols = np.arange(w)
@@ -588,6 +617,8 @@ def _confidence(
         c_ground = np.maximum(c_ground, contrast)
         # and the pixels just above must be the learnt sky itself, not a paler band of far terrain
         c_sky = np.minimum(c_sky, np.clip((sky_above - 0.2) / 0.3, 0.0, 1.0))
+    if ground is not None:
+        c_ground = np.maximum(c_ground, ground)
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
     conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)
     return np.where(_steep_runs(path, cfg), 0.0, conf)

@@ -225,6 +225,8 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     chroma, lum = _chroma_luma(f, luma)
     score, colour_step = snow_score(chroma, lum)
     cand, _ = snow_candidates(score)
+    # snow no brighter than a pale sky shows no rise: its colour step alone
+    cand = np.where(np.isfinite(cand), cand, snow_candidates(colour_step)[0])
     trusted = _agree_with_neighbours(cand, wrap)
     placed = place_rows(lum, np.where(trusted, cand, np.nan))
     line = np.where(np.isfinite(rows), rows, -10.0 * h)
