@@ -19,8 +19,12 @@ smooth and bright): a column must show such sky somewhere above its line, so an 
 yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
 clear sky shows above it.  A ridge with white cumulus behind it (the pixels just above its line bright,
 white and over dark ground, :func:`appliance.vision.skyline_edges.cloud_above`) is judged with the
-cloud as sky where it continues the line found under clear sky on both sides.  Masked azimuth ranges
-are missing too.
+cloud as sky where it continues the line found under clear sky on both sides.  Far ground under haze
+(a plain seen from a summit) may look as much like the learnt sky as the sky itself; it is darker and
+bluer than the whitened sky just above the horizon, and darker again further down, which the second
+path through the unconfident columns takes for ground (:func:`_bridge`).  A run of a few unconfident
+columns in a continuous line, on a strong edge onto ground, is joined to the line (:func:`_join_gaps`).
+Masked azimuth ranges are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
@@ -468,6 +472,14 @@ def _bridge(
     on the skyline's course, and the second path must pass the same confidence test, so a rock or a
     person filling the window stays missing (no sky above the line) while a faint horizon with sky
     above it and ground below is found.
+
+    Far ground under haze may be as like the learnt sky as the sky is; it is darker and bluer than
+    the sky whitened at the horizon above it (:func:`appliance.vision.skyline_edges.haze_reversal`:
+    counted as ground in this path's regions; the rise of blue minus red onto it is an edge,
+    :func:`appliance.vision.skyline_edges.haze_edge`), and where the pixels below the line are so,
+    and darker still further down, they pass for ground in its confidence
+    (:func:`appliance.vision.skyline_edges.hazy_ground`); the pixels above must still be the learnt
+    sky.  ``lum`` is the detector's smoothed intensity and ``chroma`` its blue minus red.
     """
     h, w = drop.shape
     good = (conf >= cfg.min_confidence) & ~masked
@@ -625,8 +637,9 @@ def _confidence(
     pixels just above the line are white cloud rather than the learnt clear sky: they count as sky.
 
     With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
-    sky and clearly less sky-like than those above it (far terrain seen through haze), while those
-    above it must look like the learnt sky.
+    sky and clearly less sky-like than those above it (far terrain seen through haze), or like far
+    ground under haze by ``hazy`` (per column in [0, 1], :func:`appliance.vision.skyline_edges.hazy_ground`),
+    while those above it must look like the learnt sky.
     """
     h, w = drop.shape
     cols = np.arange(w)
