@@ -19,8 +19,12 @@ smooth and bright): a column must show such sky somewhere above its line, so an 
 yields nothing, while a cloud sitting on a ridge, textured itself, does not drop the column when
 clear sky shows above it.  A ridge with white cumulus behind it (the pixels just above its line bright,
 white and over dark ground, :func:`appliance.vision.skyline_edges.cloud_above`) is judged with the
-cloud as sky where it continues the line found under clear sky on both sides.  Masked azimuth ranges
-are missing too.
+cloud as sky where it continues the line found under clear sky on both sides.  Far ground under haze
+(a plain seen from a summit) may look as much like the learnt sky as the sky itself; it is darker and
+bluer than the whitened sky just above the horizon, and darker again further down, which the second
+path through the unconfident columns takes for ground (:func:`_bridge`).  A run of a few unconfident
+columns in a continuous line, on a strong edge onto ground, is joined to the line (:func:`_join_gaps`).
+Masked azimuth ranges are missing too.
 
 The per-pixel work (features, colour models, costs and the path) is in
 :mod:`appliance.vision.skyline_pixels`.  Fresh snow brighter than its sky (the brightness drop is
@@ -49,9 +53,13 @@ from appliance.vision.panorama import Panorama
 from appliance.vision.skyline_edges import (
     VOID_MARGIN_PX,
     anchored,
+    blue_minus_red,
     cloud_above,
     colour_edge,
     fill_void,
+    haze_edge,
+    haze_reversal,
+    hazy_ground,
     horizontal_luma,
     near_rows,
     sharpness_confidence,
@@ -260,7 +268,7 @@ def detect_rows(
     if cfg.method is Method.GRADIENT:
         rows, conf = _gradient_rows(drop, cfg)
     else:
-        rows, conf = _dp_rows(img8, drop, cfg, masked, wrap=wrap, motion=motion)
+        rows, conf = _dp_rows(img8, lum, drop, cfg, masked, wrap=wrap, motion=motion)
     valid = np.isfinite(rows) & (conf >= cfg.min_confidence) & ~masked
     return np.where(valid, rows, np.nan), np.where(masked, 0.0, conf)
 
@@ -274,7 +282,7 @@ def _gradient_rows(drop: np.ndarray, cfg: DetectionConfig) -> tuple[np.ndarray, 
 
 
 def _dp_rows(
-    img8: np.ndarray, drop: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, wrap: bool,
+    img8: np.ndarray, lum: np.ndarray, drop: np.ndarray, cfg: DetectionConfig, masked: np.ndarray, wrap: bool,
     motion: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     h, w = drop.shape
@@ -300,7 +308,8 @@ def _dp_rows(
     # (bilinear upsampling and transposition commute: the full-size prior is made transposed, WxH)
     prior_full_t = cv2.resize(cv2.transpose(prior), (h, w), interpolation=cv2.INTER_LINEAR)
     lum_h = horizontal_luma(img8)
-    edge = colour_edge(img8, drop, cfg.chroma_weight, cfg.smooth_sigma_px)
+    chroma = blue_minus_red(img8, cfg.smooth_sigma_px)
+    edge = colour_edge(drop, chroma, cfg.chroma_weight)
     # (texture is a 5x5 box at half size: it bleeds about ten rows across the edge)
     sky_somewhere = _best_mean_above_t(prior_full_t, np.ascontiguousarray(path, dtype=np.int64), 10, 8)
     sharp = sharpness_confidence(lum_h, rows, cfg.edge_far_px, cfg.min_edge, cfg.max_slope_ratio)
@@ -313,7 +322,8 @@ def _dp_rows(
     # leniency for pale sky at the skyline) neither anchors the second path nor is kept from it
     # (white cloud just above explains it: the cloud's top is no better a skyline)
     doubtful = (conf >= cfg.min_confidence) & (_sky_above(llr, path) < DOUBTFUL_SKY) & ~cloud
-    bridged = _bridge(drop, llr, path, np.where(doubtful, 0.0, conf), cfg, masked, wrap, prior_full_t, edge)
+    bridged = _bridge(drop, llr, path, np.where(doubtful, 0.0, conf), cfg, masked, wrap, prior_full_t, edge,
+                      lum, chroma)
     if bridged is not None:
         path2, conf2, line = bridged
         rows2 = _refine(drop, path2)
@@ -329,6 +339,7 @@ def _dp_rows(
         # columns (a near hill's top under far land seen through haze), is left out
         dip = doubtful & ~take & (rows > line + DOUBTFUL_DIP_BANDS * cfg.band_px)
         conf = np.where(take, conf2, np.where(dip, 0.0, conf))
+    conf = _join_gaps(rows, conf, edge, llr, cfg, masked, wrap)
     if cfg.snow:
         moving = None if motion is None or not cfg.motion else moving_pixels(motion)
         snowy = _snow_rows(img8, drop, rows, conf, cfg, masked, wrap, prior_full_t, moving)
@@ -476,6 +487,8 @@ def _bridge(
     wrap: bool,
     prior_t: np.ndarray,
     edge: np.ndarray,
+    lum: np.ndarray,
+    chroma: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A second path through the columns the first one left unconfident, kept within ``2 band_px``
     rows above and ``BRIDGE_BELOW_BANDS band_px`` rows below the line joining the confident columns
@@ -486,6 +499,14 @@ def _bridge(
     on the skyline's course, and the second path must pass the same confidence test, so a rock or a
     person filling the window stays missing (no sky above the line) while a faint horizon with sky
     above it and ground below is found.
+
+    Far ground under haze may be as like the learnt sky as the sky is; it is darker and bluer than
+    the sky whitened at the horizon above it (:func:`appliance.vision.skyline_edges.haze_reversal`:
+    counted as ground in this path's regions; the rise of blue minus red onto it is an edge,
+    :func:`appliance.vision.skyline_edges.haze_edge`), and where the pixels below the line are so,
+    and darker still further down, they pass for ground in its confidence
+    (:func:`appliance.vision.skyline_edges.hazy_ground`); the pixels above must still be the learnt
+    sky.  ``lum`` is the detector's smoothed intensity and ``chroma`` its blue minus red.
     """
     h, w = drop.shape
     good = (conf >= cfg.min_confidence) & ~masked
@@ -503,7 +524,14 @@ def _bridge(
     below = BRIDGE_BELOW_BANDS * cfg.band_px
     rr = np.arange(h, dtype=np.float64)[None, :]
     outside = (rr < line[:, None] - window) | (rr > line[:, None] + below)
-    cost_t = _path_cost(drop, llr, cfg, masked, cfg.edge_weight)
+    # far ground under haze is bluer than the whitened sky at the horizon: that rise is an edge too
+    hazy_edge = haze_edge(drop, chroma, cfg.chroma_weight)
+    # and it is darker and bluer than the sky above it: ground, however like the learnt sky its colour is
+    if cfg.chroma_weight > 0:
+        llr_path = llr - np.float32(2.0) * haze_reversal(lum, chroma, cfg.band_px, 2 * cfg.band_px)
+    else:
+        llr_path = llr
+    cost_t = _path_cost(hazy_edge, llr_path, cfg, masked, cfg.edge_weight)
     # confident columns keep their row: the second path leaves and rejoins the first one there
     pinned = good[:, None] & (rr != path.astype(np.float64)[:, None])
     cost_t = np.where(weak[:, None] & outside | pinned, np.float32(1e3), cost_t).astype(np.float32)
@@ -511,12 +539,65 @@ def _bridge(
     path2 = path.copy()
     for idx in _stretches(~good, wrap):
         path2[idx] = _dp_path(np.ascontiguousarray(cost_t[idx]), cfg.max_jump_px, cfg.jump_cost)
-    conf2 = _confidence(edge, llr, path2, cfg, prior_t, haze_below=True)
+    hazy = hazy_ground(lum, chroma, path2) if cfg.chroma_weight > 0 else None
+    conf2 = _confidence(np.maximum(edge, hazy_edge), llr, path2, cfg, prior_t, haze_below=True, ground=hazy)
     sky_somewhere = _best_mean_above_t(prior_t, np.ascontiguousarray(path2, dtype=np.int64), 10, 8)
     conf2 = np.minimum(conf2, np.clip((sky_somewhere + 1.0) / 0.3, 0.0, 1.0))
     # a column the path could only reach by leaving the window is not the window's answer
     conf2 = np.where((path2 >= line - window) & (path2 <= line + below), conf2, 0.0)
     return path2, conf2, line
+
+
+#: A run of at most this many unconfident columns between confident ones is joined to them where
+#: its line continues theirs along a strong edge onto ground (:func:`_join_gaps`).
+JOIN_GAP_COLUMNS = 4
+
+
+def _join_gaps(
+    rows: np.ndarray,
+    conf: np.ndarray,
+    edge: np.ndarray,
+    llr: np.ndarray,
+    cfg: DetectionConfig,
+    masked: np.ndarray,
+    wrap: bool,
+) -> np.ndarray:
+    """The confidence with each short run of unconfident columns (at most JOIN_GAP_COLUMNS, confident
+    columns on both sides) raised to ``cfg.min_confidence`` where its line continues the line on both
+    sides: within ``max_jump_px`` rows of the straight line between them, on an edge of at least
+    ``2 min_edge`` onto pixels that look like the learnt ground, and not on a steep run.
+
+    A line along a ridge loses a column or two where a wisp of cloud, the bleed of a steep slope's
+    texture into the sky beside it or a compression block spoils one measure; a run that narrow
+    cannot hold an occluder's outline the path would have had to climb, and the line through it is
+    the one edge its neighbours lie on."""
+    h, w = edge.shape
+    good = (conf >= cfg.min_confidence) & np.isfinite(rows) & ~masked
+    free = ~good & ~masked
+    if not free.any() or not good.any():
+        return conf
+    cols = np.arange(w)
+    r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
+    strong = np.isfinite(rows) & (edge[r, cols] >= 2 * cfg.min_edge)
+    dn = np.clip(r[None, :] + np.arange(2, 10)[:, None], 0, h - 1)
+    ground = -np.clip(llr[dn, cols[None, :]], -1, 1).mean(axis=0) >= 0.6
+    ok = strong & ground & ~_steep_runs(r, cfg)
+    out = conf.copy()
+    k = JOIN_GAP_COLUMNS
+    for idx in _stretches(free, wrap):
+        inner = idx[1:-1]
+        if inner.size > k or not (good[idx[0]] and good[idx[-1]]) or not ok[inner].all():
+            continue
+        t = np.arange(1, inner.size + 1) / (inner.size + 1)
+        straight = rows[idx[0]] + t * (rows[idx[-1]] - rows[idx[0]])
+        # one continuous line from k columns before the run to k columns after it (the line of each
+        # column is its own path's: where the second path's line meets the first one's it may step)
+        near = np.arange(idx[0] - k, idx[-1] + k + 1)
+        near = np.mod(near, w) if wrap else near[(near >= 0) & (near < w)]
+        steps = np.abs(np.diff(rows[near]))
+        if np.all(np.abs(rows[inner] - straight) <= cfg.max_jump_px) and np.all(steps <= cfg.max_jump_px):
+            out[inner] = np.maximum(conf[inner], cfg.min_confidence)
+    return out
 
 
 def _stretches(free: np.ndarray, wrap: bool) -> list[np.ndarray]:
@@ -583,9 +664,10 @@ def _confidence(
     pixels just above the line are white cloud rather than the learnt clear sky: they count as sky.
 
     With ``haze_below`` the pixels below the line need not look like the learnt ground, only unlike
-    sky and clearly less sky-like than those above it (far terrain seen through haze), while those
-    above it must look like the learnt sky.  ``ground`` (per column in [0, 1]) vouches for the ground
-    below the line by other means (the snow's colour, :func:`_snow_coloured_below`).
+    sky and clearly less sky-like than those above it (far terrain seen through haze), or be vouched
+    for as ground by other means in ``ground`` (per column in [0, 1]: far ground under haze,
+    :func:`appliance.vision.skyline_edges.hazy_ground`; the snow's colour, :func:`_snow_coloured_below`),
+    while those above it must look like the learnt sky.
     """
     h, w = drop.shape
     cols = np.arange(w)
@@ -615,10 +697,10 @@ def _confidence(
     if haze_below:
         contrast = np.clip((sky_above + ground_below - 0.3) / 0.4, 0.0, 1.0) * (ground_below > -0.2)
         c_ground = np.maximum(c_ground, contrast)
+        if ground is not None:
+            c_ground = np.maximum(c_ground, ground)
         # and the pixels just above must be the learnt sky itself, not a paler band of far terrain
         c_sky = np.minimum(c_sky, np.clip((sky_above - 0.2) / 0.3, 0.0, 1.0))
-    if ground is not None:
-        c_ground = np.maximum(c_ground, ground)
     c_edge = np.clip(edge / (2 * cfg.min_edge), 0.0, 1.0)
     conf = np.where(inside, np.minimum(np.minimum(c_sky, c_ground), c_edge), 0.0)
     return np.where(_steep_runs(path, cfg), 0.0, conf)

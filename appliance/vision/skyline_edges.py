@@ -119,16 +119,84 @@ def near_rows(mask: np.ndarray, rows: np.ndarray, margin_px: int) -> np.ndarray:
 
 
 
-def colour_edge(img8: np.ndarray, drop: np.ndarray, chroma_weight: float, smooth_sigma_px: float) -> np.ndarray:
+def blue_minus_red(img8: np.ndarray, smooth_sigma_px: float) -> np.ndarray:
+    """Blue minus red (-1..1, float32) of an HxWx3 uint8 BGR image, smoothed as the intensity is."""
+    chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
+    return np.asarray(cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px), dtype=np.float32)
+
+
+def colour_edge(drop: np.ndarray, chroma: np.ndarray, chroma_weight: float) -> np.ndarray:
     """The edge a column's confidence asks for: the intensity ``drop``, or the drop of blue minus red
-    (times ``chroma_weight``, smoothed as the intensity was) where that is larger: white snow under a
-    pale sky is brighter than the sky, yet less blue.  (The path itself follows the intensity drop:
+    (``chroma``, :func:`blue_minus_red`, times ``chroma_weight``) where that is larger: white snow under
+    a pale sky is brighter than the sky, yet less blue.  (The path itself follows the intensity drop:
     the top of a white cloud on blue sky is such a colour edge too.)"""
     if chroma_weight <= 0:
         return drop
-    chroma = cv2.transform(img8.astype(np.float32), np.array([[1.0, 0.0, -1.0]], np.float32) / np.float32(255.0))
-    chroma = cv2.GaussianBlur(chroma, (0, 0), sigmaX=0.7, sigmaY=smooth_sigma_px)
     return np.asarray(np.maximum(drop, np.float32(chroma_weight) * _downward_drop(chroma)))
+
+
+def haze_edge(drop: np.ndarray, chroma: np.ndarray, chroma_weight: float) -> np.ndarray:
+    """The edge of far ground under haze: the rise of blue minus red (``chroma``) down a column,
+    times ``chroma_weight``, where the intensity drops too (0 elsewhere).
+
+    Near the horizon the sky is whitened by the air it is seen through; far ground seen through the
+    same air is darker and bluer than that sky (the haze's light over a dark background), and it
+    turns bluer still the moment the sky ends.  Its brightness drop alone is faint."""
+    rise = np.maximum(-_downward_drop(chroma), np.float32(0.0)) * np.float32(chroma_weight)
+    return np.asarray(np.where(drop > 0, np.maximum(drop, rise), drop), dtype=np.float32)
+
+
+#: Far ground under haze (:func:`hazy_ground`): the rows 2-9 below a line darker than those above by
+#: HAZE_DARKER and bluer (blue minus red) by HAZE_BLUER at full score, and the rows HAZE_FAR_ROWS below
+#: darker again than the rows 2-9 below by HAZE_DARKER / 2.
+HAZE_DARKER = 0.04
+HAZE_BLUER = 0.05
+HAZE_FAR_ROWS = (10, 30)
+
+
+def haze_reversal(lum: np.ndarray, chroma: np.ndarray, near_px: int, far_px: int) -> np.ndarray:
+    """Per pixel in [0, 1]: how much darker and bluer it is than the mean of the pixels ``near_px`` to
+    ``far_px`` rows above it (full score at HAZE_DARKER and HAZE_BLUER).
+
+    Down a column the sky brightens and whitens towards the horizon; far ground under haze is darker
+    and bluer than the whitened sky above it, however much its colour resembles the sky's higher up.
+    Sky shows the reversal only under something whiter than itself (a cloud's base, glare)."""
+    h = lum.shape[0]
+    n = far_px - near_px + 1
+    k = (far_px + near_px) // 2
+    out = np.zeros_like(lum)
+    if h <= far_px:
+        return out
+    # the box mean centred k rows above each pixel (n is odd: far_px and near_px differ by an even number)
+    l_up = cv2.blur(lum, (1, n), borderType=cv2.BORDER_REPLICATE)
+    c_up = cv2.blur(chroma, (1, n), borderType=cv2.BORDER_REPLICATE)
+    darker = np.clip((l_up[:-k] - lum[k:]) * np.float32(1.0 / HAZE_DARKER), 0.0, 1.0)
+    bluer = np.clip((chroma[k:] - c_up[:-k]) * np.float32(1.0 / HAZE_BLUER), 0.0, 1.0)
+    out[k:] = np.minimum(darker, bluer)
+    return out
+
+
+def hazy_ground(lum: np.ndarray, chroma: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Per column in [0, 1]: how much the pixels below ``rows`` (integer rows per column) look like far
+    ground under haze rather than more sky: darker and bluer than the pixels just above the line (the
+    whitened sky at the horizon), and darker still further down (the ground nears and the haze in
+    front of it thins).  Sky under a cloud's base is darker and bluer than the cloud too, but brightens
+    towards the horizon below it."""
+    h, w = lum.shape
+    cols = np.arange(w)
+    r = np.asarray(rows, dtype=np.int64)
+
+    def band(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
+        rr = np.clip(r[None, :] + np.arange(k0, k1 + 1)[:, None], 0, h - 1)
+        return np.asarray(x[rr, cols[None, :]].mean(axis=0), dtype=np.float64)
+
+    l_up, l_dn, l_far = band(lum, -9, -2), band(lum, 2, 9), band(lum, *HAZE_FAR_ROWS)
+    c_up, c_dn = band(chroma, -9, -2), band(chroma, 2, 9)
+    darker = np.clip((l_up - l_dn) / HAZE_DARKER, 0.0, 1.0)
+    bluer = np.clip((c_dn - c_up) / HAZE_BLUER, 0.0, 1.0)
+    nearer = np.clip((l_dn - l_far) / (0.5 * HAZE_DARKER), 0.0, 1.0)
+    inside = (r - 9 >= 0) & (r + HAZE_FAR_ROWS[1] < h)
+    return np.asarray(np.where(inside, np.minimum(np.minimum(darker, bluer), nearer), 0.0))
 
 
 #: Cloud above a line: rows CLOUD_ROWS above it all at least CLOUD_MIN_VALUE bright (largest channel),
