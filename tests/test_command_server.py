@@ -25,8 +25,14 @@ VIPER = [sys.executable, "-m", "appliance.cli.main"]
 RENDER = ["render", "jacksboro", "--lat", "36.5521", "--lon", "-84.1911", "--azimuths", "90"]
 
 
+#: What this test process's own imports may have added to its environment (rasterio: GDAL's and PROJ's CA
+#: bundles).  A user's shell, where the server and the clients start, has none of it.
+ADDED_BY_IMPORTS = ("GDAL_CURL_CA_BUNDLE", "PROJ_CURL_CA_BUNDLE")
+
+
 def _env(sock: Path | str, **extra: str) -> dict[str, str]:
-    env = dict(os.environ, VIPER_SOCKET=str(sock), **extra)
+    env = {k: v for k, v in os.environ.items() if k not in ADDED_BY_IMPORTS}
+    env.update(VIPER_SOCKET=str(sock), **extra)
     return env
 
 

@@ -61,6 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     listener, owned = _listener(args.socket)
+    # the settings as the server was started, as a client has them: a library may add its own while it
+    # is imported (rasterio sets GDAL's and PROJ's CA bundles), and so would the client's own process
+    fixed = fixed_environment(dict(os.environ))
     try:
         for name in WARM_MODULES:
             importlib.import_module(name)
@@ -69,7 +72,6 @@ def run(args: argparse.Namespace) -> int:
         kernels = load_cached_kernels()
         notifier = Notifier.from_environment()
         identity = code_identity()
-        fixed = fixed_environment(dict(os.environ))
         stopping: list[int] = []
         signal.signal(signal.SIGTERM, lambda signum, frame: stopping.append(signum))
         taken_r, taken_w = os.pipe()
