@@ -89,19 +89,22 @@ spent = {}
 def timed(fn, label):
     def wrapper(*a, **k):
         t = time.perf_counter()
+        c = time.process_time()
         try:
             return fn(*a, **k)
         finally:
-            n, s = spent.get(label, (0, 0.0))
-            spent[label] = (n + 1, s + time.perf_counter() - t)
+            n, s, u = spent.get(label, (0, 0.0, 0.0))
+            spent[label] = (n + 1, s + time.perf_counter() - t, u + time.process_time() - c)
     return wrapper
 for module, attr, label in json.loads(sys.argv[1]):
     m = importlib.import_module(module)
     setattr(m, attr, timed(getattr(m, attr), label))
 t = time.perf_counter()
+c = time.process_time()
 code = main(sys.argv[2:])
 run = time.perf_counter() - t
-print(json.dumps({"imports_s": imports[0], "imports_cpu_s": imports[1], "run_s": run, "exit": code,
+print(json.dumps({"imports_s": imports[0], "imports_cpu_s": imports[1], "run_s": run,
+                  "run_cpu_s": time.process_time() - c, "exit": code,
                   "phases": spent}), file=sys.stderr)
 """
 
@@ -254,12 +257,12 @@ def main() -> int:
             rows.append((name, med_wall, min(walls), med_cpu, load))
             if args.phases:
                 p = phases(cmd, env)
-                print(f"  imports {p['imports_s']:.3f} s (CPU {p['imports_cpu_s']:.3f} s), command {p['run_s']:.3f} s:",
-                      flush=True)
+                print(f"  imports {p['imports_s']:.3f} s (CPU {p['imports_cpu_s']:.3f} s), command {p['run_s']:.3f} s "
+                      f"(CPU {p['run_cpu_s']:.3f} s); wall (CPU, all threads) per step:", flush=True)
                 for _, _, label in PHASES:
                     if label in p["phases"]:
-                        n, s = p["phases"][label]
-                        print(f"    {label:36s} {s:6.3f} s  ({n} calls)")
+                        n, s, u = p["phases"][label]
+                        print(f"    {label:36s} {s:6.3f} s ({u:6.3f} s)  {n} calls")
     finally:
         if busy is not None:
             busy.terminate()
