@@ -24,7 +24,11 @@ parser).  --busy runs `python -c 'while True: pass'` beside the measured runs.  
 is empty for every run.
 
     python bench/locate_speed.py [--seeds 1000-1004] [--no-finse] [--repeats 3] [--phases] [--busy]
-                                 [--viper PATH] [--work DIR] [--save FILE] [--compare FILE] [--record]
+                                 [--viper PATH] [--baseline PATH] [--work DIR] [--save FILE] [--compare FILE]
+                                 [--record]
+
+--baseline runs another viper (e.g. a checkout of the commit before a change) alternately with --viper on
+every case, so that both see the same load, and says whether their answers are the same.
 
 --record appends a row per case to bench/results/locate_speed.md.
 """
@@ -103,8 +107,9 @@ t = time.perf_counter()
 c = time.process_time()
 code = main(sys.argv[2:])
 run = time.perf_counter() - t
+main_cpu = time.thread_time()  # this (the main) thread's, from the start: what a free core cannot take over
 print(json.dumps({"imports_s": imports[0], "imports_cpu_s": imports[1], "run_s": run,
-                  "run_cpu_s": time.process_time() - c, "exit": code,
+                  "run_cpu_s": time.process_time() - c, "main_thread_cpu_s": main_cpu, "exit": code,
                   "phases": spent}), file=sys.stderr)
 """
 
@@ -178,8 +183,9 @@ def run_once(cmd: list[str], env: dict[str, str]) -> tuple[float, float, dict | 
 def phases(cmd: list[str], env: dict[str, str]) -> dict:
     """One run of ``cmd`` (a viper command line) in a process that times its steps (PHASE_RUNNER)."""
     python = os.environ.get("VIPER_PYTHON", sys.executable)
-    run = subprocess.run([python, "-c", PHASE_RUNNER, json.dumps(PHASES), *cmd[1:]], capture_output=True, text=True,
-                         env=dict(env, PYTHONPATH=str(REPO)))
+    # -P: the working folder is not put before REPO on the path (another checkout's package could be there)
+    run = subprocess.run([python, "-P", "-c", PHASE_RUNNER, json.dumps(PHASES), *cmd[1:]], capture_output=True,
+                         text=True, env=dict(env, PYTHONPATH=str(REPO)))
     for line in reversed(run.stderr.strip().splitlines()):
         if line.startswith("{"):
             return json.loads(line)
@@ -209,6 +215,7 @@ def main() -> int:
     ap.add_argument("--phases", action="store_true", help="time the command's steps in one more run per case")
     ap.add_argument("--busy", action="store_true", help="a spinning python process beside the measured runs")
     ap.add_argument("--viper", type=Path, default=VIPER)
+    ap.add_argument("--baseline", type=Path, help="another viper: its runs alternate with --viper's, both reported")
     ap.add_argument("--work", type=Path, default=WORK)
     ap.add_argument("--save", type=Path, help="write the answers to this JSON file")
     ap.add_argument("--compare", type=Path, help="a --save file: print how far each answer moved from it")
@@ -229,36 +236,48 @@ def main() -> int:
     busy = None
     try:
         for name, cmd in cases.items():
-            wall0, _, first, err = run_once(cmd, env)  # builds the database on the first run of all
-            if first is None:
-                raise SystemExit(f"{name}: failed: {err.strip()[-400:]}")
+            vipers = {"": cmd} if args.baseline is None else {"": cmd, " (baseline)": [str(args.baseline), *cmd[1:]]}
+            firsts = {}
+            for tag, c in vipers.items():  # the first run of all builds the database
+                _, _, firsts[tag], err = run_once(c, env)
+                if firsts[tag] is None:
+                    raise SystemExit(f"{name}{tag}: failed: {err.strip()[-400:]}")
             if args.busy and busy is None:
                 busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
                 time.sleep(1.0)
-            walls, cpus = [], []
-            for _ in range(args.repeats):
-                wall, cpu, answer, err = run_once(cmd, env)
-                if answer is None:
-                    raise SystemExit(f"{name}: failed: {err.strip()[-400:]}")
-                if answer["json"] != first["json"]:
-                    print(f"{name}: the answer changed between runs: {first} / {answer}", file=sys.stderr)
-                walls.append(wall)
-                cpus.append(cpu)
+            walls: dict[str, list[float]] = {tag: [] for tag in vipers}
+            cpus: dict[str, list[float]] = {tag: [] for tag in vipers}
+            for i in range(args.repeats):
+                for tag in (list(vipers) if i % 2 == 0 else list(reversed(vipers))):  # alternated
+                    wall, cpu, answer, err = run_once(vipers[tag], env)
+                    if answer is None:
+                        raise SystemExit(f"{name}{tag}: failed: {err.strip()[-400:]}")
+                    if answer["json"] != firsts[tag]["json"]:
+                        print(f"{name}{tag}: the answer changed between runs: {firsts[tag]} / {answer}",
+                              file=sys.stderr)
+                    walls[tag].append(wall)
+                    cpus[tag].append(cpu)
             load = os.getloadavg()[0]
-            answers[name] = first
-            med_wall, med_cpu = float(np.median(walls)), float(np.median(cpus))
-            line = (f"{name:18s} wall median {med_wall:5.2f} s (best {min(walls):5.2f}), CPU median {med_cpu:5.2f} s, "
-                    f"target {TARGET_S:g} s {'met' if med_wall <= TARGET_S else 'missed'}, load {load:.1f}; "
-                    f"{first['status']} {first['lat']:.7f},{first['lon']:.7f} yaw {first['yaw_deg']} "
-                    f"pitch {first['pitch_deg']} roll {first['roll_deg']}")
+            first = answers[name] = firsts[""]
+            for tag in vipers:
+                med_wall, med_cpu = float(np.median(walls[tag])), float(np.median(cpus[tag]))
+                f = firsts[tag]
+                line = (f"{name + tag:18s} wall median {med_wall:5.2f} s (best {min(walls[tag]):5.2f}), CPU median "
+                        f"{med_cpu:5.2f} s, target {TARGET_S:g} s {'met' if med_wall <= TARGET_S else 'missed'}, "
+                        f"load {load:.1f}; {f['status']} {f['lat']:.7f},{f['lon']:.7f} yaw {f['yaw_deg']} "
+                        f"pitch {f['pitch_deg']} roll {f['roll_deg']}")
+                print(line, flush=True)
+                rows.append((name + tag, med_wall, min(walls[tag]), med_cpu, load,
+                             commit if tag == "" else checkout_commit(args.baseline)))
+            if args.baseline is not None:
+                print(f"  against the baseline: {moved(firsts[' (baseline)'], first)}", flush=True)
             if name in reference:
-                line += f"\n  against --compare: {moved(reference[name], first)}"
-            print(line, flush=True)
-            rows.append((name, med_wall, min(walls), med_cpu, load))
+                print(f"  against --compare: {moved(reference[name], first)}", flush=True)
             if args.phases:
                 p = phases(cmd, env)
                 print(f"  imports {p['imports_s']:.3f} s (CPU {p['imports_cpu_s']:.3f} s), command {p['run_s']:.3f} s "
-                      f"(CPU {p['run_cpu_s']:.3f} s); wall (CPU, all threads) per step:", flush=True)
+                      f"(CPU {p['run_cpu_s']:.3f} s); main thread's CPU from the start {p['main_thread_cpu_s']:.3f} s; "
+                      "wall (CPU, all threads) per step:", flush=True)
                 for _, _, label in PHASES:
                     if label in p["phases"]:
                         n, s, u = p["phases"][label]
@@ -271,10 +290,10 @@ def main() -> int:
         args.save.write_text(json.dumps(answers, indent=1) + "\n")
     if args.record and rows:
         condition = "beside a busy process" if args.busy else "no spinner added"
-        text = "".join(f"| {date.today()} | {commit} | {name} | {wall:.2f} | {best:.2f} | {cpu:.2f} | "
+        text = "".join(f"| {date.today()} | {which} | {name} | {wall:.2f} | {best:.2f} | {cpu:.2f} | "
                        f"{'met' if wall <= TARGET_S else 'missed'} | {condition}, load {load:.1f}, "
                        f"{os.cpu_count()} cores {platform.machine()} | {args.note} |\n"
-                       for name, wall, best, cpu, load in rows)
+                       for name, wall, best, cpu, load, which in rows)
         append_result(RESULTS, HEADER, text)
     return 0
 
