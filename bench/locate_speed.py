@@ -216,6 +216,7 @@ def main() -> int:
     ap.add_argument("--busy", action="store_true", help="a spinning python process beside the measured runs")
     ap.add_argument("--viper", type=Path, default=VIPER)
     ap.add_argument("--baseline", type=Path, help="another viper: its runs alternate with --viper's, both reported")
+    ap.add_argument("--baseline-label", help="what the baseline is, for the rows (default: its checkout's commit)")
     ap.add_argument("--work", type=Path, default=WORK)
     ap.add_argument("--save", type=Path, help="write the answers to this JSON file")
     ap.add_argument("--compare", type=Path, help="a --save file: print how far each answer moved from it")
@@ -268,7 +269,7 @@ def main() -> int:
                         f"pitch {f['pitch_deg']} roll {f['roll_deg']}")
                 print(line, flush=True)
                 rows.append((name + tag, med_wall, min(walls[tag]), med_cpu, load,
-                             commit if tag == "" else checkout_commit(args.baseline)))
+                             commit if tag == "" else args.baseline_label or checkout_commit(args.baseline)))
             if args.baseline is not None:
                 print(f"  against the baseline: {moved(firsts[' (baseline)'], first)}", flush=True)
             if name in reference:
