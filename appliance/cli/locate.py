@@ -17,7 +17,14 @@ from appliance.cli.skyline import check_azimuth_mask
 from appliance.config import load_config
 from appliance.errors import InputError
 from appliance.locating.map_source import OpenedMap, SearchArea, area_log_prior, open_map
-from appliance.locating.photo_pose import MIN_ARC_DEG, OrientationPrior, PhotoAnswer, PhotoView, locate_photo
+from appliance.locating.photo_pose import (
+    MIN_ARC_DEG,
+    OrientationPrior,
+    PhotoAnswer,
+    PhotoView,
+    locate_photo,
+    start_loading_optimizer,
+)
 from appliance.locating.position import Position, answer_text, locate, truth_in_ellipse, truth_in_region
 from appliance.skyline import Skyline
 from appliance.terrain.database import SkylineDatabase
@@ -89,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     image = read_image(args.photo)
     exif = read_exif(args.photo)
     panorama = _is_panorama(args.photo, image.shape[1], image.shape[0])
+    if not panorama:
+        start_loading_optimizer()  # the photo's orientation fits need it; meanwhile its skyline is found
     area = _area(args, exif)
     truth = _truth(args.truth, exif)
     report = Path(args.report) if args.report else None

@@ -39,10 +39,11 @@ LOG = logging.getLogger(__name__)
 
 #: Modules that the forwarded commands import as they run (``python -X importtime``), imported once by
 #: the server: the tiled search, the estimate's files, numpy.ma (rasterio's masks), multiprocessing
-#: (the thread pools' locks), and what numba's runtime imports when a parallel kernel loads.
+#: (the thread pools' locks), what numba's runtime imports when a parallel kernel loads, and the
+#: photo's orientation fits' optimiser (``viper locate`` imports it on a thread as the photo is read).
 WARM_MODULES = ("appliance.locating.tiled_search", "appliance.outputs.report", "numpy.ma",
                 "multiprocessing.synchronize", "numba.cpython.charseq", "numba.cpython.randomimpl",
-                "numba.misc.mergesort")
+                "numba.misc.mergesort", "scipy.optimize")
 #: Seconds between the server's checks for finished workers and a request to stop.
 POLL_S = 0.5
 #: How long a stopping server waits for its spare workers to end before killing them (s).

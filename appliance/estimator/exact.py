@@ -436,6 +436,11 @@ class _Fitter:
         self.az = np.arange(n_az) * self.step
         self.valid = np.isfinite(measured)
         self.n_valid = int(self.valid.sum())
+        # the azimuths a trial renders: the measured ones and their neighbours (the Jacobian's slope at
+        # a measured azimuth reads the render either side of it); nothing reads the others, and each
+        # azimuth's ray is marched on its own, so leaving them out changes no number
+        needed = self.valid | np.roll(self.valid, 1) | np.roll(self.valid, -1)
+        self.rendered = None if needed.all() else np.flatnonzero(needed)
         self.h_m = terrain.height_m if height_m is None else float(height_m)
         self.dist = terrain.distances(min(dx_m, dy_m))
         self.gamma = float(terrain.convergence_deg[node_row * n_cols + node_col])
@@ -456,8 +461,14 @@ class _Fitter:
 
     def trial(self, p: np.ndarray) -> _Trial:
         """The render at parameters ``p`` and its cost."""
-        s, d, _ = render(self.terrain, self.dx_m, self.dy_m, p[0], p[1], self.az + p[2] - self.gamma, self.dist,
-                         self.h_m + p[3])
+        az = self.az + p[2] - self.gamma
+        if self.rendered is None:
+            s, d, _ = render(self.terrain, self.dx_m, self.dy_m, p[0], p[1], az, self.dist, self.h_m + p[3])
+        else:  # NaN (no terrain) where nothing reads the render
+            s = np.full(az.size, np.nan)
+            d = np.full(az.size, np.nan)
+            s[self.rendered], d[self.rendered], _ = render(self.terrain, self.dx_m, self.dy_m, p[0], p[1],
+                                                           az[self.rendered], self.dist, self.h_m + p[3])
         ok = self.valid & np.isfinite(s) & np.isfinite(d)
         r = np.where(ok, self.measured - np.where(ok, s + self.tilt_basis @ p[4:], 0.0), 0.0)
         if ok.sum() < 0.9 * self.n_valid or not ok.any():

@@ -59,6 +59,10 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
     w_total = 0.0
     for k in range(n_k):
         w_total += w[k]
+    # each azimuth's run of the parallax codes, once (not a division per measurement and yaw)
+    run = np.empty(n_az, dtype=np.int64)
+    for j in range(n_az):
+        run[j] = j // stride
     for ii in numba.prange(nodes.size):
         node = nodes[ii]
         off = offset[node]
@@ -78,7 +82,9 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
             seen = 0.0
             pen = 0.0
             for k in range(n_k):
-                j = (k_idx[k] + h) % n_az
+                j = k_idx[k] + h  # both in [0, n_az): the remainder is one subtraction at most
+                if j >= n_az:
+                    j -= n_az
                 c = codes[node, j]
                 has[k] = c != MISSING_CODE and w[k] > 0.0
                 if not has[k]:
@@ -87,7 +93,7 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
                     pw[k] = 0.0
                 else:
                     if use_tau:
-                        tc = tau_codes[node, j // stride]
+                        tc = tau_codes[node, run[j]]
                         pw[k] = w[k] * lut_w[tc]
                         pen += w[k] * sig2 * lut_p[tc]
                     else:
@@ -99,7 +105,7 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
                 continue
             t1 = 0.0
             t2 = 0.0
-            for _ in range(rounds):
+            for rnd in range(rounds):
                 s11 = lam1
                 s12 = 0.0
                 s22 = lam2
@@ -123,10 +129,19 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
                     t1 = min(max(t1, -bound1), bound1)
                     t2 = min(max((y2 - s12 * t1) / s22, -bound2), bound2)
                     t1 = min(max((y1 - s12 * t2) / s11, -bound1), bound1)
+                if rnd == rounds - 1:
+                    break  # the measurements kept after the last fit are not read
+                changed = False
                 for k in range(n_k):
                     if has[k]:
                         e = r[k] - t1 * uc[k] - t2 * us[k]
-                        keep[k] = pw[k] if pw[k] * e * e < w[k] * clip2 else 0.0
+                        q = pw[k] if pw[k] * e * e < w[k] * clip2 else 0.0
+                        if q != keep[k]:
+                            changed = True
+                        keep[k] = q
+                if not changed:
+                    # the same measurements kept: every further round would make this fit again
+                    break
             cost = lam1 * t1 * t1 + lam2 * t2 * t2 + pen
             for k in range(n_k):
                 if w[k] == 0.0:

@@ -124,7 +124,7 @@ class _RefineContext:
 
     def looks(self, nodes: list[int]) -> Callable[[], list[_Look]]:
         """One look at each node (from the node and from its linearised move), started on the look
-        threads (:func:`_start_looks`): what waits for them, (cost, node, start, heading) in the
+        threads (:func:`start_on_threads`): what waits for them, (cost, node, start, heading) in the
         nodes' order."""
         g = self.grid
         assert g.terrain is not None
@@ -139,7 +139,7 @@ class _RefineContext:
             return screen_exact(g.terrain, g.dx_m, g.dy_m, self.m, start[0], start[1], float(g.convergence_deg[cand]),
                                 phi0, self.bounds, self.height_m, self.sigma, self.model, SCREEN_SPREAD_CELLS)
 
-        pending = _start_looks(look, starts)
+        pending = start_on_threads(look, starts)
         return lambda: [(cost, cand, start, phi) for (cand, start, _), (cost, phi) in zip(starts, pending())]
 
     def fit_looked(self, looks: list[_Look], beat: float = math.inf) -> list[Fit]:
@@ -164,24 +164,24 @@ class _RefineContext:
 _Look = tuple[float, int, tuple[float, float], float]
 _look_pools: dict[int, ThreadPoolExecutor] = {}
 _look_pool_lock = threading.Lock()
+_R = TypeVar("_R")
 
 
-def _start_looks(look: Callable[[_T], tuple[float, float]],
-                 items: list[_T]) -> Callable[[], list[tuple[float, float]]]:
-    """``look`` of every item started on as many threads as the compiled kernels may use (numba's
-    thread count; with one, as on a tiled search's own threads, made here in turn): what waits for
-    them, in the items' order.  Each look is one render whose ray march releases the GIL, and the
-    same on any thread: the same answers as one after the other."""
+def start_on_threads(work: Callable[[_T], _R], items: list[_T]) -> Callable[[], list[_R]]:
+    """``work`` on every item started on as many threads as the compiled kernels may use (numba's
+    thread count; with one, as on a tiled search's own threads, done here in turn): what waits for
+    the results, in the items' order.  For work whose time is mostly ray marches, which release the
+    GIL: each item's result is what it would be on the caller's thread."""
     threads = min(numba.get_num_threads(), len(items))
     if threads <= 1:
-        made = [look(v) for v in items]
+        made = [work(v) for v in items]
         return lambda: made
     with _look_pool_lock:
         pool = _look_pools.get(threads)
         if pool is None:
             pool = _look_pools[threads] = ThreadPoolExecutor(threads, thread_name_prefix="viper-look",
                                                              initializer=numba.set_num_threads, initargs=(1,))
-    futures = [pool.submit(look, v) for v in items]
+    futures = [pool.submit(work, v) for v in items]
     return lambda: [f.result() for f in futures]
 
 

@@ -37,12 +37,13 @@ ambiguous: the answer is then not where the photo fits best.
 
 from __future__ import annotations
 
+import importlib
 import math
+import threading
 from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
-from scipy.optimize import least_squares, minimize_scalar
 
 from appliance.errors import InputError
 from appliance.estimator import SkylineGrid, confidence
@@ -59,6 +60,7 @@ from appliance.estimator.orientation import (
 )
 from appliance.estimator.parallax import tau2_tables
 from appliance.estimator.raycast import render
+from appliance.estimator.refinement import start_on_threads
 from appliance.locating.position import Position, locate
 from appliance.locating.search_grid import skyline_grid
 from appliance.skyline import Skyline
@@ -254,6 +256,28 @@ class _Renderer:
         return el
 
 
+#: The optimiser the orientation fits take their least squares from: its package imports all of scipy.optimize
+#: (0.15 s), which the photo's first steps (detection, screening, the hypotheses' ray marches) do not need.
+OPTIMIZER_MODULE = "scipy.optimize"
+
+
+def start_loading_optimizer() -> threading.Thread:
+    """Import OPTIMIZER_MODULE on a thread of its own, started: its import runs while the caller reads the
+    photo, detects its skyline and screens the map (whose compiled kernels release the GIL), and the first
+    orientation fit finds it loaded (or waits for it, as any second import of a module being imported
+    does).  Returns the thread; a failed import is left to the fit's own import to report."""
+
+    def load() -> None:
+        try:
+            importlib.import_module(OPTIMIZER_MODULE)
+        except ImportError:
+            pass
+
+    thread = threading.Thread(target=load, name="viper-import")
+    thread.start()
+    return thread
+
+
 def _fit_rays(view: PhotoView, count: int = FIT_COLUMNS) -> np.ndarray:
     """About ``count`` of the skyline's rays, evenly spread over its columns."""
     rays = view.rays
@@ -285,6 +309,8 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
     def residuals(p: np.ndarray) -> np.ndarray:
         res = np.clip(residual_deg(p), -30.0, 30.0) / FIT_SCALE_DEG
         return np.concatenate([res, _prior_terms(prior, p[0], p[1], p[2], p[3])])
+
+    from scipy.optimize import least_squares  # here, not at import: see start_loading_optimizer
 
     p_hi, r_hi, s_hi = _bounds(prior)
     lower = np.array([start.yaw_deg - 180.0, -p_hi, -r_hi, -s_hi])
@@ -353,6 +379,8 @@ def fit_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: float, 
         moved = np.array([row + p[0], col + p[1], pose.yaw_deg + p[2], p[3], p[4], p[5] if use_scale else 0.0])
         res = np.clip(np.nan_to_num(_joint_residual_deg(render_at, rays, moved, eye_offset_m), nan=30.0), -30.0, 30.0)
         return np.concatenate([res / FIT_SCALE_DEG, _prior_terms(prior, pose.yaw_deg + p[2], p[3], p[4], p[5])])
+
+    from scipy.optimize import least_squares  # here, not at import: see start_loading_optimizer
 
     p_hi, r_hi, s_hi = _bounds(prior)
     reach = JOINT_REACH_CELLS
@@ -518,8 +546,9 @@ def _exact_hypotheses(grid: SkylineGrid, hyps: list[Hypothesis], lattice: np.nda
     assert grid.terrain is not None
     n_az = grid.n_azimuths
     cap = occlusion_cap_deg2(occlusion_weight, FIT_SIGMA_DEG)
-    out: list[tuple[Hypothesis, Fit]] = []
-    for h in hyps:
+
+    def fitted(h: Hypothesis) -> Fit | None:
+        assert grid.terrain is not None
         shift = int(round(h.yaw_deg / grid.az_step_deg))
         measured = np.full(n_az, np.nan)
         weights = np.zeros(n_az)
@@ -528,9 +557,13 @@ def _exact_hypotheses(grid: SkylineGrid, hyps: list[Hypothesis], lattice: np.nda
         # the screening's tilt taken out: the exact fit starts level and fits what is left
         measured[idx], weights[idx] = m - h.t1_deg * np.cos(u) - h.t2_deg * np.sin(u), w
         r, c = divmod(h.node, grid.n_cols)
-        fit = refine_exact(grid.terrain, grid.dx_m, grid.dy_m, measured, r, c, grid.n_cols, 0.0, height_m,
-                           sigma_deg=FIT_SIGMA_DEG, heading_bounds_deg=(-HYPOTHESIS_YAW_DEG, HYPOTHESIS_YAW_DEG),
-                           model=Model(weights, cap, map_sigma_m), tilt_sigma_deg=HYPOTHESIS_TILT_SIGMA_DEG)
+        return refine_exact(grid.terrain, grid.dx_m, grid.dy_m, measured, r, c, grid.n_cols, 0.0, height_m,
+                            sigma_deg=FIT_SIGMA_DEG, heading_bounds_deg=(-HYPOTHESIS_YAW_DEG, HYPOTHESIS_YAW_DEG),
+                            model=Model(weights, cap, map_sigma_m), tilt_sigma_deg=HYPOTHESIS_TILT_SIGMA_DEG)
+
+    out: list[tuple[Hypothesis, Fit]] = []
+    # each hypothesis fitted on its own: on the kernels' threads (mostly ray marches, which release the GIL)
+    for h, fit in zip(hyps, start_on_threads(fitted, hyps)()):
         if fit is not None and fit.n > 0:
             out.append((h, replace(fit, ssd=fit.ssd + fit.occluded * kernel_cap(cap))))
     out.sort(key=lambda hf: hf[1].ssd / hf[1].n)
@@ -721,6 +754,8 @@ def profiled_cauchy_nats(residual_deg: np.ndarray) -> float:
         s = math.exp(log_s)
         return float(np.mean(np.log(math.pi * s * (1.0 + (e / s) ** 2))))
 
+    from scipy.optimize import minimize_scalar  # here, not at import: see start_loading_optimizer
+
     lo, hi = (math.log(v) for v in PROFILE_SCALE_DEG)
     best = minimize_scalar(minus_mean_ll, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
     return -min(float(best.fun), minus_mean_ll(lo), minus_mean_ll(hi))
@@ -769,17 +804,26 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
     az_grid, el_grid = _rendered_view(render_at, res.row, res.col, rays, pose, scale, eye_offset_m)
     again = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
     answer = max(answer, _nats_at(render_at, rays, res.row, res.col, again.pose, again.focal_scale, eye_offset_m))
+
+    def refit(hf: tuple[Hypothesis, Fit]) -> tuple[OrientationFit, float]:
+        """The hypothesis' orientation solved on its own render, and its nats there."""
+        h, f = hf
+        start = _pose_of_fit(h, f, level)
+        az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
+        o = solve_orientation(rays, az_grid, el_grid, start, prior)
+        return o, _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
+
+    # each hypothesis' refit on its own: on the kernels' threads (mostly ray marches, which release the GIL)
+    away = [hf for hf in fitted if math.hypot(hf[1].row - res.row, hf[1].col - res.col) > SAME_PLACE_CELLS]
+    refits = iter(start_on_threads(refit, away)())
     rivals = better = 0
     nats: list[float] = []
-    for h, f in fitted:
+    for _, f in fitted:
         d = math.hypot(f.row - res.row, f.col - res.col)
         if d <= SAME_PLACE_CELLS:
             nats.append(math.nan)
             continue
-        start = _pose_of_fit(h, f, level)
-        az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
-        o = solve_orientation(rays, az_grid, el_grid, start, prior)
-        own = _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
+        o, own = next(refits)
         n = independent * (answer - own)
         nats.append(n)
         rival = d > same_place_cells and n < RIVAL_NATS
