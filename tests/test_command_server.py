@@ -235,7 +235,7 @@ def test_a_removed_working_folder_gives_what_it_gives_in_process(server, tmp_pat
 
 def _refused_for_its_folder(sock: Path, folder: Path) -> dict:
     """A request as the client sends it, for ``folder``; the server's reply."""
-    request = {"argv": RENDER, "cwd": str(folder), "env": dict(os.environ, VIPER_SOCKET=""),
+    request = {"argv": RENDER, "cwd": str(folder), "env": _env(""),
                "umask": 0o022, "code": _forward.code_identity()}
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
         conn.connect(str(sock))
