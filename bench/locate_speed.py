@@ -53,6 +53,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
 
+from appliance.atomic import write_text_atomic  # noqa: E402
 from bench.results_file import append_result, checkout_commit  # noqa: E402
 
 VIPER = REPO / ".venv" / "bin" / "viper"
@@ -288,7 +289,7 @@ def main() -> int:
             busy.terminate()
             busy.wait()
     if args.save:
-        args.save.write_text(json.dumps(answers, indent=1) + "\n")
+        write_text_atomic(args.save, json.dumps(answers, indent=1) + "\n")
     if args.record and rows:
         condition = "beside a busy process" if args.busy else "no spinner added"
         text = "".join(f"| {date.today()} | {which} | {name} | {wall:.2f} | {best:.2f} | {cpu:.2f} | "

@@ -214,9 +214,10 @@ class SnowEvidence:
 def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: bool) -> SnowEvidence | None:
     """The snow evidence of an image whose ground below ``rows`` (the detector's line, fractional,
     NaN = none; ``found`` where it is confident) is snowy, from the candidates that agree with
-    their neighbours and lie above the line or where it is not found; None where the ground is not
-    snowy or too few candidates are trusted to learn sky and snow from (the brightness drop then
-    finds the skyline: snow darker than the sky)."""
+    their neighbours and lie above the line or where it is not found (the boundary's score; in a
+    column without one, the colour step alone: snow no brighter than a pale sky shows no rise onto
+    it); None where the ground is not snowy or too few candidates are trusted to learn sky and snow
+    from (the brightness drop then finds the skyline: snow clearly darker than the sky)."""
     h, w = img8.shape[:2]
     f = _to_float(img8)
     luma = _luma(f)
@@ -225,7 +226,6 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     chroma, lum = _chroma_luma(f, luma)
     score, colour_step = snow_score(chroma, lum)
     cand, _ = snow_candidates(score)
-    # snow no brighter than a pale sky shows no rise: its colour step alone
     cand = np.where(np.isfinite(cand), cand, snow_candidates(colour_step)[0])
     trusted = _agree_with_neighbours(cand, wrap)
     placed = place_rows(lum, np.where(trusted, cand, np.nan))
