@@ -814,12 +814,11 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
         return o, _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
 
     # each hypothesis' refit on its own: on the kernels' threads (mostly ray marches, which release the GIL)
-    away = [hf for hf in fitted if math.hypot(hf[1].row - res.row, hf[1].col - res.col) > SAME_PLACE_CELLS]
-    refits = iter(start_on_threads(refit, away)())
+    dist = [math.hypot(f.row - res.row, f.col - res.col) for _, f in fitted]
+    refits = iter(start_on_threads(refit, [hf for hf, d in zip(fitted, dist) if d > SAME_PLACE_CELLS])())
     rivals = better = 0
     nats: list[float] = []
-    for _, f in fitted:
-        d = math.hypot(f.row - res.row, f.col - res.col)
+    for (_, f), d in zip(fitted, dist):
         if d <= SAME_PLACE_CELLS:
             nats.append(math.nan)
             continue

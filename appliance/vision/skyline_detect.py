@@ -76,6 +76,7 @@ from appliance.vision.skyline_pixels import (
     _texture,
     _to_float,
     intensity,
+    line_band,
 )
 from appliance.vision.skyline_snow import SnowEvidence, colour_rows, snow_checks, snow_evidence
 from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
@@ -447,13 +448,9 @@ def _snow_coloured_below(ev: SnowEvidence, rows: np.ndarray) -> np.ndarray:
     minus red under the evidence's cut), where the pixels 2-9 rows above it are all nearer the sky's
     (0 otherwise).  Shaded snow near a skyline can be as blue as the learnt sky's brightness and
     texture make it look, but not as blue as the sky's colour."""
-    h, w = ev.chroma.shape
-    cols = np.arange(w)
     offs = np.arange(2, 10)
-    up = np.clip(rows[None, :] - offs[:, None], 0, h - 1)
-    dn = np.clip(rows[None, :] + offs[:, None], 0, h - 1)
-    sky = (ev.chroma[up, cols[None, :]] >= ev.chroma_cut).all(axis=0)
-    snow = (ev.chroma[dn, cols[None, :]] < ev.chroma_cut).mean(axis=0)
+    sky = (line_band(ev.chroma, rows, -offs) >= ev.chroma_cut).all(axis=0)
+    snow = (line_band(ev.chroma, rows, offs) < ev.chroma_cut).mean(axis=0)
     return np.where(sky, snow, 0.0)
 
 
@@ -582,8 +579,7 @@ def _join_gaps(
     cols = np.arange(w)
     r = np.clip(np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64), 0, h - 1)
     strong = np.isfinite(rows) & (edge[r, cols] >= 2 * cfg.min_edge)
-    dn = np.clip(r[None, :] + np.arange(2, 10)[:, None], 0, h - 1)
-    ground = -np.clip(llr[dn, cols[None, :]], -1, 1).mean(axis=0) >= 0.6
+    ground = -np.clip(line_band(llr, r, np.arange(2, 10)), -1, 1).mean(axis=0) >= 0.6
     ok = strong & ground & ~_steep_runs(r, cfg)
     out = conf.copy()
     k = JOIN_GAP_COLUMNS
@@ -629,9 +625,7 @@ DOUBTFUL_DIP_BANDS = 1.25
 
 def _sky_above(llr: np.ndarray, path: np.ndarray) -> np.ndarray:
     """Per column: the mean sky log-likelihood ratio (clipped to +-1) over the rows 2-9 above ``path``."""
-    h, w = llr.shape
-    up = np.clip(path[None, :] - np.arange(2, 10)[:, None], 0, h - 1)
-    return np.asarray(np.clip(llr[up, np.arange(w)[None, :]], -1, 1).mean(axis=0))
+    return np.asarray(np.clip(line_band(llr, path, -np.arange(2, 10)), -1, 1).mean(axis=0))
 
 
 def _learn_llr(
@@ -676,10 +670,8 @@ def _confidence(
     cols = np.arange(w)
     gap, depth = 2, 8
     offs = np.arange(gap, gap + depth)
-    up = np.clip(path[None, :] - offs[:, None], 0, h - 1)
-    dn = np.clip(path[None, :] + offs[:, None], 0, h - 1)
-    sky_above = np.clip(llr[up, cols[None, :]], -1, 1).mean(axis=0)
-    ground_below = -np.clip(llr[dn, cols[None, :]], -1, 1).mean(axis=0)
+    sky_above = np.clip(line_band(llr, path, -offs), -1, 1).mean(axis=0)
+    ground_below = -np.clip(line_band(llr, path, offs), -1, 1).mean(axis=0)
     edge = drop[np.clip(path, 0, h - 1), cols]
     # a path glued to the window's border found nothing
     inside = (path > gap) & (path < h - 1 - gap)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from appliance.vision.skyline_pixels import _downward_drop, _luma, _to_float
+from appliance.vision.skyline_pixels import _downward_drop, _luma, _to_float, line_band
 
 
 def horizontal_luma(img8: np.ndarray) -> np.ndarray:
@@ -182,13 +182,11 @@ def hazy_ground(lum: np.ndarray, chroma: np.ndarray, rows: np.ndarray) -> np.nda
     whitened sky at the horizon), and darker still further down (the ground nears and the haze in
     front of it thins).  Sky under a cloud's base is darker and bluer than the cloud too, but brightens
     towards the horizon below it."""
-    h, w = lum.shape
-    cols = np.arange(w)
+    h = lum.shape[0]
     r = np.asarray(rows, dtype=np.int64)
 
     def band(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
-        rr = np.clip(r[None, :] + np.arange(k0, k1 + 1)[:, None], 0, h - 1)
-        return np.asarray(x[rr, cols[None, :]].mean(axis=0), dtype=np.float64)
+        return np.asarray(line_band(x, r, np.arange(k0, k1 + 1)).mean(axis=0), dtype=np.float64)
 
     l_up, l_dn, l_far = band(lum, -9, -2), band(lum, 2, 9), band(lum, *HAZE_FAR_ROWS)
     c_up, c_dn = band(chroma, -9, -2), band(chroma, 2, 9)

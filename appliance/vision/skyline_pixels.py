@@ -166,6 +166,14 @@ def _cost_columns(
     return out
 
 
+def line_band(x: np.ndarray, rows: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``x`` (HxW) at each of ``offsets`` rows from the line at ``rows`` (integer, per column; negative
+    offsets above it), clipped to the image: (len(offsets), W), in the offsets' order."""
+    h, w = x.shape[:2]
+    rr = np.clip(np.asarray(rows)[None, :] + np.asarray(offsets)[:, None], 0, h - 1)
+    return np.asarray(x[rr, np.arange(w)[None, :]])
+
+
 def _best_mean_above_t(score_t: np.ndarray, path: np.ndarray, gap: int, depth: int) -> np.ndarray:
     """Per column of the transposed (WxH) ``score_t``, the largest mean of the score (clipped to
     [-1, 1]) over ``depth`` consecutive rows lying wholly at least ``gap`` rows above the path; -1

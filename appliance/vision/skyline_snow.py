@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from appliance.vision.skyline_pixels import _features, _gaussian_llr, _luma, _texture, _to_float
+from appliance.vision.skyline_pixels import _features, _gaussian_llr, _luma, _texture, _to_float, line_band
 
 #: The image is snowy when at least this share of the ground below the line is bright and neutral.
 SNOWY_SHARE = 0.3
@@ -259,15 +259,12 @@ def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confid
     a line with ``moving_below`` (a cloud below it) is left out; one with ``moving_above`` and not
     ``moving_below`` (a drifting white cloud just above, static ground below) is not judged by the
     colour above it nor by a boundary above it (the cloud's top)."""
-    h, w = ev.llr.shape
-    cols = np.arange(w)
+    w = ev.llr.shape[1]
     r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
-    up = np.clip(r[None, :] - np.arange(3, 11)[:, None], 0, h - 1)
-    above = np.clip(ev.llr[up, cols[None, :]], -1.0, 1.0).mean(axis=0)
+    above = np.clip(line_band(ev.llr, r, -np.arange(3, 11)), -1.0, 1.0).mean(axis=0)
     # and just above the line the colour is nearer the sky's than the snow's (a rock a few rows below
     # the skyline has snow just above its top)
-    near = np.clip(r[None, :] - np.arange(2, 4)[:, None], 0, h - 1)
-    snow_just_above = ev.chroma[near, cols[None, :]].mean(axis=0) < ev.chroma_cut
+    snow_just_above = line_band(ev.chroma, r, -np.arange(2, 4)).mean(axis=0) < ev.chroma_cut
     colour_bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above
     if moving_above is not None and moving_below is not None:
         colour_bad = (colour_bad & ~(moving_above & ~moving_below)) | moving_below
