@@ -325,6 +325,49 @@ def test_a_place_rivalled_once_orientations_are_refitted_is_not_vouched_for(tmp_
         assert any("their own orientation and focal length solved" in note for note in rec["notes"])
 
 
+#: bench/photo_locate.py's jacksboro photos of seeds 1605 and 1618 (spent seeds), both without a near slope.
+#: 1605: the screening's first stage, on skylines averaged over 4-degree runs at 4-degree yaws, and its
+#: parallax weighing ranked the photo's own place out of the hypotheses (the full skylines alone rank it
+#: second of 13,000 nodes): the answer was 813 m off.  1618: the hypothesis ranked first by its solved
+#: orientation lay at the truth, but the estimate moved 1.8 km to a place that fits the photo worse
+#: with its own orientation solved there.
+SEED_1605 = {"world": "jacksboro", "seed": 1605, "fov_deg": 60.0, "site": "random", "lat": 36.61900086374144,
+             "lon": -84.1564101348232, "yaw_deg": 321.7264312442989, "pitch_deg": 1.579449428478946,
+             "roll_deg": -0.20899072016213616, "weather": "mixed",
+             "occluders": [{"azimuth_deg": 316.68676089088484, "width_deg": 2.812248631777182,
+                            "raise_deg": 2.3592487676413505, "distance_m": 18.040142472451507, "kind": "tree"}],
+             "focal_error": 0.009782218314247922, "near_lat": 36.61518908191241, "near_lon": -84.14708148821545,
+             "near_radius_m": 1784.0}
+SEED_1618 = {"world": "jacksboro", "seed": 1618, "fov_deg": 60.0, "site": "random", "lat": 36.649889614523175,
+             "lon": -84.09512762759344, "yaw_deg": 270.95201042110193, "pitch_deg": -0.30377123592918753,
+             "roll_deg": 0.31220163244520727, "weather": "cloudy",
+             "occluders": [{"azimuth_deg": 270.13667885416464, "width_deg": 2.685618512620583,
+                            "raise_deg": 3.090803073666611, "distance_m": 25.307377478324156, "kind": "pole"},
+                           {"azimuth_deg": 262.95229656372504, "width_deg": 2.738320217315863,
+                            "raise_deg": 5.158693211414347, "distance_m": 14.115931225545838, "kind": "pole"},
+                           {"azimuth_deg": 258.3809171173506, "width_deg": 2.1364194710086926,
+                            "raise_deg": 2.6101427945875626, "distance_m": 30.350728772685677, "kind": "pole"}],
+             "focal_error": 0.0015476937573109736, "near_lat": 36.64616822322472, "near_lon": -84.09927201384085,
+             "near_radius_m": 1784.0}
+
+
+@pytest.mark.parametrize("spec_json", [SEED_1605, SEED_1618], ids=["own-place-screened", "estimate-kept-near"])
+def test_a_photo_without_a_near_slope_is_found_where_it_was_taken(tmp_path: Path, spec_json: dict) -> None:
+    from bench.photo_locate import PhotoSpec, write_photo
+
+    spec = PhotoSpec.from_json(spec_json)
+    photo = tmp_path / "photo.jpg"
+    write_photo(photo, load_dem("jacksboro"), spec)
+    out = viper("locate", photo, "--map", demo_dem_path(), "--near",
+                f"{spec.near_lat},{spec.near_lon},{spec.near_radius_m:.0f}", "--cache", tmp_path / "cache", "--json",
+                "--truth", f"{spec.lat},{spec.lon}")
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    assert rec["truth"]["error_m"] <= 2.0 * cell_m
+    assert abs((rec["orientation"]["yaw_deg"] - spec.yaw_deg + 180.0) % 360.0 - 180.0) < 1.0
+
+
 #: bench/photo_locate.py's forest photo of seed 1214 (a spent seed): from a summit, a far horizon along a
 #: valley of places that all fit it nearly alike.  Before the rivals were refitted the locator put it
 #: 640 m off and said ok with a 95 % radius of 1.7 km: the places the screening ranked near the truth

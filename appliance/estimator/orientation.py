@@ -235,42 +235,6 @@ def screen(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, node
     return cost, shift * az_step, tilt
 
 
-def screen_in_two_stages(codes: np.ndarray, coarse_codes: np.ndarray, offset_deg: np.ndarray,
-                         step_deg: np.ndarray, nodes: np.ndarray, lattice: np.ndarray, elevation_deg: np.ndarray,
-                         weights: np.ndarray, tilt_bound_deg: tuple[float, float], noise_deg: float,
-                         yaw_deg: tuple[float, float] | None, parallax: tuple[np.ndarray, np.ndarray] | None,
-                         coarse_parallax: np.ndarray | None, keep: int,
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`screen` first on the database's skylines averaged over runs of azimuths
-    (``coarse_codes``, its yaws in steps of a run), then on the full skylines at every yaw for the
-    ``keep`` best nodes of the first stage.  Returns those nodes and their cost, yaw and tilt.
-    ``parallax``: the tau^2 tables (weight, normaliser) when ``coarse_parallax`` holds the nodes'
-    tau^2 codes per run."""
-    n_az = codes.shape[1]
-    stride = n_az // coarse_codes.shape[1]
-    # the measurement averaged over the same runs: relative run b covers lattice steps stride*b .. stride*b + stride-1
-    runs = np.floor_divide(lattice, stride)
-    w = np.asarray(weights, np.float64)
-    sums = np.bincount(runs - runs.min(), w * elevation_deg)
-    wsum = np.bincount(runs - runs.min(), w)
-    counts = np.bincount(runs - runs.min())
-    b = np.arange(sums.size) + runs.min()
-    full = (counts == stride) & (wsum > 0)
-    coarse_m = sums[full] / wsum[full]
-    coarse_w = wsum[full] / counts[full]
-    step = 360.0 / n_az
-    centre_deg = (b[full] * stride + 0.5 * (stride - 1)) * step
-    tau = None if parallax is None or coarse_parallax is None else (coarse_parallax, 1, parallax[0], parallax[1])
-    cost, _, _ = screen(coarse_codes, offset_deg, step_deg, nodes, b[full], coarse_m, coarse_w, tilt_bound_deg,
-                        noise_deg=noise_deg, yaw_deg=yaw_deg, parallax=tau, relative_deg=centre_deg)
-    order = np.argsort(cost, kind="stable")[:keep]
-    chosen = nodes[order[np.isfinite(cost[order])]]
-    tau_full = None if tau is None or coarse_parallax is None else (coarse_parallax, stride, tau[2], tau[3])
-    cost2, yaw2, tilt2 = screen(codes, offset_deg, step_deg, chosen, lattice, elevation_deg, weights, tilt_bound_deg,
-                                noise_deg=noise_deg, yaw_deg=yaw_deg, parallax=tau_full)
-    return chosen, cost2, yaw2, tilt2
-
-
 def distinct_hypotheses(nodes: np.ndarray, cost: np.ndarray, yaw_deg: np.ndarray, tilt_deg: np.ndarray,
                         n_cols: int, count: int, min_cells: float = 3.0, min_yaw_deg: float = 3.0) -> list[Hypothesis]:
     """The ``count`` best nodes of a screening that are distinct places or orientations: a node

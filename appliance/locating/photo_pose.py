@@ -4,22 +4,34 @@ A photo's skyline is detected in its own pixels (:mod:`appliance.vision.photo`) 
 camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond what the user knows:
 
 1. **Screening.**  The rays read through a level camera at yaw 0 give elevations at azimuths
-   relative to the optical axis; every node of the search area is scored at every yaw with the
-   camera's pitch and roll as a linear nuisance (:func:`appliance.estimator.orientation.screen`).
-   The best distinct (node, yaw, tilt) triples are the hypotheses.  The tilt enters the screening
+   relative to the optical axis; every node of the search area is scored at every yaw of the
+   database's azimuth step with the camera's pitch and roll as a linear nuisance
+   (:func:`appliance.estimator.orientation.screen`), on the full skylines in one stage.  The
+   panorama's first pass on skylines averaged over runs of azimuths leaves a photo's arc a dozen
+   numbers, which many places match; and its parallax weighing, which counts each node's blur
+   within its cell as noise independent from azimuth to azimuth, charges a node with near terrain
+   for every azimuth of what is one shift of position (the best nodes are moved within their cells
+   afterwards, :func:`_moved_within_cells`).  Both ranked the photo's own place out of the
+   hypotheses.  The best distinct (node, yaw, tilt) triples are the hypotheses.  The tilt enters the screening
    linearly (an elevation offset of pitch times the cosine of the ray's azimuth from the axis, roll
    times its sine), which is exact only for a camera near level: at 7 deg of pitch over a 60-degree
    view its neglected second-order terms reach a third of a degree.  So when the orientation solved
    at the best hypothesis (step 2) is tilted by more than RELEVEL_DEG, the screening is made again on
    the rays levelled through that pitch and roll, where the tilt left to it is small.
-2. **Orientation on renders.**  At a hypothesis' node the skyline is rendered exactly (the ray march
-   of the refinement) and yaw, pitch, roll and the focal length's correction are fitted to the
+2. **Orientation on renders.**  At each hypothesis' place the skyline is rendered exactly (the ray
+   march of the refinement) and yaw, pitch, roll and the focal length's correction are fitted to the
    detected pixels by robust least squares, the level's and the lens's tolerances as priors
-   (:func:`solve_orientation`).
-3. **Position.**  The photo's skyline, carried to true azimuths and elevations through the solved
-   orientation, is located as any skyline is (:func:`appliance.locating.position.locate`, with a
-   narrow heading tolerance: the yaw is known now, to a fraction of a degree), the orientation
-   solved again at the answer, and the skyline located once more.
+   (:func:`solve_orientation`).  The hypotheses are ranked by how well those fits explain the photo
+   (:func:`profiled_cauchy_nats`), not by the screening's or the exact fits' costs, which leave the
+   focal length and the tilt's second order out.
+3. **Position.**  The photo's skyline, carried to true azimuths and elevations through the best
+   hypothesis' orientation, is located as any skyline is (:func:`appliance.locating.position.locate`,
+   with a narrow heading tolerance: the yaw is known now, to a fraction of a degree), the orientation
+   solved again at the answer, and the skyline located once more.  The estimate is free to move away
+   from the hypothesis it started from, but only to a place that fits the photo at least as well with
+   its own orientation solved there: where the place it moves to fits worse, the estimate is made again
+   within CONFINE_CELLS of where it started (:func:`_kept_near`), and the place it passed over is
+   weighed as a rival.
 
 The answer is ambiguous when the estimate says so, or when another hypothesis, at a place away
 from the answer, fits the photo about as well with its own orientation: the estimate's region
@@ -40,6 +52,7 @@ from __future__ import annotations
 import importlib
 import math
 import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -56,9 +69,8 @@ from appliance.estimator.orientation import (
     distinct_hypotheses,
     linearised_screen,
     relative_on_lattice,
-    screen_in_two_stages,
+    screen,
 )
-from appliance.estimator.parallax import tau2_tables
 from appliance.estimator.raycast import render
 from appliance.estimator.refinement import start_on_threads
 from appliance.locating.position import Position, locate
@@ -79,10 +91,6 @@ from appliance.vision.photo import PhotoSkyline, resample_photo
 HYPOTHESES = 20
 #: The screening's measurement noise (deg): the parallax model's weights are made against it.
 SCREEN_NOISE_DEG = 0.3
-#: The nodes the screening's first stage (runs of azimuths) passes to its second (every azimuth):
-#: this share of the search area's, at least this many.
-SCREEN_KEEP_SHARE = 0.05
-SCREEN_KEEP_MIN = 400
 #: The screening's best nodes moved within their cells by the parallax model before the exact fits.
 LINEARISED_NODES = 400
 #: The exact fits of the hypotheses: their noise (deg), yaw freedom (deg) and tilt prior (deg, 1 sigma).
@@ -126,6 +134,9 @@ LEVEL = CameraPose(0.0, 0.0, 0.0)
 SKYLINE_STEP_DEG = 0.25
 #: Nodes within this many cells of the answer (or twice its 95 % radius) stand for the same place.
 SAME_PLACE_CELLS = 2.5
+#: An estimate that moved away from its hypothesis to a place that fits the photo worse is made again
+#: within this many cells of where it started.
+CONFINE_CELLS = 2.0 * SAME_PLACE_CELLS
 #: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous.
 RIVAL_NATS = math.log(20.0)
 #: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
@@ -435,46 +446,77 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if nodes.size == 0:
         raise InputError("no node of the database lies inside the search area")
 
-    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
-        return _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m, occlusion_weight, map_sigma_m)
+    fit_rays = _fit_rays(view)
+    # places the estimate moved to and was taken back from (they fit worse than where it started): row, col, nats
+    passed: list[tuple[float, float, float]] = []
 
-    screened, found = hypotheses(level)
+    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None,
+                                               list[tuple[OrientationFit, float]]]:
+        """The screening, the hypotheses' exact fits and their orientations solved on their renders,
+        the hypotheses ranked by those fits' nats, best first."""
+        screened, found = _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m, occlusion_weight,
+                                          map_sigma_m)
+        if not found:
+            return screened, found, []
+        # each hypothesis' orientation on its own: on the kernels' threads (mostly ray marches, which release the GIL)
+        refits = start_on_threads(lambda hf: _refit(render_at, fit_rays, hf, prior, level), found)()
+        order = sorted(range(len(found)), key=lambda i: -_finite_or_lowest(refits[i][1]))
+        return screened, [found[i] for i in order], [refits[i] for i in order]
+
+    def located(sky: Skyline, area: np.ndarray | None) -> Position:
+        return locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=area, grid=grid, height_m=h_m,
+                      occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m, sigma_floor_deg=sigma_floor_deg,
+                      source=view.name)
+
+    def kept_near(pos: Position, sky: Skyline, area: np.ndarray | None, row: float, col: float,
+                  nats: Callable[[], float], pose: CameraPose, scale: float) -> tuple[Position, np.ndarray | None]:
+        """``pos``, or, where it lies beyond the same place from (``row``, ``col``) and fits the photo
+        worse than ``nats()`` there with its orientation solved from ``pose`` and ``scale``, the estimate
+        made again within CONFINE_CELLS of (``row``, ``col``): the position and the search area it was
+        made in."""
+        res = pos.result
+        if math.hypot(res.row - row, res.col - col) <= SAME_PLACE_CELLS:
+            return pos, area
+        eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else 0.0
+        turned = CameraPose(pose.yaw_deg + res.heading_correction_deg, pose.pitch_deg, pose.roll_deg)
+        there = _solved_nats(render_at, fit_rays, res.row, res.col, turned, scale, eye, prior)[1]
+        if there >= nats():
+            return pos, area
+        passed.append((res.row, res.col, there))
+        confined = _confined(grid, area, row, col, CONFINE_CELLS)
+        return located(sky, confined), confined
+
+    screened, found, refits = hypotheses(level)
     if found is None:
         raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
     if not found:
         raise InputError(f"{view.name}: no place of the search area fits the photo's skyline")
     fits = found
-    fit_rays = _fit_rays(view)
-
-    def solve_at_best(fits: list[tuple[Hypothesis, Fit]], level: CameraPose) -> tuple[OrientationFit, float]:
-        best_h, best_fit = fits[0]
-        start = _pose_of_fit(best_h, best_fit, level)
-        az_grid, el_grid = _rendered_view(render_at, best_fit.row, best_fit.col, fit_rays, start, 1.0,
-                                          best_fit.eye_offset_m)
-        return solve_orientation(fit_rays, az_grid, el_grid, start, prior), best_fit.eye_offset_m
-
-    solved, eye = solve_at_best(fits, level)
+    solved = refits[0][0]
     if max(abs(solved.pose.pitch_deg), abs(solved.pose.roll_deg)) > RELEVEL_DEG:
         # the screening's linear tilt is good near level only: screen again with the rays levelled
         relevel = CameraPose(0.0, solved.pose.pitch_deg, solved.pose.roll_deg)
-        screened_again, fits_again = hypotheses(relevel)
+        screened_again, fits_again, refits_again = hypotheses(relevel)
         if fits_again:
-            level, screened, fits = relevel, screened_again, fits_again
-            solved, eye = solve_at_best(fits, level)
+            level, screened, fits, refits = relevel, screened_again, fits_again, refits_again
+            solved = refits[0][0]
     pose, scale = solved.pose, solved.focal_scale
     sky = world_skyline(view, pose, scale)
-    pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid, height_m=h_m,
-                 occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m, sigma_floor_deg=sigma_floor_deg,
-                 source=view.name)
+    best = fits[0][1]
+    best_nats = refits[0][1]
+    pos, area = kept_near(located(sky, log_prior), sky, log_prior, best.row, best.col, lambda: best_nats, pose, scale)
     res = pos.result
     eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else 0.0
     turned = CameraPose(pose.yaw_deg + res.heading_correction_deg, pose.pitch_deg, pose.roll_deg)
     joint_rays = _fit_rays(view, JOINT_COLUMNS)
     pose, scale = refine_jointly(render_at, joint_rays, res.row, res.col, eye, turned, scale, prior)
+    first_row, first_col, first_eye, joint_pose, joint_scale = res.row, res.col, eye, pose, scale
+
+    def at_first() -> float:
+        return _nats_at(render_at, fit_rays, first_row, first_col, joint_pose, joint_scale, first_eye)
+
     sky = world_skyline(view, pose, scale)
-    pos = locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=log_prior, grid=grid, height_m=h_m,
-                 occlusion_weight=occlusion_weight, map_sigma_m=map_sigma_m, sigma_floor_deg=sigma_floor_deg,
-                 source=view.name)
+    pos, _ = kept_near(located(sky, area), sky, area, first_row, first_col, at_first, pose, scale)
     res = pos.result
     eye = res.eye_offset_m if math.isfinite(res.eye_offset_m) else eye
     pose = CameraPose((pose.yaw_deg + res.heading_correction_deg) % 360.0, pose.pitch_deg, pose.roll_deg)
@@ -485,7 +527,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     if rivals:
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
-    refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same, level)
+    refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same, level, refits, passed)
     if refit.rivals:
         notes.append(f"{refit.rivals} other place(s) fit the photo about as well with their own orientation and "
                      f"focal length solved (within {RIVAL_NATS:.1f} nats of the answer)")
@@ -517,16 +559,13 @@ def _widened_covariance(pos: Position) -> Position:
     return replace(pos, estimate=replace(pos.result, covariance_m2=PHOTO_COVARIANCE_SCALE * np.asarray(cov)))
 
 
-def _moved_within_cells(grid: SkylineGrid, nodes: np.ndarray, cost: np.ndarray, yaw: np.ndarray, tilt: np.ndarray,
+def _moved_within_cells(grid: SkylineGrid, nodes: np.ndarray, yaw: np.ndarray, tilt: np.ndarray,
                         lattice: np.ndarray, m: np.ndarray, w: np.ndarray, prior: OrientationPrior,
                         occlusion_weight: float, map_sigma_m: float,
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The screening's best LINEARISED_NODES nodes scored again with each one's skyline moved
-    within its cell by the parallax model and the tilt refined (``orientation.linearised_screen``):
-    the nodes, their new costs, yaws and tilts."""
-    order = np.argsort(cost, kind="stable")[:LINEARISED_NODES]
-    order = order[np.isfinite(cost[order])]
-    nodes, yaw, tilt = nodes[order], yaw[order], tilt[order]
+    """The screening's best nodes scored again with each one's skyline moved within its cell by the
+    parallax model and the tilt refined (``orientation.linearised_screen``): the nodes, their new
+    costs, yaws and tilts."""
     assert grid.distance_codes is not None
     half = 0.5 * max(grid.dx_m, grid.dy_m)
     sigma = max(prior.pitch_tolerance_deg, prior.roll_tolerance_deg) / 2.0
@@ -599,25 +638,24 @@ def _levelled_lattice(rays: np.ndarray, confidence: np.ndarray, level: CameraPos
 def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
                     nodes: np.ndarray, prior: OrientationPrior, height_m: float, occlusion_weight: float,
                     map_sigma_m: float) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
-    """Steps 1 and 2 of the module docstring on the rays levelled through ``level``: the screening of
-    ``nodes`` at every yaw (its best nodes moved within their cells and their costs, for
-    :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best first (None
-    when no node sees terrain over the view, empty when no fit succeeds)."""
+    """Step 1 of the module docstring on the rays levelled through ``level``: the screening of
+    ``nodes`` at every yaw (its LINEARISED_NODES best nodes, moved within their cells, and their
+    costs, for :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best
+    first by those fits (None when no node sees terrain over the view, empty when no fit succeeds)."""
     step = grid.az_step_deg
     lattice, m, w = _levelled_lattice(rays, confidence, level, step)
     yaw_bounds = None
     if prior.heading_deg is not None and prior.heading_tolerance_deg < 180.0:
         yaw_bounds = (prior.heading_deg, prior.heading_tolerance_deg + step)
     tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
-    tables = tau_codes = None
+    # one stage, on the full skylines, without the parallax weighing (the module docstring, step 1)
+    cost, yaw, tilt = screen(grid.codes, grid.offset_deg, grid.step_deg, nodes, lattice, m, w, tilt_bounds,
+                             noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds)
+    best = np.argsort(cost, kind="stable")[:LINEARISED_NODES]
+    best = best[np.isfinite(cost[best])]
+    found, cost, yaw, tilt = nodes[best], cost[best], yaw[best], tilt[best]
     if grid.has_parallax:
-        tables, tau_codes = tau2_tables(SCREEN_NOISE_DEG), grid.coarse_tau2(map_sigma_m)
-    keep = max(SCREEN_KEEP_MIN, int(SCREEN_KEEP_SHARE * nodes.size))
-    found, cost, yaw, tilt = screen_in_two_stages(grid.codes, grid.coarse[0], grid.offset_deg, grid.step_deg, nodes,
-                                                  lattice, m, w, tilt_bounds, SCREEN_NOISE_DEG, yaw_bounds, tables,
-                                                  tau_codes, keep)
-    if grid.has_parallax:
-        found, cost, yaw, tilt = _moved_within_cells(grid, found, cost, yaw, tilt, lattice, m, w, prior,
+        found, cost, yaw, tilt = _moved_within_cells(grid, found, yaw, tilt, lattice, m, w, prior,
                                                      occlusion_weight, map_sigma_m)
     hyps = distinct_hypotheses(found, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
@@ -728,10 +766,10 @@ def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGr
     one, the costs weighed at the noise the estimate learned and the skyline's independent share."""
     res = pos.result
     sigma = max(float(np.mean(res.sigma_deg)), 1e-3)
-    best = fitted[0][1].ssd / fitted[0][1].n
+    best = min(f.ssd / f.n for _, f in fitted)
     share = res.independent_azimuths / max(res.n_valid, 1) if math.isfinite(res.independent_azimuths) else 1.0
     count = 0
-    for _, f in fitted[1:]:
+    for _, f in fitted:
         if math.hypot(f.row - res.row, f.col - res.col) <= same_place_cells:
             continue
         nats = (f.ssd / f.n - best) * res.n_valid / (2.0 * sigma**2) * min(share, 1.0)
@@ -769,6 +807,37 @@ def _nats_at(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pos
     return profiled_cauchy_nats(el - render_at(row, col, np.mod(az, 360.0), eye_offset_m))
 
 
+def _solved_nats(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pose: CameraPose, scale: float,
+                 eye_offset_m: float, prior: OrientationPrior) -> tuple[OrientationFit, float]:
+    """The orientation solved at (``row``, ``col``) from ``pose`` and ``scale`` on its render, and the
+    rays' :func:`profiled_cauchy_nats` with it."""
+    az_grid, el_grid = _rendered_view(render_at, row, col, rays, pose, scale, eye_offset_m)
+    o = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
+    return o, _nats_at(render_at, rays, row, col, o.pose, o.focal_scale, eye_offset_m)
+
+
+def _refit(render_at: _Renderer, rays: np.ndarray, hf: tuple[Hypothesis, Fit], prior: OrientationPrior,
+           level: CameraPose) -> tuple[OrientationFit, float]:
+    """A hypothesis' orientation solved on its own render from its exact fit's (the EXIF focal length),
+    and its nats there."""
+    h, f = hf
+    start = _pose_of_fit(h, f, level)
+    az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
+    o = solve_orientation(rays, az_grid, el_grid, start, prior)
+    return o, _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
+
+
+def _finite_or_lowest(nats: float) -> float:
+    return nats if math.isfinite(nats) else -math.inf
+
+
+def _confined(grid: SkylineGrid, log_prior: np.ndarray | None, row: float, col: float, cells: float) -> np.ndarray:
+    """``log_prior`` (0 everywhere when None) with -inf at the nodes farther than ``cells`` from (``row``, ``col``)."""
+    rows, cols = np.divmod(np.arange(grid.offset_deg.size), grid.n_cols)
+    near = np.hypot(rows - row, cols - col) <= cells
+    return np.where(near, 0.0 if log_prior is None else log_prior, -np.inf)
+
+
 @dataclass(frozen=True)
 class RefitRivals:
     """What the hypotheses refitted with their own orientation say of the answer: how many lie
@@ -786,7 +855,9 @@ class RefitRivals:
 
 def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypothesis, Fit]], pos: Position,
                  grid: SkylineGrid, pose: CameraPose, scale: float, eye_offset_m: float, prior: OrientationPrior,
-                 same_place_cells: float, level: CameraPose = LEVEL) -> RefitRivals:
+                 same_place_cells: float, level: CameraPose = LEVEL,
+                 refits: Sequence[tuple[OrientationFit, float]] | None = None,
+                 passed: Sequence[tuple[float, float, float]] = ()) -> RefitRivals:
     """Each hypothesis farther than SAME_PLACE_CELLS from the answer, its yaw, pitch, roll and focal
     length solved on its own render as the answer's were (:func:`solve_orientation`), weighed
     against the answer (``pose``, ``scale`` at the estimate's place, or its orientation solved there
@@ -794,35 +865,29 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
     over ``rays``, the rays counting together for the skyline's independent azimuths less the
     PHOTO_FITTED_PARAMETERS each place's fit takes from them (at least one): a photo's few azimuths
     tell places apart only by what its orientation and lens cannot absorb.  ``level``: the pitch and roll
-    the hypotheses' screening levelled the rays through (:func:`_pose_of_fit`)."""
+    the hypotheses' screening levelled the rays through (:func:`_pose_of_fit`).  ``refits``: the
+    hypotheses' refits (:func:`_refit`, in the order of ``fitted``) when they were made already.
+    ``passed``: other places (row, col, nats) weighed already, the estimate's that it was taken back
+    from (they count as the hypotheses do, after them in ``nats``)."""
     res = pos.result
     independent = res.independent_azimuths if math.isfinite(res.independent_azimuths) else float(res.n_valid)
     independent = max(independent - PHOTO_FITTED_PARAMETERS, 1.0)
     # the answer weighed as the hypotheses are: its orientation solved again on its own render (its pose
     # came from the joint fit, made before the estimate placed it where it stands), the better of the two
-    answer = _nats_at(render_at, rays, res.row, res.col, pose, scale, eye_offset_m)
-    az_grid, el_grid = _rendered_view(render_at, res.row, res.col, rays, pose, scale, eye_offset_m)
-    again = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
-    answer = max(answer, _nats_at(render_at, rays, res.row, res.col, again.pose, again.focal_scale, eye_offset_m))
-
-    def refit(hf: tuple[Hypothesis, Fit]) -> tuple[OrientationFit, float]:
-        """The hypothesis' orientation solved on its own render, and its nats there."""
-        h, f = hf
-        start = _pose_of_fit(h, f, level)
-        az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
-        o = solve_orientation(rays, az_grid, el_grid, start, prior)
-        return o, _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
-
-    # each hypothesis' refit on its own: on the kernels' threads (mostly ray marches, which release the GIL)
+    answer = max(_nats_at(render_at, rays, res.row, res.col, pose, scale, eye_offset_m),
+                 _solved_nats(render_at, rays, res.row, res.col, pose, scale, eye_offset_m, prior)[1])
     dist = [math.hypot(f.row - res.row, f.col - res.col) for _, f in fitted]
-    refits = iter(start_on_threads(refit, [hf for hf, d in zip(fitted, dist) if d > SAME_PLACE_CELLS])())
+    if refits is None:
+        # each hypothesis' refit on its own: on the kernels' threads (mostly ray marches, which release the GIL)
+        away = iter(start_on_threads(lambda hf: _refit(render_at, rays, hf, prior, level),
+                                     [hf for hf, d in zip(fitted, dist) if d > SAME_PLACE_CELLS])())
+        refits = [next(away) if d > SAME_PLACE_CELLS else (None, math.nan) for d in dist]  # type: ignore[misc]
     rivals = better = 0
     nats: list[float] = []
-    for (_, f), d in zip(fitted, dist):
+    for (_, f), d, (o, own) in zip(fitted, dist, refits):
         if d <= SAME_PLACE_CELLS:
             nats.append(math.nan)
             continue
-        o, own = next(refits)
         n = independent * (answer - own)
         nats.append(n)
         rival = d > same_place_cells and n < RIVAL_NATS
@@ -836,4 +901,12 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
                 rival = fits_better = False
         rivals += int(rival)
         better += int(fits_better)
+    for row, col, own in passed:
+        d = math.hypot(row - res.row, col - res.col)
+        if d <= SAME_PLACE_CELLS:
+            continue
+        n = independent * (answer - own)
+        nats.append(n)
+        rivals += int(d > same_place_cells and n < RIVAL_NATS)
+        better += int(d <= same_place_cells and n < -RIVAL_NATS)
     return RefitRivals(rivals, better, tuple(nats))
