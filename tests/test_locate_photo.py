@@ -445,3 +445,30 @@ def test_a_steep_camera_is_screened_on_rays_levelled_through_its_solved_tilt() -
                            level)
     assert pose.yaw_deg == pytest.approx(true.yaw_deg, abs=0.08)
     assert (pose.pitch_deg, pose.roll_deg) == pytest.approx((true.pitch_deg, true.roll_deg), abs=0.02)
+
+
+def test_places_screened_above_the_answer_count_unless_a_hypothesis_weighed_them() -> None:
+    from types import SimpleNamespace
+
+    n_cols = 100
+    grid = SimpleNamespace(n_cols=n_cols)
+    pos = SimpleNamespace(result=SimpleNamespace(row=50.0, col=50.0))
+
+    def node(r: int, c: int) -> int:
+        return r * n_cols + c
+
+    # near the answer (cost 2.0); far and better: A (yaw 90) and B (yaw 200); far and worse: C
+    nodes = np.array([node(50, 51), node(10, 10), node(80, 80), node(20, 80)])
+    cost = np.array([2.0, 1.5, 1.0, 3.0])
+    yaw = np.array([10.0, 90.0, 200.0, 30.0])
+    screened = (nodes, cost, yaw)
+
+    def hypothesis(r: int, c: int, yaw_deg: float) -> Hypothesis:
+        return Hypothesis(node(r, c), yaw_deg, 0.0, 0.0, 1.0)
+
+    assert pp._screened_better(grid, pos, screened, 2.5, []) == 2
+    # a hypothesis two cells from A at a yaw 1.5 deg off weighed A's place and orientation
+    assert pp._screened_better(grid, pos, screened, 2.5, [hypothesis(12, 10, 91.5)]) == 1
+    # the same place at another orientation did not
+    assert pp._screened_better(grid, pos, screened, 2.5, [hypothesis(12, 10, 120.0)]) == 2
+    assert pp._screened_better(grid, pos, screened, 2.5, [hypothesis(12, 10, 91.5), hypothesis(80, 79, 199.0)]) == 0

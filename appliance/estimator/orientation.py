@@ -34,6 +34,9 @@ from appliance.numerics import FAST_FINITE
 CLIP_DEG = 1.0
 #: The least share of the measured azimuths a node must see terrain at to be scored.
 MIN_SEEN_SHARE = 0.8
+#: A node within this many cells of a hypothesis' node, at a yaw within this many degrees of its, is the same answer.
+SAME_HYPOTHESIS_CELLS = 3.0
+SAME_HYPOTHESIS_YAW_DEG = 3.0
 
 
 @dataclass(frozen=True)
@@ -235,10 +238,18 @@ def screen(codes: np.ndarray, offset_deg: np.ndarray, step_deg: np.ndarray, node
     return cost, shift * az_step, tilt
 
 
+def same_hypothesis(r: float, c: float, yaw_deg: float, h: Hypothesis, n_cols: int) -> bool:
+    """Whether a node at (``r``, ``c``) with ``yaw_deg`` is the same answer as ``h``: within
+    SAME_HYPOTHESIS_CELLS of its node at a yaw within SAME_HYPOTHESIS_YAW_DEG of its."""
+    hr, hc = divmod(h.node, n_cols)
+    dyaw = abs((yaw_deg - h.yaw_deg + 180.0) % 360.0 - 180.0)
+    return math.hypot(r - hr, c - hc) <= SAME_HYPOTHESIS_CELLS and dyaw <= SAME_HYPOTHESIS_YAW_DEG
+
+
 def distinct_hypotheses(nodes: np.ndarray, cost: np.ndarray, yaw_deg: np.ndarray, tilt_deg: np.ndarray,
-                        n_cols: int, count: int, min_cells: float = 3.0, min_yaw_deg: float = 3.0) -> list[Hypothesis]:
+                        n_cols: int, count: int) -> list[Hypothesis]:
     """The ``count`` best nodes of a screening that are distinct places or orientations: a node
-    within ``min_cells`` of a better one, at a yaw within ``min_yaw_deg`` of it, is the same answer."""
+    that is the :func:`same_hypothesis` as a better one is not."""
     order = np.argsort(cost, kind="stable")
     chosen: list[Hypothesis] = []
     for i in order:
@@ -246,14 +257,7 @@ def distinct_hypotheses(nodes: np.ndarray, cost: np.ndarray, yaw_deg: np.ndarray
             break
         node = int(nodes[i])
         r, c = divmod(node, n_cols)
-        same = False
-        for h in chosen:
-            hr, hc = divmod(h.node, n_cols)
-            dyaw = abs((float(yaw_deg[i]) - h.yaw_deg + 180.0) % 360.0 - 180.0)
-            if math.hypot(r - hr, c - hc) <= min_cells and dyaw <= min_yaw_deg:
-                same = True
-                break
-        if not same:
+        if not any(same_hypothesis(r, c, float(yaw_deg[i]), h, n_cols) for h in chosen):
             chosen.append(Hypothesis(node, float(yaw_deg[i]) % 360.0, float(tilt_deg[i, 0]), float(tilt_deg[i, 1]),
                                      float(cost[i])))
             if len(chosen) == count:

@@ -69,6 +69,7 @@ from appliance.estimator.orientation import (
     distinct_hypotheses,
     linearised_screen,
     relative_on_lattice,
+    same_hypothesis,
     screen,
 )
 from appliance.estimator.raycast import render
@@ -220,6 +221,10 @@ def directions(rays: np.ndarray, pose: CameraPose, focal_scale: float = 1.0) -> 
         r[..., 2] = 1.0
         r /= np.linalg.norm(r, axis=-1, keepdims=True)
     return enu_to_directions(r @ world_from_camera(pose).T)
+
+
+#: The screening's best nodes: their indices, costs (deg^2) and yaws (deg).
+Screened = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -450,7 +455,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     # places the estimate moved to and was taken back from (they fit worse than where it started): row, col, nats
     passed: list[tuple[float, float, float]] = []
 
-    def hypotheses(level: CameraPose) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None,
+    def hypotheses(level: CameraPose) -> tuple[Screened, list[tuple[Hypothesis, Fit]] | None,
                                                list[tuple[OrientationFit, float]]]:
         """The screening, the hypotheses' exact fits and their orientations solved on their renders,
         the hypotheses ranked by those fits' nats, best first."""
@@ -539,7 +544,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     limit = _at_tolerance(pose, scale, prior)
     if limit:
         notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
-    unseen = _screened_better(grid, pos, screened, same)
+    unseen = _screened_better(grid, pos, screened, same, [h for h, _ in fits])
     if unseen:
         notes.append(f"{unseen} node(s) elsewhere screen at least as well as the answer's; the photo's view "
                      "does not rule them out")
@@ -637,10 +642,10 @@ def _levelled_lattice(rays: np.ndarray, confidence: np.ndarray, level: CameraPos
 
 def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
                     nodes: np.ndarray, prior: OrientationPrior, height_m: float, occlusion_weight: float,
-                    map_sigma_m: float) -> tuple[tuple[np.ndarray, np.ndarray], list[tuple[Hypothesis, Fit]] | None]:
+                    map_sigma_m: float) -> tuple[Screened, list[tuple[Hypothesis, Fit]] | None]:
     """Step 1 of the module docstring on the rays levelled through ``level``: the screening of
-    ``nodes`` at every yaw (its LINEARISED_NODES best nodes, moved within their cells, and their
-    costs, for :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best
+    ``nodes`` at every yaw (its LINEARISED_NODES best nodes, moved within their cells, with their
+    costs and yaws, for :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best
     first by those fits (None when no node sees terrain over the view, empty when no fit succeeds)."""
     step = grid.az_step_deg
     lattice, m, w = _levelled_lattice(rays, confidence, level, step)
@@ -659,8 +664,8 @@ def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray,
                                                      occlusion_weight, map_sigma_m)
     hyps = distinct_hypotheses(found, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
-        return (found, cost), None
-    return (found, cost), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight, map_sigma_m)
+        return (found, cost, yaw), None
+    return (found, cost, yaw), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight, map_sigma_m)
 
 
 def joint_covariance_cells(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
@@ -743,22 +748,24 @@ def _same_place_cells(pos: Position, grid: SkylineGrid) -> float:
     return max(SAME_PLACE_CELLS, 2.0 * confidence.radius_m(cov) / math.sqrt(grid.dx_m * grid.dy_m))
 
 
-def _screened_better(grid: SkylineGrid, pos: Position, screened: tuple[np.ndarray, np.ndarray],
-                     same_place_cells: float) -> int:
+def _screened_better(grid: SkylineGrid, pos: Position, screened: Screened, same_place_cells: float,
+                     weighed: Sequence[Hypothesis]) -> int:
     """How many of the screening's best nodes (the ones moved within their cells) lie farther than
-    ``same_place_cells`` from the answer and scored at or below the best of those near it (all of
-    them when none near it made the list).  The screening is the only look most places get: where
-    it ranks places elsewhere above the answer's, the exact fits of a few hypotheses cannot rule the
-    others out."""
-    nodes, cost = screened
+    ``same_place_cells`` from the answer, scored at or below the best of those near it (all of them
+    when none near it made the list), and are not the same answer as one of the ``weighed`` hypotheses
+    (:func:`appliance.estimator.orientation.same_hypothesis`: those were weighed with their own
+    orientation, :func:`refit_rivals`).  The screening is the only look the others get: where it
+    ranks them above the answer's place, the fits of a few hypotheses cannot rule them out."""
+    nodes, cost, yaw = screened
     res = pos.result
     rows, cols = np.divmod(nodes, grid.n_cols)
     d = np.hypot(rows - res.row, cols - res.col)
     near = d <= max(1.5, 0.5 * same_place_cells)
-    far = cost[d > same_place_cells]
-    if not near.any():
-        return int(far.size)
-    return int(np.sum(far <= float(cost[near].min())))
+    far = d > same_place_cells
+    if near.any():
+        far &= cost <= float(cost[near].min())
+    return sum(not any(same_hypothesis(float(rows[i]), float(cols[i]), float(yaw[i]), h, grid.n_cols)
+                       for h in weighed) for i in np.flatnonzero(far))
 
 
 def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGrid, same_place_cells: float) -> int:
