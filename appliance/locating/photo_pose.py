@@ -16,8 +16,9 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
    linearly (an elevation offset of pitch times the cosine of the ray's azimuth from the axis, roll
    times its sine), which is exact only for a camera near level: at 7 deg of pitch over a 60-degree
    view its neglected second-order terms reach a third of a degree.  So when the orientation solved
-   at the best hypothesis (step 2) is tilted by more than RELEVEL_DEG, the screening is made again on
-   the rays levelled through that pitch and roll, where the tilt left to it is small.
+   (step 2) at the hypothesis whose exact fit is best is tilted by more than RELEVEL_DEG, the first
+   screening's best nodes (RESCREEN_SHARE of them) are screened again on the rays levelled through
+   that pitch and roll, where the tilt left to it is small.
 2. **Orientation on renders.**  At each hypothesis' place the skyline is rendered exactly (the ray
    march of the refinement) and yaw, pitch, roll and the focal length's correction are fitted to the
    detected pixels by robust least squares, the level's and the lens's tolerances as priors
@@ -94,6 +95,10 @@ HYPOTHESES = 20
 SCREEN_NOISE_DEG = 0.3
 #: The screening's best nodes moved within their cells by the parallax model before the exact fits.
 LINEARISED_NODES = 400
+#: The first screening's best nodes screened again on levelled rays: this share of the search area's,
+#: at least this many.
+RESCREEN_SHARE = 0.25
+RESCREEN_MIN = 2000
 #: The exact fits of the hypotheses: their noise (deg), yaw freedom (deg) and tilt prior (deg, 1 sigma).
 FIT_SIGMA_DEG = 0.3
 HYPOTHESIS_YAW_DEG = 3.0
@@ -455,18 +460,17 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
     # places the estimate moved to and was taken back from (they fit worse than where it started): row, col, nats
     passed: list[tuple[float, float, float]] = []
 
-    def hypotheses(level: CameraPose) -> tuple[Screened, list[tuple[Hypothesis, Fit]] | None,
-                                               list[tuple[OrientationFit, float]]]:
-        """The screening, the hypotheses' exact fits and their orientations solved on their renders,
-        the hypotheses ranked by those fits' nats, best first."""
-        screened, found = _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m, occlusion_weight,
-                                          map_sigma_m)
-        if not found:
-            return screened, found, []
+    def weighed(found: list[tuple[Hypothesis, Fit]], level: CameraPose, first: tuple[OrientationFit, float] | None,
+                ) -> tuple[list[tuple[Hypothesis, Fit]], list[tuple[OrientationFit, float]]]:
+        """The hypotheses and their orientations solved on their renders (:func:`_refit`; ``first``:
+        the first one's, made already), ranked by those fits' nats, best first."""
         # each hypothesis' orientation on its own: on the kernels' threads (mostly ray marches, which release the GIL)
-        refits = start_on_threads(lambda hf: _refit(render_at, fit_rays, hf, prior, level), found)()
+        refits = start_on_threads(lambda hf: _refit(render_at, fit_rays, hf, prior, level),
+                                  found if first is None else found[1:])()
+        if first is not None:
+            refits = [first, *refits]
         order = sorted(range(len(found)), key=lambda i: -_finite_or_lowest(refits[i][1]))
-        return screened, [found[i] for i in order], [refits[i] for i in order]
+        return [found[i] for i in order], [refits[i] for i in order]
 
     def located(sky: Skyline, area: np.ndarray | None) -> Position:
         return locate(db, sky, sigma_deg, SOLVED_HEADING_TOLERANCE_DEG, log_prior=area, grid=grid, height_m=h_m,
@@ -491,20 +495,27 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         confined = _confined(grid, area, row, col, CONFINE_CELLS)
         return located(sky, confined), confined
 
-    screened, found, refits = hypotheses(level)
+    screened, found, ranked = _screen_and_fit(grid, rays, view.confidence, level, nodes, prior, h_m,
+                                              occlusion_weight, map_sigma_m)
     if found is None:
         raise InputError(f"{view.name}: no node of the search area sees terrain over the photo's view")
     if not found:
         raise InputError(f"{view.name}: no place of the search area fits the photo's skyline")
-    fits = found
+    # the orientation at the exact fits' best decides whether the rays are levelled and screened again
+    exact_best = _refit(render_at, fit_rays, found[0], prior, level)
+    first: tuple[OrientationFit, float] | None = exact_best
+    tilt = exact_best[0].pose
+    if max(abs(tilt.pitch_deg), abs(tilt.roll_deg)) > RELEVEL_DEG:
+        # the screening's linear tilt is good near level only: screen again with the rays levelled, the
+        # nodes the first screening ranked best (the tilt's second order moves a place's cost little)
+        relevel = CameraPose(0.0, tilt.pitch_deg, tilt.roll_deg)
+        again = ranked[: max(RESCREEN_MIN, int(RESCREEN_SHARE * nodes.size))]
+        screened_again, found_again, _ = _screen_and_fit(grid, rays, view.confidence, relevel, again, prior, h_m,
+                                                         occlusion_weight, map_sigma_m)
+        if found_again:
+            level, screened, found, first = relevel, screened_again, found_again, None
+    fits, refits = weighed(found, level, first)
     solved = refits[0][0]
-    if max(abs(solved.pose.pitch_deg), abs(solved.pose.roll_deg)) > RELEVEL_DEG:
-        # the screening's linear tilt is good near level only: screen again with the rays levelled
-        relevel = CameraPose(0.0, solved.pose.pitch_deg, solved.pose.roll_deg)
-        screened_again, fits_again, refits_again = hypotheses(relevel)
-        if fits_again:
-            level, screened, fits, refits = relevel, screened_again, fits_again, refits_again
-            solved = refits[0][0]
     pose, scale = solved.pose, solved.focal_scale
     sky = world_skyline(view, pose, scale)
     best = fits[0][1]
@@ -642,11 +653,12 @@ def _levelled_lattice(rays: np.ndarray, confidence: np.ndarray, level: CameraPos
 
 def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray, level: CameraPose,
                     nodes: np.ndarray, prior: OrientationPrior, height_m: float, occlusion_weight: float,
-                    map_sigma_m: float) -> tuple[Screened, list[tuple[Hypothesis, Fit]] | None]:
+                    map_sigma_m: float) -> tuple[Screened, list[tuple[Hypothesis, Fit]] | None, np.ndarray]:
     """Step 1 of the module docstring on the rays levelled through ``level``: the screening of
     ``nodes`` at every yaw (its LINEARISED_NODES best nodes, moved within their cells, with their
-    costs and yaws, for :func:`_screened_better`) and the distinct hypotheses fitted on exact renders, best
-    first by those fits (None when no node sees terrain over the view, empty when no fit succeeds)."""
+    costs and yaws, for :func:`_screened_better`), the distinct hypotheses fitted on exact renders, best
+    first by those fits (None when no node sees terrain over the view, empty when no fit succeeds), and
+    the nodes that see it, best first by the screening."""
     step = grid.az_step_deg
     lattice, m, w = _levelled_lattice(rays, confidence, level, step)
     yaw_bounds = None
@@ -656,16 +668,19 @@ def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray,
     # one stage, on the full skylines, without the parallax weighing (the module docstring, step 1)
     cost, yaw, tilt = screen(grid.codes, grid.offset_deg, grid.step_deg, nodes, lattice, m, w, tilt_bounds,
                              noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds)
-    best = np.argsort(cost, kind="stable")[:LINEARISED_NODES]
-    best = best[np.isfinite(cost[best])]
+    order = np.argsort(cost, kind="stable")
+    order = order[np.isfinite(cost[order])]
+    ranked = nodes[order]
+    best = order[:LINEARISED_NODES]
     found, cost, yaw, tilt = nodes[best], cost[best], yaw[best], tilt[best]
     if grid.has_parallax:
         found, cost, yaw, tilt = _moved_within_cells(grid, found, yaw, tilt, lattice, m, w, prior,
                                                      occlusion_weight, map_sigma_m)
     hyps = distinct_hypotheses(found, cost, yaw, tilt, grid.n_cols, HYPOTHESES)
     if not hyps:
-        return (found, cost, yaw), None
-    return (found, cost, yaw), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight, map_sigma_m)
+        return (found, cost, yaw), None, ranked
+    return (found, cost, yaw), _exact_hypotheses(grid, hyps, lattice, m, w, height_m, occlusion_weight,
+                                                 map_sigma_m), ranked
 
 
 def joint_covariance_cells(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
