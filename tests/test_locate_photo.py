@@ -472,3 +472,15 @@ def test_places_screened_above_the_answer_count_unless_a_hypothesis_weighed_them
     # the same place at another orientation did not
     assert pp._screened_better(grid, pos, screened, 2.5, [hypothesis(12, 10, 120.0)]) == 2
     assert pp._screened_better(grid, pos, screened, 2.5, [hypothesis(12, 10, 91.5), hypothesis(80, 79, 199.0)]) == 0
+
+
+def test_places_each_clear_of_the_answer_can_still_together_rival_it() -> None:
+    # each 4 nats behind: beyond ln 20 (3.0) one by one
+    assert all(n > pp.RIVAL_NATS for n in (4.0, 4.0, 4.0))
+    two, three = pp.odds_against([4.0, 4.0]), pp.odds_against([4.0, 4.0, 4.0])
+    assert two == pytest.approx(2.0 * math.exp(-4.0))
+    assert not pp.RefitRivals(0, 0, (), two).crowded  # 3.7 % of the odds: the answer stands clear
+    assert pp.RefitRivals(0, 0, (), three).crowded  # 5.5 %: the best of them, not clear of them
+    # one place within ln 20 is a rival on its own; places far behind add nothing
+    assert pp.RefitRivals(0, 0, (), pp.odds_against([2.9])).crowded
+    assert pp.odds_against([4.0, 4.0, 50.0, math.inf]) == pytest.approx(two)

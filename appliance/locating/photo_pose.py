@@ -12,8 +12,8 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
    within its cell as noise independent from azimuth to azimuth, charges a node with near terrain
    for every azimuth of what is one shift of position (the best nodes are moved within their cells
    afterwards, :func:`_moved_within_cells`).  Both ranked the photo's own place out of the
-   hypotheses.  The best distinct (node, yaw, tilt) triples are the hypotheses.  The tilt enters the screening
-   linearly (an elevation offset of pitch times the cosine of the ray's azimuth from the axis, roll
+   hypotheses.  The best distinct (node, yaw, tilt) triples are the hypotheses.  The tilt enters the
+   screening linearly (an elevation offset of pitch times the cosine of the ray's azimuth from the axis, roll
    times its sine), which is exact only for a camera near level: at 7 deg of pitch over a 60-degree
    view its neglected second-order terms reach a third of a degree.  So when the orientation solved
    (step 2) at the hypothesis whose exact fit is best is tilted by more than RELEVEL_DEG, the first
@@ -31,8 +31,8 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
    solved again at the answer, and the skyline located once more.  The estimate is free to move away
    from the hypothesis it started from, but only to a place that fits the photo at least as well with
    its own orientation solved there: where the place it moves to fits worse, the estimate is made again
-   within CONFINE_CELLS of where it started (:func:`_kept_near`), and the place it passed over is
-   weighed as a rival.
+   within CONFINE_CELLS of where it started (``kept_near`` in :func:`locate_photo`), and the place it
+   passed over is weighed as a rival.
 
 The answer is ambiguous when the estimate says so, or when another hypothesis, at a place away
 from the answer, fits the photo about as well with its own orientation: the estimate's region
@@ -45,7 +45,9 @@ each place, counted for the skyline's independent azimuths less the six paramete
 from them (position, yaw, pitch, roll, focal length): a ratio of fits, not of costs at the noise
 learned at the answer, which the hypotheses' cruder fits do not reach.  A hypothesis
 inside the answer's own ellipse that fits clearly better than the answer also makes it
-ambiguous: the answer is then not where the photo fits best.
+ambiguous: the answer is then not where the photo fits best.  So do places elsewhere that the
+screening ranks above the answer's and that no hypothesis stood for (:func:`_screened_better`):
+those were never weighed on renders.
 """
 
 from __future__ import annotations
@@ -143,8 +145,12 @@ SAME_PLACE_CELLS = 2.5
 #: An estimate that moved away from its hypothesis to a place that fits the photo worse is made again
 #: within this many cells of where it started.
 CONFINE_CELLS = 2.0 * SAME_PLACE_CELLS
-#: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous.
+#: A rival hypothesis within this many nats of the answer's fit makes the answer ambiguous; so do the
+#: places beyond the answer's together, when the sum of their likelihood ratios exceeds exp(-RIVAL_NATS).
 RIVAL_NATS = math.log(20.0)
+#: Places more than this many nats behind the answer add nothing that counts to that sum (and are not
+#: given a joint fit to see whether they are the answer's own slope).
+ODDS_NATS = 3.0 * RIVAL_NATS
 #: Residuals (deg) beyond which a column counts as an outlier in the rival comparison.
 RIVAL_CLIP_DEG = 1.0
 #: The refitted rivals' robust likelihood: the scale (deg) of its Cauchy density is profiled between
@@ -544,6 +550,11 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         notes.append(f"{rivals} other place(s) fit the photo about as well with another orientation "
                      f"(within {RIVAL_NATS:.1f} nats)")
     refit = refit_rivals(render_at, fit_rays, fits, pos, grid, pose, scale, eye, prior, same, level, refits, passed)
+    if refit.crowded and not refit.rivals:
+        share, share_max = (o / (1.0 + o) for o in (refit.odds_elsewhere, math.exp(-RIVAL_NATS)))
+        notes.append(f"the other places weighed, each with its own orientation and focal length solved, together "
+                     f"hold {share:.0%} of the posterior (a clear answer leaves them {share_max:.0%} at most): the "
+                     "answer is the best of them, not clear of them")
     if refit.rivals:
         notes.append(f"{refit.rivals} other place(s) fit the photo about as well with their own orientation and "
                      f"focal length solved (within {RIVAL_NATS:.1f} nats of the answer)")
@@ -551,7 +562,7 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         notes.append(f"{refit.better} place(s) inside the answer's ellipse, more than {SAME_PLACE_CELLS:g} cells "
                      f"from it, fit the photo better than the answer by more than {RIVAL_NATS:.1f} nats: the "
                      "answer is not where the photo fits best")
-    rivals += refit.rivals
+    rivals += max(refit.rivals, int(refit.crowded))
     limit = _at_tolerance(pose, scale, prior)
     if limit:
         notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
@@ -863,16 +874,24 @@ def _confined(grid: SkylineGrid, log_prior: np.ndarray | None, row: float, col: 
 @dataclass(frozen=True)
 class RefitRivals:
     """What the hypotheses refitted with their own orientation say of the answer: how many lie
-    beyond the same place and fit within RIVAL_NATS of it (``rivals``), how many lie inside it
-    but more than SAME_PLACE_CELLS away and fit better than it by more than RIVAL_NATS
-    (``better``), and each hypothesis' nats below the answer (negative: it fits better; NaN
-    at the same place).  A hypothesis within JOINT_REACH_CELLS of the same place whose joint fit of
-    position and orientation comes back to the answer (SAME_PLACE_CELLS) is neither: it lies on the
-    answer's own slope."""
+    beyond the same place and fit within RIVAL_NATS of it (``rivals``), the odds of all those beyond
+    the same place together against the answer (``odds_elsewhere``: the sum of their likelihood
+    ratios, each exp(-nats)), how many lie inside it but more than SAME_PLACE_CELLS away and fit
+    better than it by more than RIVAL_NATS (``better``), and each hypothesis' nats below the answer
+    (negative: it fits better; NaN at the same place).  A hypothesis within JOINT_REACH_CELLS of the
+    same place whose joint fit of position and orientation comes back to the answer (SAME_PLACE_CELLS)
+    is none of these: it lies on the answer's own slope."""
 
     rivals: int
     better: int
     nats: tuple[float, ...]
+    odds_elsewhere: float = 0.0
+
+    @property
+    def crowded(self) -> bool:
+        """Whether the places beyond the same place together hold more than the rival level: the answer,
+        the best of the hypotheses, is picked from them, so a margin over each one is not a margin over all."""
+        return self.odds_elsewhere > math.exp(-RIVAL_NATS)
 
 
 def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypothesis, Fit]], pos: Position,
@@ -905,6 +924,7 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
                                      [hf for hf, d in zip(fitted, dist) if d > SAME_PLACE_CELLS])())
         refits = [next(away) if d > SAME_PLACE_CELLS else (None, math.nan) for d in dist]  # type: ignore[misc]
     rivals = better = 0
+    elsewhere: list[float] = []  # the nats behind the answer of the places beyond the same place
     nats: list[float] = []
     for (_, f), d, (o, own) in zip(fitted, dist, refits):
         if d <= SAME_PLACE_CELLS:
@@ -912,16 +932,18 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
             continue
         n = independent * (answer - own)
         nats.append(n)
-        rival = d > same_place_cells and n < RIVAL_NATS
+        beyond = d > same_place_cells and n < ODDS_NATS
         fits_better = d <= same_place_cells and n < -RIVAL_NATS
-        if (rival or fits_better) and d <= same_place_cells + JOINT_REACH_CELLS:
+        if (beyond or fits_better) and d <= same_place_cells + JOINT_REACH_CELLS:
             # within reach of the answer: a rival only if the joint fit of position and orientation
             # from it does not come back to the answer (another optimum, not the answer's slope)
             row, col, _, _ = fit_jointly(render_at, rays, f.row, f.col, f.eye_offset_m, o.pose, o.focal_scale,
                                          prior)
             if math.hypot(row - res.row, col - res.col) <= SAME_PLACE_CELLS:
-                rival = fits_better = False
-        rivals += int(rival)
+                beyond = fits_better = False
+        if beyond:
+            elsewhere.append(n)
+        rivals += int(beyond and n < RIVAL_NATS)
         better += int(fits_better)
     for row, col, own in passed:
         d = math.hypot(row - res.row, col - res.col)
@@ -929,6 +951,14 @@ def refit_rivals(render_at: _Renderer, rays: np.ndarray, fitted: list[tuple[Hypo
             continue
         n = independent * (answer - own)
         nats.append(n)
+        if d > same_place_cells:
+            elsewhere.append(n)
         rivals += int(d > same_place_cells and n < RIVAL_NATS)
         better += int(d <= same_place_cells and n < -RIVAL_NATS)
-    return RefitRivals(rivals, better, tuple(nats))
+    return RefitRivals(rivals, better, tuple(nats), odds_against(elsewhere))
+
+
+def odds_against(nats_behind: Sequence[float]) -> float:
+    """The odds of a set of places together against the answer: the sum of their likelihood ratios
+    exp(-nats), each place ``nats_behind`` the answer (those more than ODDS_NATS behind left out)."""
+    return float(sum(math.exp(-n) for n in nats_behind if n < ODDS_NATS))
