@@ -7,6 +7,7 @@ The overlay is a downscaled, colour-quantised crop around the horizon, for the o
 from __future__ import annotations
 
 import datetime
+import os
 import sys
 import time
 from pathlib import Path
@@ -14,13 +15,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from appliance.atomic import write_bytes_atomic, write_text_atomic
-from appliance.vision.panorama import load_panorama
-from appliance.vision.skyline_detect import DetectionConfig, detect_columns, draw_overlay, resample
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from appliance.atomic import write_bytes_atomic  # noqa: E402
+from appliance.vision.panorama import load_panorama  # noqa: E402
+from appliance.vision.skyline_detect import DetectionConfig, detect_columns, draw_overlay, resample  # noqa: E402
+from bench.results_file import append_result, checkout_commit  # noqa: E402
+
 PHOTO = REPO.parent / "shared" / "data" / "panorama" / "puydesancy_equirect_4096x2048.jpg"
 OUT = REPO / "docs" / "puydesancy_overlay.png"
+RESULTS = REPO / "bench" / "results" / "vision_puydesancy.md"
+HEADER = "# Skyline detection on the Puy de Sancy photo\n\nOverlay: docs/puydesancy_overlay.png (checked by eye).\n"
 
 
 def main() -> int:
@@ -51,16 +57,14 @@ def main() -> int:
         f"detection {dt * 1000:.0f} ms on {pano.width}x{pano.height}; columns valid {valid:.1%};"
         f" 1-degree rows valid {sky.valid.sum()}/360; overlay {OUT} ({len(buf) // 1024} kB)"
     )
-    res = REPO / "bench" / "results" / "vision_puydesancy.md"
-    write_text_atomic(
-        res,
-        "# Skyline detection on the Puy de Sancy photo\n\n"
-        f"{datetime.date.today()}, 2 cores. Overlay: docs/puydesancy_overlay.png (checked by eye).\n\n"
-        "| figure | value |\n|---|---|\n"
-        f"| detection time, 4096x2048 (el -30..30) | {dt * 1000:.0f} ms |\n"
-        f"| columns with a skyline | {valid:.1%} |\n"
-        f"| 1-degree rows with a skyline | {int(sky.valid.sum())}/360 |\n",
-    )
+    rows_header = ("| date | commit | detection time, 4096x2048 (el -30..30) | columns with a skyline |"
+                   " 1-degree rows with a skyline | load |\n|---|---|---|---|---|---|\n")
+    existing = RESULTS.read_text(encoding="utf-8") if RESULTS.is_file() else ""
+    row = (f"| {datetime.date.today()} | {checkout_commit(REPO)} | {dt * 1000:.0f} ms | {valid:.1%} |"
+           f" {int(sky.valid.sum())}/360 | {os.getloadavg()[0]:.1f} |\n")
+    # each run adds its row (the notes under earlier rows stay); the table's header once
+    append_result(RESULTS, HEADER + "\n" + rows_header,
+                  row if rows_header in existing else ("\n" + rows_header + row if existing else row))
     return 0
 
 
