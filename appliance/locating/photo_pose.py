@@ -31,8 +31,9 @@ camera rays (:class:`PhotoView`).  Nothing of its orientation is assumed beyond 
    solved again at the answer, and the skyline located once more.  The estimate is free to move away
    from the hypothesis it started from, but only to a place that fits the photo at least as well with
    its own orientation solved there: where the place it moves to fits worse, the estimate is made again
-   within CONFINE_CELLS of where it started (``kept_near`` in :func:`locate_photo`), and the place it
-   passed over is weighed as a rival.
+   within CONFINE_CELLS of where it started (``kept_near`` in :func:`locate_photo`), the place it
+   passed over is weighed as a rival, and the answer is not vouched for: the estimate's region, made
+   within those cells, cannot show the places the whole area's estimate preferred.
 
 The answer is ambiguous when the estimate says so, or when another hypothesis, at a place away
 from the answer, fits the photo about as well with its own orientation: the estimate's region
@@ -563,6 +564,11 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
                      f"from it, fit the photo better than the answer by more than {RIVAL_NATS:.1f} nats: the "
                      "answer is not where the photo fits best")
     rivals += max(refit.rivals, int(refit.crowded))
+    if passed:
+        moved_m = max(math.hypot((r - res.row) * grid.dy_m, (c - res.col) * grid.dx_m) for r, c, _ in passed)
+        notes.append(f"the estimate over the whole search area went {moved_m:.0f} m from here, to a place that fits "
+                     "the photo worse with its own orientation solved there: the two weighings disagree, the answer "
+                     "is not vouched for")
     limit = _at_tolerance(pose, scale, prior)
     if limit:
         notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
