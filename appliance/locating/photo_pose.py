@@ -96,6 +96,9 @@ from appliance.vision.photo import PhotoSkyline, resample_photo
 HYPOTHESES = 20
 #: The screening's measurement noise (deg): the parallax model's weights are made against it.
 SCREEN_NOISE_DEG = 0.3
+#: The screening fits every yaw of a node at once and again, one yaw at a time, at this many of its best
+#: (``orientation.screen``'s ``kept_yaws``): the same answer as fitting every yaw one at a time, in a quarter the time.
+SCREEN_KEPT_YAWS = 4
 #: The screening's best nodes moved within their cells by the parallax model before the exact fits.
 LINEARISED_NODES = 400
 #: The first screening's best nodes screened again on levelled rays: this share of the search area's,
@@ -684,7 +687,7 @@ def _screen_and_fit(grid: SkylineGrid, rays: np.ndarray, confidence: np.ndarray,
     tilt_bounds = (prior.pitch_tolerance_deg + 1.0, prior.roll_tolerance_deg + 1.0)
     # one stage, on the full skylines, without the parallax weighing (the module docstring, step 1)
     cost, yaw, tilt = screen(grid.codes, grid.offset_deg, grid.step_deg, nodes, lattice, m, w, tilt_bounds,
-                             noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds)
+                             noise_deg=SCREEN_NOISE_DEG, yaw_deg=yaw_bounds, kept_yaws=SCREEN_KEPT_YAWS)
     order = np.argsort(cost, kind="stable")
     order = order[np.isfinite(cost[order])]
     ranked = nodes[order]
