@@ -331,6 +331,22 @@ def test_profiled_cauchy_likelihood_finds_the_scale_and_its_level() -> None:
         pp.profiled_cauchy_nats(np.array([0.01, -0.02, pp.NO_TERRAIN_RESIDUAL_DEG])))
 
 
+def located_photo(tmp_path: Path, spec_json: dict, world: object, map_path: object) -> tuple[dict, float]:
+    """bench/photo_locate.py's photo of ``spec_json`` rendered from ``world`` (a DEM) and located on ``map_path``
+    through the command, with its search circle and its truth: the JSON answer and the cell (m)."""
+    from bench.photo_locate import PhotoSpec, write_photo
+
+    spec = PhotoSpec.from_json(spec_json)
+    photo = tmp_path / f"seed{spec.seed}.jpg"
+    write_photo(photo, world, spec)
+    out = viper("locate", photo, "--map", map_path, "--near",
+                f"{spec.near_lat},{spec.near_lon},{spec.near_radius_m:.0f}", "--cache", tmp_path / "cache", "--json",
+                "--truth", f"{spec.lat},{spec.lon}")
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    return rec, math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+
+
 #: bench/photo_locate.py's jacksboro photo of seed 1225 (a spent seed): a low, even horizon, and an EXIF
 #: focal length 2 % short.  Before the rivals were refitted the locator placed it 1.5 km off, turned
 #: 168 deg, with its focal length solved 6 % short, and said ok: the other hypotheses' exact fits, made
@@ -348,17 +364,7 @@ SEED_1225 = {"world": "jacksboro", "seed": 1225, "fov_deg": 60.0, "site": "rando
 
 
 def test_a_place_rivalled_once_orientations_are_refitted_is_not_vouched_for(tmp_path: Path) -> None:
-    from bench.photo_locate import PhotoSpec, write_photo
-
-    spec = PhotoSpec.from_json(SEED_1225)
-    photo = tmp_path / "seed1225.jpg"
-    write_photo(photo, load_dem("jacksboro"), spec)
-    out = viper("locate", photo, "--map", demo_dem_path(), "--near",
-                f"{spec.near_lat},{spec.near_lon},{spec.near_radius_m:.0f}", "--cache", tmp_path / "cache", "--json",
-                "--truth", f"{spec.lat},{spec.lon}")
-    assert out.returncode == 0, out.stderr
-    rec = json.loads(out.stdout)
-    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    rec, cell_m = located_photo(tmp_path, SEED_1225, load_dem("jacksboro"), demo_dem_path())
     right = rec["truth"]["error_m"] <= 2.0 * cell_m
     assert right or rec["ambiguous"] is True
     if not right:
@@ -393,19 +399,9 @@ SEED_1618 = {"world": "jacksboro", "seed": 1618, "fov_deg": 60.0, "site": "rando
 
 @pytest.mark.parametrize("spec_json", [SEED_1605, SEED_1618], ids=["own-place-screened", "estimate-kept-near"])
 def test_a_photo_without_a_near_slope_is_found_where_it_was_taken(tmp_path: Path, spec_json: dict) -> None:
-    from bench.photo_locate import PhotoSpec, write_photo
-
-    spec = PhotoSpec.from_json(spec_json)
-    photo = tmp_path / "photo.jpg"
-    write_photo(photo, load_dem("jacksboro"), spec)
-    out = viper("locate", photo, "--map", demo_dem_path(), "--near",
-                f"{spec.near_lat},{spec.near_lon},{spec.near_radius_m:.0f}", "--cache", tmp_path / "cache", "--json",
-                "--truth", f"{spec.lat},{spec.lon}")
-    assert out.returncode == 0, out.stderr
-    rec = json.loads(out.stdout)
-    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    rec, cell_m = located_photo(tmp_path, spec_json, load_dem("jacksboro"), demo_dem_path())
     assert rec["truth"]["error_m"] <= 2.0 * cell_m
-    assert abs((rec["orientation"]["yaw_deg"] - spec.yaw_deg + 180.0) % 360.0 - 180.0) < 1.0
+    assert abs((rec["orientation"]["yaw_deg"] - spec_json["yaw_deg"] + 180.0) % 360.0 - 180.0) < 1.0
 
 
 #: bench/photo_locate.py's forest photo of seed 1214 (a spent seed): from a summit, a far horizon along a
@@ -428,19 +424,11 @@ def test_a_place_fitting_better_inside_the_answers_ellipse_is_not_vouched_for(tm
     """The forest of bench/world_gap.py (SRTM N44W072 with canopy and noise) seen from a summit, located on
     the bare tile: wherever the answer lands, it is within two cells of the truth or not vouched for."""
     from bench import world_gap
-    from bench.photo_locate import FOREST_WORLD_SEED, PhotoSpec, write_photo
+    from bench.photo_locate import FOREST_WORLD_SEED
 
     if not world_gap.TILE.is_file():
         pytest.skip(f"{world_gap.TILE} is absent (shared data)")
-    spec = PhotoSpec.from_json(SEED_1214)
-    photo = tmp_path / "seed1214.jpg"
-    write_photo(photo, world_gap.forest_world(FOREST_WORLD_SEED).world, spec)
-    out = viper("locate", photo, "--map", world_gap.TILE, "--near",
-                f"{spec.near_lat},{spec.near_lon},{spec.near_radius_m:.0f}", "--cache", tmp_path / "cache", "--json",
-                "--truth", f"{spec.lat},{spec.lon}")
-    assert out.returncode == 0, out.stderr
-    rec = json.loads(out.stdout)
-    cell_m = math.sqrt(rec["region"]["cell_size_m"][0] * rec["region"]["cell_size_m"][1])
+    rec, cell_m = located_photo(tmp_path, SEED_1214, world_gap.forest_world(FOREST_WORLD_SEED).world, world_gap.TILE)
     assert rec["truth"]["error_m"] <= 2.0 * cell_m or rec["ambiguous"] is True
 
 
