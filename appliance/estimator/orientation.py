@@ -137,6 +137,30 @@ def _fit_at(codes: np.ndarray, node: int, off: float, st: float, h: int, m: np.n
     return cost, t1, t2
 
 
+@numba.njit(cache=True, inline="always", nogil=True, fastmath=FAST_FINITE)
+def _best_fit(codes: np.ndarray, node: int, off: float, st: float, hs: np.ndarray, n_hs: int, m: np.ndarray,
+              w: np.ndarray, k_idx: np.ndarray, uc: np.ndarray, us: np.ndarray, tau_codes: np.ndarray, run: np.ndarray,
+              lut_w: np.ndarray, lut_p: np.ndarray, sig2: float, lam1: float, lam2: float, bound1: float,
+              bound2: float, clip2: float, rounds: int, least_seen: float, r: np.ndarray, keep: np.ndarray,
+              has: np.ndarray, pw: np.ndarray) -> tuple[float, int, float, float]:
+    """:func:`_fit_at` at the yaw shifts ``hs[:n_hs]`` in turn: the least cost (the first of equal ones), its
+    shift and its tilt terms (inf, -1, 0, 0 where none sees enough terrain)."""
+    best = np.inf
+    best_h = -1
+    b1 = 0.0
+    b2 = 0.0
+    for i in range(n_hs):
+        h = hs[i]
+        cost, t1, t2 = _fit_at(codes, node, off, st, h, m, w, k_idx, uc, us, tau_codes, run, lut_w, lut_p, sig2,
+                               lam1, lam2, bound1, bound2, clip2, rounds, least_seen, r, keep, has, pw)
+        if cost < best:
+            best = cost
+            best_h = h
+            b1 = t1
+            b2 = t2
+    return best, best_h, b1, b2
+
+
 @numba.njit(cache=True, parallel=True, nogil=True, fastmath=FAST_FINITE)
 def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.ndarray, m: np.ndarray,
             w: np.ndarray, k_idx: np.ndarray, uc: np.ndarray, us: np.ndarray, shifts: np.ndarray,
@@ -156,23 +180,13 @@ def _screen(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes: np.n
         node = nodes[ii]
         off = offset[node]
         st = step[node]
-        best = np.inf
-        best_h = -1
-        b1 = 0.0
-        b2 = 0.0
         r = np.empty(n_k)
         keep = np.empty(n_k)
         has = np.empty(n_k, dtype=np.bool_)
         pw = np.empty(n_k)
-        for hh in range(shifts.size):
-            h = shifts[hh]
-            cost, t1, t2 = _fit_at(codes, node, off, st, h, m, w, k_idx, uc, us, tau_codes, run, lut_w, lut_p, sig2,
-                                   lam1, lam2, bound1, bound2, clip2, rounds, min_seen * w_total, r, keep, has, pw)
-            if cost < best:
-                best = cost
-                best_h = h
-                b1 = t1
-                b2 = t2
+        best, best_h, b1, b2 = _best_fit(codes, node, off, st, shifts, shifts.size, m, w, k_idx, uc, us, tau_codes,
+                                         run, lut_w, lut_p, sig2, lam1, lam2, bound1, bound2, clip2, rounds,
+                                         min_seen * w_total, r, keep, has, pw)
         out_cost[ii] = best
         out_shift[ii] = best_h
         out_t[ii, 0] = b1
@@ -228,6 +242,7 @@ def _screen_kept(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes:
         keep = np.empty(n_k)
         has = np.empty(n_k, dtype=np.bool_)
         pw = np.empty(n_k)
+        hs = np.empty(n_h, dtype=shifts.dtype)
         for ii in range(ch * nodes.size // n_chunks, (ch + 1) * nodes.size // n_chunks):
             node = nodes[ii]
             off = offset[node]
@@ -333,19 +348,11 @@ def _screen_kept(codes: np.ndarray, offset: np.ndarray, step: np.ndarray, nodes:
                         best_g[i] = best_g[i - 1]
                         i -= 1
                     best_g[i] = gg
-            best = np.inf
-            best_h = -1
-            o1 = 0.0
-            o2 = 0.0
             for b in range(n_best):
-                h = shifts[best_g[b]] if not missing else shifts[(g0 + b) % n_h]
-                cb, f1, f2 = _fit_at(codes, node, off, st, h, m, w, k_idx, uc, us, no_tau, run, no_lut, no_lut, 0.0,
-                                     lam1, lam2, bound1, bound2, clip2, rounds, min_seen * w_total, r, keep, has, pw)
-                if cb < best:
-                    best = cb
-                    best_h = h
-                    o1 = f1
-                    o2 = f2
+                hs[b] = shifts[best_g[b]] if not missing else shifts[(g0 + b) % n_h]
+            best, best_h, o1, o2 = _best_fit(codes, node, off, st, hs, n_best, m, w, k_idx, uc, us, no_tau, run,
+                                             no_lut, no_lut, 0.0, lam1, lam2, bound1, bound2, clip2, rounds,
+                                             min_seen * w_total, r, keep, has, pw)
             out_cost[ii] = best
             out_shift[ii] = best_h
             out_t[ii, 0] = o1

@@ -863,10 +863,7 @@ def _refit(render_at: _Renderer, rays: np.ndarray, hf: tuple[Hypothesis, Fit], p
     """A hypothesis' orientation solved on its own render from its exact fit's (the EXIF focal length),
     and its nats there."""
     h, f = hf
-    start = _pose_of_fit(h, f, level)
-    az_grid, el_grid = _rendered_view(render_at, f.row, f.col, rays, start, 1.0, f.eye_offset_m)
-    o = solve_orientation(rays, az_grid, el_grid, start, prior)
-    return o, _nats_at(render_at, rays, f.row, f.col, o.pose, o.focal_scale, f.eye_offset_m)
+    return _solved_nats(render_at, rays, f.row, f.col, _pose_of_fit(h, f, level), 1.0, f.eye_offset_m, prior)
 
 
 def _finite_or_lowest(nats: float) -> float:
