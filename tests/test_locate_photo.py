@@ -23,6 +23,7 @@ from scipy.optimize import least_squares
 
 from appliance.estimator.exact import Fit
 from appliance.estimator.orientation import Hypothesis, relative_on_lattice, screen
+from appliance.estimator.raycast import Terrain, edge_relief, render
 from appliance.locating import photo_pose as pp
 from appliance.terrain.dem import demo_dem_path, load_dem
 from appliance.vision.camera import (
@@ -35,7 +36,7 @@ from appliance.vision.camera import (
 from appliance.vision.intrinsics import CameraIntrinsics
 from appliance.vision.panorama import Projection
 from appliance.vision.synth import dem_skyline_fn, render_panorama, render_photo
-from tests.conftest import one_line_error
+from tests.conftest import data_file, one_line_error
 
 REPO = Path(__file__).resolve().parents[1]
 VIPER = [sys.executable, "-m", "appliance.cli.main"]
@@ -512,3 +513,75 @@ def test_places_each_clear_of_the_answer_can_still_together_rival_it() -> None:
     # one place within ln 20 is a rival on its own; places far behind add nothing
     assert pp.RefitRivals(0, 0, (), pp.odds_against([2.9])).crowded
     assert pp.odds_against([4.0, 4.0, 50.0, math.inf]) == pytest.approx(two)
+
+
+# ----------------------------------------------------------------------------- where the map ends
+
+
+def _plateau_terrain(heights_m: np.ndarray, reach_m: float) -> Terrain:
+    return Terrain(heights_m, 0, 0, np.zeros(heights_m.size), 0.0, 1e12, reach_m)
+
+
+def test_the_maps_edge_close_under_the_horizon_is_open_and_far_under_it_is_not() -> None:
+    """A map whose ground rises to its east edge: terrain just beyond would stand in the skyline
+    there (relief near zero).  Westwards a ridge forms the horizon and the ground falls 60 m behind
+    it before the edge: only a rise of that much beyond would show."""
+    cell = 10.0
+    x = np.arange(101) * cell  # the eye at column 50, 500 m from either edge
+    east = np.where(x > 500.0, (x - 500.0) * 0.1, 0.0)  # a slope of 10 %, up to the edge
+    west = np.where(x < 500.0, np.interp(x, [0.0, 200.0, 300.0, 500.0], [40.0, 100.0, 0.0, 0.0]), 0.0)
+    heights = np.tile(east + west, (101, 1))
+    terrain = _plateau_terrain(heights, 1e5)
+    az = np.array([90.0, 270.0])
+    el, _, ground = render(terrain, cell, cell, 50.0, 50.0, az, terrain.distances(cell), 1.5)
+    relief = edge_relief(terrain, cell, cell, 50.0, 50.0, az, el, ground + 1.5)
+    assert relief[0] == pytest.approx(0.0, abs=2.0)  # the edge (50 m up, 500 m away) is the horizon
+    # westwards: the ridge top (100 m, 300 m away) sets the sightline; the edge's 40 m lie under it by
+    # 500 m x (98.5 / 300) - 38.5 = 125.7 m (curvature left out: R is huge here)
+    assert relief[1] == pytest.approx(500.0 * 98.5 / 300.0 - 38.5, abs=3.0)
+    short = _plateau_terrain(heights, 300.0)  # the render's reach ends on the map: nothing beyond matters
+    assert np.all(np.isinf(edge_relief(short, cell, cell, 50.0, 50.0, az, el, ground + 1.5)))
+
+
+def test_a_ray_above_the_render_where_the_map_ends_costs_at_most_the_unseen_terrains_spread() -> None:
+    rng = np.random.default_rng(5)
+    fits = rng.normal(0.0, 0.05, 400)
+    above = fits.copy()
+    above[:40] = 1.5  # a ridge beyond the map's edge, 1.5 deg above the render
+    below = fits.copy()
+    below[:40] = -1.5  # the render's terrain, 1.5 deg above the photo's skyline: evidence against the place
+    open_sky = np.zeros(400, dtype=bool)
+    open_sky[:40] = True
+    plain = pp.profiled_cauchy_nats(fits)
+    # above the render where the map ends: each such ray costs log OPEN_SPAN_DEG at most ...
+    assert pp.profiled_cauchy_nats(above, open_sky) >= (360 * plain - 40 * math.log(pp.OPEN_SPAN_DEG)) / 400 - 0.05
+    assert pp.profiled_cauchy_nats(above, open_sky) > pp.profiled_cauchy_nats(above) + 0.1
+    # ... never less: a view that runs off the map does not fit better than one the map explains
+    assert pp.profiled_cauchy_nats(above, open_sky) < plain
+    # and below the render the map's terrain is there: no relief
+    assert pp.profiled_cauchy_nats(below, open_sky) == pp.profiled_cauchy_nats(below)
+    # the fits' residuals: those above the render held where the Cauchy density reaches 1 / OPEN_SPAN_DEG
+    cap = pp.open_cap_deg(pp.LSQ_SCALE_DEG)
+    s = pp.LSQ_SCALE_DEG
+    assert 1.0 / (math.pi * s * (1.0 + (cap / s) ** 2)) == pytest.approx(1.0 / pp.OPEN_SPAN_DEG)
+    assert np.array_equal(pp.one_sided(above, open_sky), np.where(open_sky, np.minimum(above, cap), above))
+
+
+@pytest.mark.parametrize("photo", ["2019-05-24_12-00_ori.jpg", "2022-07-08.jpg"])
+def test_finse_photo_located_without_its_orientation(tmp_path: Path, photo: str) -> None:
+    """The real Finse photos, the lens fitted but no orientation, a 600 m circle whose centre lies 250 m
+    from the camera.  Their rightmost columns see a ridge beyond the DSM's east edge: before the map's
+    edge was taken into account the locator placed them 41 and 48 m off, the yaw 1.6-1.8 deg low."""
+    data_file("photo_pose_dem/finse/time_lapse_finse_DSM_midfilled.tif")
+    from bench import photo_finse
+    from tests.test_vision_photo import _finse_camera
+
+    camera, pose_file = _finse_camera(tmp_path, photo)
+    fitted = json.loads(pose_file.read_text())
+    cmd = photo_finse.locate_command(Path(VIPER[0]), photo, camera, photo_finse.near_centre(60.0), tmp_path / "cache")
+    out = subprocess.run([*VIPER, *cmd[1:]], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    rec = json.loads(out.stdout)
+    assert rec["truth"]["error_m"] <= 15.0 and rec["status"] == "ok" and rec["truth"]["in_region"]
+    for key in ("yaw_deg", "pitch_deg", "roll_deg"):
+        assert abs((rec["orientation"][key] - fitted[key] + 180.0) % 360.0 - 180.0) < 0.3, key

@@ -296,3 +296,65 @@ def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, g
     tan = np.where(take, tan_o, tan)
     far = np.where(take, far_o, far)
     return np.degrees(np.arctan(tan)), far, ground
+
+
+@numba.njit(cache=True, nogil=True, fastmath=FAST_FINITE)
+def _edge_tangents(Z: np.ndarray, dx_m: float, dy_m: float, row: float, col: float, eye_m: float,
+                   grid_azimuth_rad: np.ndarray, r_eff_m: float, reach_m: float, tan_out: np.ndarray,
+                   dist_out: np.ndarray) -> None:
+    """Along each grid azimuth from fractional (row, col): the distance of the map's last height
+    before the ray leaves it (its array, or the nodata beyond its footprint), and that height's
+    tangent seen from the eye, curvature included.  NaN where the ray reaches ``reach_m`` on the map."""
+    n_rows, n_cols = Z.shape
+    inv2r = 0.5 / r_eff_m
+    back = min(dx_m, dy_m)
+    for j in range(grid_azimuth_rad.size):
+        a = grid_azimuth_rad[j]
+        dr = -math.cos(a) / dy_m
+        dc = math.sin(a) / dx_m
+        d = reach_m
+        if dr > 1e-12:
+            d = min(d, (n_rows - 1 - row) / dr)
+        elif dr < -1e-12:
+            d = min(d, -row / dr)
+        if dc > 1e-12:
+            d = min(d, (n_cols - 1 - col) / dc)
+        elif dc < -1e-12:
+            d = min(d, -col / dc)
+        tan_out[j] = np.nan
+        dist_out[j] = np.nan
+        if d >= reach_m:
+            continue
+        while d > back:
+            r = row + d * dr
+            c = col + d * dc
+            r0 = max(min(int(r), n_rows - 2), 0)
+            c0 = max(min(int(c), n_cols - 2), 0)
+            fr = r - r0
+            fc = c - c0
+            z = ((Z[r0, c0] * (1.0 - fc) + Z[r0, c0 + 1] * fc) * (1.0 - fr)
+                 + (Z[r0 + 1, c0] * (1.0 - fc) + Z[r0 + 1, c0 + 1] * fc) * fr)
+            if z == z:
+                tan_out[j] = (z - eye_m) / d - d * inv2r
+                dist_out[j] = d
+                break
+            d -= back
+
+
+def edge_relief(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, grid_azimuth_deg: np.ndarray,
+                elevation_deg: np.ndarray, eye_m: float) -> np.ndarray:
+    """Per grid azimuth, how far (m) the ground at the map's edge lies under the sightline to the
+    rendered horizon ``elevation_deg`` from an eye at ``eye_m`` (the map's datum): terrain beyond the
+    edge that rose this much would stand in the skyline the render cannot show.  Inf where the ray
+    reaches the render's reach on the map, or meets no terrain."""
+    grid = terrain.outer if terrain.outer is not None else terrain
+    ratio = terrain.outer_ratio if terrain.outer is not None else 1.0
+    tr, tc = row + terrain.row0, col + terrain.col0
+    if terrain.outer is not None:
+        tr, tc = terrain.outer_rc(tr, tc)
+    tan = np.empty(grid_azimuth_deg.size)
+    dist = np.empty(grid_azimuth_deg.size)
+    _edge_tangents(grid.heights64, dx_m * ratio, dy_m * ratio, tr, tc, eye_m, np.radians(grid_azimuth_deg),
+                   grid.r_eff_m, grid.reach_m, tan, dist)
+    relief = dist * (np.tan(np.radians(elevation_deg)) - tan)
+    return np.where(np.isfinite(relief), relief, np.inf)

@@ -76,7 +76,7 @@ from appliance.estimator.orientation import (
     same_hypothesis,
     screen,
 )
-from appliance.estimator.raycast import render
+from appliance.estimator.raycast import edge_relief, render
 from appliance.estimator.refinement import start_on_threads
 from appliance.locating.position import Position, locate
 from appliance.locating.search_grid import skyline_grid
@@ -169,6 +169,17 @@ PHOTO_FITTED_PARAMETERS = confidence.FITTED_PARAMETERS + 3
 #: the truth's squared Mahalanobis distance under the unscaled covariance had its 95th percentile at
 #: 27 against chi-square's 5.99 (the truth inside the 95 % ellipse for 62 % of the right answers).
 PHOTO_COVARIANCE_SCALE = 4.5
+
+#: Terrain beyond the map's edge that rose this much (m) above the map's last height along a ray, a
+#: hill or a moraine, would stand in the skyline there.  Where the map ends this close under the
+#: rendered horizon, the photo's skyline may stand above the render and only its part below it
+#: counts in full (:func:`one_sided`): a ridge past the edge is not evidence against the place.
+OPEN_RELIEF_M = 50.0
+
+#: The span of elevations (deg) over which such unseen terrain may lift the skyline, all alike: above
+#: the render there the photo's skyline is never less likely than 1 / OPEN_SPAN_DEG per degree.  Not
+#: more likely either: a place whose view runs off the map is not a place that fits.
+OPEN_SPAN_DEG = 2.0
 
 
 @dataclass(frozen=True)
@@ -279,12 +290,37 @@ class _Renderer:
         self.dist = self.terrain.distances(min(grid.dx_m, grid.dy_m))
 
     def __call__(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0) -> np.ndarray:
+        return self.seen(row, col, azimuth_deg, eye_offset_m, edges=False)[0]
+
+    def seen(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0,
+             edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """The render at the true azimuths ``azimuth_deg`` and, per azimuth, whether the map ends close
+        under its horizon (within OPEN_RELIEF_M; all False without ``edges``)."""
         node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
             max(int(round(col)), 0), self.grid.n_cols - 1)
-        gamma = float(self.grid.convergence_deg[node])
-        el, _, _ = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, azimuth_deg - gamma, self.dist,
-                          self.height_m + eye_offset_m)
-        return el
+        grid_az = azimuth_deg - float(self.grid.convergence_deg[node])
+        eye = self.height_m + eye_offset_m
+        el, _, ground = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, self.dist, eye)
+        if not edges or not math.isfinite(ground):
+            return el, np.zeros(el.shape, dtype=bool)
+        relief = edge_relief(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, el, ground + eye)
+        return el, relief < OPEN_RELIEF_M
+
+
+def open_cap_deg(scale_deg: float) -> float:
+    """The residual at which a Cauchy density of scale ``scale_deg`` falls to 1 / OPEN_SPAN_DEG per degree."""
+    return scale_deg * math.sqrt(max(OPEN_SPAN_DEG / (math.pi * scale_deg) - 1.0, 0.0))
+
+
+#: The least-squares fits' Cauchy scale (deg): their residuals in FIT_SCALE_DEG, their loss's f_scale 3.
+LSQ_SCALE_DEG = 3.0 * FIT_SCALE_DEG
+
+
+def one_sided(residual_deg: np.ndarray, open_sky: np.ndarray, scale_deg: float = LSQ_SCALE_DEG) -> np.ndarray:
+    """Residuals (photo minus render, deg) for a Cauchy fit of scale ``scale_deg``, those above the
+    render held at :func:`open_cap_deg` where the map ends close under the rendered horizon
+    (``open_sky``): terrain beyond it may stand there, at any elevation over OPEN_SPAN_DEG."""
+    return np.where(open_sky, np.minimum(residual_deg, open_cap_deg(scale_deg)), residual_deg)
 
 
 #: The optimiser the orientation fits take their least squares from: its package imports all of scipy.optimize
@@ -318,13 +354,16 @@ def _fit_rays(view: PhotoView, count: int = FIT_COLUMNS) -> np.ndarray:
 
 
 def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el_deg: np.ndarray,
-                      start: CameraPose, prior: OrientationPrior, start_scale: float = 1.0) -> OrientationFit:
+                      start: CameraPose, prior: OrientationPrior, start_scale: float = 1.0,
+                      open_sky: np.ndarray | None = None) -> OrientationFit:
     """Yaw, pitch, roll and the focal length's correction that carry ``rays`` onto the rendered
     skyline (true azimuths ``rendered_az_deg``, increasing, unwrapped; NaN where no terrain), from
-    ``start``; robust (Cauchy), with the prior's tolerances as Gaussian priors."""
+    ``start``; robust (Cauchy), with the prior's tolerances as Gaussian priors.  ``open_sky``: per
+    rendered azimuth, where the map ends close under the horizon (:func:`one_sided`)."""
     az0 = float(rendered_az_deg[0])
     ok_render = np.isfinite(rendered_el_deg)
     fill = np.where(ok_render, rendered_el_deg, -90.0)
+    open_share = np.zeros(rendered_el_deg.shape) if open_sky is None else np.asarray(open_sky, dtype=np.float64)
     use_scale = prior.focal_sigma > 0.0
 
     def pose_of(p: np.ndarray) -> tuple[CameraPose, float]:
@@ -335,7 +374,7 @@ def solve_orientation(rays: np.ndarray, rendered_az_deg: np.ndarray, rendered_el
         az, el = directions(rays, pose, scale)
         rel = np.mod(az - az0, 360.0) + az0
         pred = np.interp(rel, rendered_az_deg, fill, left=-90.0, right=-90.0)
-        return np.asarray(el - pred)
+        return one_sided(np.asarray(el - pred), np.interp(rel, rendered_az_deg, open_share) > 0.5)
 
     def residuals(p: np.ndarray) -> np.ndarray:
         res = np.clip(residual_deg(p), -30.0, 30.0) / FIT_SCALE_DEG
@@ -379,14 +418,15 @@ def _bounds(prior: OrientationPrior) -> tuple[float, float, float]:
 
 
 def _rendered_view(render_at: _Renderer, row: float, col: float, rays: np.ndarray, pose: CameraPose,
-                   scale: float, eye_offset_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """The rendered skyline over the photo's view at ``pose``, with a margin for the fit to move in."""
+                   scale: float, eye_offset_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rendered skyline over the photo's view at ``pose``, with a margin for the fit to move in,
+    and where the map ends close under it (:meth:`_Renderer.seen`)."""
     az, _ = directions(rays, pose, scale)
     a0 = float(az[0])
     rel = np.mod(az - a0 + 180.0, 360.0) - 180.0
     lo, hi = float(rel.min()) - RENDER_MARGIN_DEG, float(rel.max()) + RENDER_MARGIN_DEG
     grid_az = a0 + np.arange(lo, hi + RENDER_STEP_DEG, RENDER_STEP_DEG)
-    return grid_az, render_at(row, col, np.mod(grid_az, 360.0), eye_offset_m)
+    return grid_az, *render_at.seen(row, col, np.mod(grid_az, 360.0), eye_offset_m)
 
 
 def refine_jointly(render_at: _Renderer, rays: np.ndarray, row: float, col: float, eye_offset_m: float,
@@ -430,7 +470,8 @@ def _joint_residual_deg(render_at: _Renderer, rays: np.ndarray, p: np.ndarray, e
     """Each ray's elevation through the orientation of ``p`` (row, col, yaw, pitch, roll, log focal
     scale) minus the skyline rendered from (row, col) at the ray's own azimuth; NaN where no terrain."""
     az, el = directions(rays, CameraPose(float(p[2]), float(p[3]), float(p[4])), float(math.exp(p[5])))
-    return np.asarray(el - render_at(float(p[0]), float(p[1]), az, eye_offset_m))
+    rendered, open_sky = render_at.seen(float(p[0]), float(p[1]), az, eye_offset_m)
+    return one_sided(np.asarray(el - rendered), open_sky)
 
 
 def world_skyline(view: PhotoView, pose: CameraPose, scale: float, step_deg: float = SKYLINE_STEP_DEG) -> Skyline:
@@ -820,19 +861,25 @@ def _rivals(pos: Position, fitted: list[tuple[Hypothesis, Fit]], grid: SkylineGr
     return count
 
 
-def profiled_cauchy_nats(residual_deg: np.ndarray) -> float:
+def profiled_cauchy_nats(residual_deg: np.ndarray, open_sky: np.ndarray | None = None) -> float:
     """The mean log-likelihood per ray (nats) of residuals (deg; NaN where no terrain, counted as
     NO_TERRAIN_RESIDUAL_DEG) under a Cauchy density, its scale at its most likely within
     PROFILE_SCALE_DEG.  Cauchy is the orientation fits' own loss: a near object or a cloud taken for
-    terrain costs the log of its residual, not its square, so it weighs alike at every place."""
-    e = np.abs(np.nan_to_num(np.asarray(residual_deg, dtype=np.float64), nan=NO_TERRAIN_RESIDUAL_DEG))
-    e = np.minimum(e, NO_TERRAIN_RESIDUAL_DEG)
+    terrain costs the log of its residual, not its square, so it weighs alike at every place.  Where
+    ``open_sky`` (the map ends close under the rendered horizon), a ray above the render costs at most
+    log OPEN_SPAN_DEG: unseen terrain beyond the edge may hold it."""
+    r = np.nan_to_num(np.asarray(residual_deg, dtype=np.float64), nan=NO_TERRAIN_RESIDUAL_DEG)
+    e = np.minimum(np.abs(r), NO_TERRAIN_RESIDUAL_DEG)
     if e.size == 0:
         return -math.inf
+    above_open = None if open_sky is None else np.asarray(open_sky, dtype=bool) & (r > 0.0)
 
     def minus_mean_ll(log_s: float) -> float:
         s = math.exp(log_s)
-        return float(np.mean(np.log(math.pi * s * (1.0 + (e / s) ** 2))))
+        cost = np.log(math.pi * s * (1.0 + (e / s) ** 2))
+        if above_open is not None:
+            cost = np.where(above_open, np.minimum(cost, math.log(OPEN_SPAN_DEG)), cost)
+        return float(np.mean(cost))
 
     from scipy.optimize import minimize_scalar  # here, not at import: see start_loading_optimizer
 
@@ -846,15 +893,16 @@ def _nats_at(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pos
     """:func:`profiled_cauchy_nats` of the photo's rays seen with ``pose`` and focal ``scale`` against the
     render at (``row``, ``col``)."""
     az, el = directions(rays, pose, scale)
-    return profiled_cauchy_nats(el - render_at(row, col, np.mod(az, 360.0), eye_offset_m))
+    rendered, open_sky = render_at.seen(row, col, np.mod(az, 360.0), eye_offset_m)
+    return profiled_cauchy_nats(el - rendered, open_sky)
 
 
 def _solved_nats(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pose: CameraPose, scale: float,
                  eye_offset_m: float, prior: OrientationPrior) -> tuple[OrientationFit, float]:
     """The orientation solved at (``row``, ``col``) from ``pose`` and ``scale`` on its render, and the
     rays' :func:`profiled_cauchy_nats` with it."""
-    az_grid, el_grid = _rendered_view(render_at, row, col, rays, pose, scale, eye_offset_m)
-    o = solve_orientation(rays, az_grid, el_grid, pose, prior, scale)
+    az_grid, el_grid, open_sky = _rendered_view(render_at, row, col, rays, pose, scale, eye_offset_m)
+    o = solve_orientation(rays, az_grid, el_grid, pose, prior, scale, open_sky)
     return o, _nats_at(render_at, rays, row, col, o.pose, o.focal_scale, eye_offset_m)
 
 
