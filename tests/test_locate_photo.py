@@ -21,6 +21,7 @@ import pytest
 from PIL import ExifTags, Image
 from scipy.optimize import least_squares
 
+from appliance.estimator import SkylineGrid
 from appliance.estimator.exact import Fit
 from appliance.estimator.orientation import Hypothesis, relative_on_lattice, screen
 from appliance.estimator.raycast import Terrain, edge_relief, render
@@ -31,6 +32,7 @@ from appliance.vision.camera import (
     directions_to_enu,
     directions_to_pixels,
     enu_to_directions,
+    pixels_to_rays,
     world_from_camera,
 )
 from appliance.vision.intrinsics import CameraIntrinsics
@@ -585,3 +587,26 @@ def test_finse_photo_located_without_its_orientation(tmp_path: Path, photo: str)
     assert rec["truth"]["error_m"] <= 15.0 and rec["status"] == "ok" and rec["truth"]["in_region"]
     for key in ("yaw_deg", "pitch_deg", "roll_deg"):
         assert abs((rec["orientation"][key] - fitted[key] + 180.0) % 360.0 - 180.0) < 0.3, key
+
+
+def test_a_skyline_formed_by_a_near_bank_is_counted_as_a_near_slope() -> None:
+    """A camera 30 m west of a bank whose top lies 60 m east, with far hills to the west: looking east
+    its skyline is the bank's top, within ten cells (100 m); looking west it is the hills, 1 km off."""
+    cell = 10.0
+    x = np.arange(201) * cell  # the camera at column 100 (1000 m)
+    z = np.where(x > 1030.0, np.minimum(x - 1030.0, 30.0), 0.0)  # a 30 m bank from 1030 to 1060 m
+    z = z + np.where(x < 300.0, 200.0 - x / 3.0, 0.0)  # hills up to 200 m high, 700-1000 m west
+    heights = np.tile(z, (201, 1))
+    terrain = Terrain(heights, 0, 0, np.zeros(heights.size), 1.5, 1e12, 1e5)
+    n = heights.size
+    grid = SkylineGrid(np.zeros((n, 360), np.uint8), np.zeros(n, np.float32), np.ones(n, np.float32),
+                       n_rows=201, n_cols=201, dx_m=cell, dy_m=cell, terrain=terrain)
+    render_at = pp._Renderer(grid, 1.5)
+    intr = CameraIntrinsics(640, 360, 550.0, 550.0, 320.0, 180.0)
+    rays = pixels_to_rays(intr, np.linspace(0.0, 639.0, 101), np.full(101, 150.0))
+    east = pp.near_slope_share(render_at, rays, 100.0, 100.0, CameraPose(90.0, 0.0, 0.0), 1.0, 0.0)
+    west = pp.near_slope_share(render_at, rays, 100.0, 100.0, CameraPose(270.0, 0.0, 0.0), 1.0, 0.0)
+    assert east == 1.0 and west == 0.0
+    # looking north-east (azimuths 15-75 deg): the bank's top lies within 100 m east of azimuth 37 deg
+    half = pp.near_slope_share(render_at, rays, 100.0, 100.0, CameraPose(45.0, 0.0, 0.0), 1.0, 0.0)
+    assert 0.3 < half < 0.7

@@ -48,7 +48,15 @@ learned at the answer, which the hypotheses' cruder fits do not reach.  A hypoth
 inside the answer's own ellipse that fits clearly better than the answer also makes it
 ambiguous: the answer is then not where the photo fits best.  So do places elsewhere that the
 screening ranks above the answer's and that no hypothesis stood for (:func:`_screened_better`):
-those were never weighed on renders.
+those were never weighed on renders.  And so does a skyline formed, over more than a third of the
+view, by terrain within NEAR_SLOPE_CELLS of the answer (:func:`near_slope_share`): such a near
+slope's skyline moves by tenths of a degree with its shape inside a cell, which the map does not
+hold, so the fits that compare places cannot be trusted there.
+
+Where the map ends close under a rendered horizon (the ray leaves it, or reaches its nodata, with
+the ground there less than OPEN_RELIEF_M under the sightline), terrain beyond it may stand in the
+photo's skyline: a ray above the render there costs no more than unseen terrain spread over
+OPEN_SPAN_DEG would (:func:`one_sided`, :func:`profiled_cauchy_nats`).
 """
 
 from __future__ import annotations
@@ -181,6 +189,13 @@ OPEN_RELIEF_M = 50.0
 #: more likely either: a place whose view runs off the map is not a place that fits.
 OPEN_SPAN_DEG = 2.0
 
+#: A skyline formed within this many cells of the camera is a near slope: it moves by tenths of a
+#: degree with the slope's shape inside a cell, which the map resolves only at its nodes.  Where more
+#: than NEAR_SLOPE_SHARE of the photo's skyline is such terrain at the answer, the fit is decided by
+#: what the map cannot resolve, and the answer is not vouched for.
+NEAR_SLOPE_CELLS = 10.0
+NEAR_SLOPE_SHARE = 1.0 / 3.0
+
 
 @dataclass(frozen=True)
 class OrientationPrior:
@@ -291,6 +306,15 @@ class _Renderer:
 
     def __call__(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0) -> np.ndarray:
         return self.seen(row, col, azimuth_deg, eye_offset_m, edges=False)[0]
+
+    def ranges(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0) -> np.ndarray:
+        """The range (m) of the rendered horizon at the true azimuths ``azimuth_deg``; NaN where no terrain."""
+        node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
+            max(int(round(col)), 0), self.grid.n_cols - 1)
+        grid_az = azimuth_deg - float(self.grid.convergence_deg[node])
+        _, far, _ = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, self.dist,
+                           self.height_m + eye_offset_m)
+        return far
 
     def seen(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0,
              edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -613,6 +637,11 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         notes.append(f"the estimate over the whole search area went {moved_m:.0f} m from here, to a place that fits "
                      "the photo worse with its own orientation solved there: the two weighings disagree, the answer "
                      "is not vouched for")
+    near = near_slope_share(render_at, fit_rays, res.row, res.col, pose, scale, eye)
+    if near > NEAR_SLOPE_SHARE:
+        notes.append(f"{near:.0%} of the photo's skyline is terrain within "
+                     f"{NEAR_SLOPE_CELLS * min(grid.dx_m, grid.dy_m):.0f} m of the answer: the map resolves such "
+                     "near slopes only at its nodes, too coarsely to vouch for the place")
     limit = _at_tolerance(pose, scale, prior)
     if limit:
         notes.append(f"the {limit} reached the tolerance given: the fit is forced there, the answer is not vouched for")
@@ -624,6 +653,16 @@ def locate_photo(db: SkylineDatabase, view: PhotoView, prior: OrientationPrior, 
         pos = replace(pos, estimate=replace(pos.result, ambiguous=True, notes=[*pos.result.notes, *notes]))
     pos = _widened_covariance(pos)
     return PhotoAnswer(pos, pose, view.intrinsics.fx * scale, sky, tuple(fits), rivals)
+
+
+def near_slope_share(render_at: _Renderer, rays: np.ndarray, row: float, col: float, pose: CameraPose, scale: float,
+                     eye_offset_m: float) -> float:
+    """The share of the rays whose rendered horizon at (``row``, ``col``), seen with ``pose`` and focal
+    ``scale``, lies within NEAR_SLOPE_CELLS cells."""
+    az, _ = directions(rays, pose, scale)
+    far = render_at.ranges(row, col, np.mod(az, 360.0), eye_offset_m)
+    near_m = NEAR_SLOPE_CELLS * min(render_at.grid.dx_m, render_at.grid.dy_m)
+    return float(np.mean(np.isfinite(far) & (far < near_m))) if far.size else 0.0
 
 
 def _widened_covariance(pos: Position) -> Position:
