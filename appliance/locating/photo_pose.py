@@ -309,26 +309,30 @@ class _Renderer:
 
     def ranges(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0) -> np.ndarray:
         """The range (m) of the rendered horizon at the true azimuths ``azimuth_deg``; NaN where no terrain."""
-        node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
-            max(int(round(col)), 0), self.grid.n_cols - 1)
-        grid_az = azimuth_deg - float(self.grid.convergence_deg[node])
-        _, far, _ = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, self.dist,
-                           self.height_m + eye_offset_m)
-        return far
+        return self._render(row, col, self._grid_azimuth(row, col, azimuth_deg), eye_offset_m)[1]
 
     def seen(self, row: float, col: float, azimuth_deg: np.ndarray, eye_offset_m: float = 0.0,
              edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The render at the true azimuths ``azimuth_deg`` and, per azimuth, whether the map ends close
         under its horizon (within OPEN_RELIEF_M; all False without ``edges``)."""
-        node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
-            max(int(round(col)), 0), self.grid.n_cols - 1)
-        grid_az = azimuth_deg - float(self.grid.convergence_deg[node])
-        eye = self.height_m + eye_offset_m
-        el, _, ground = render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, self.dist, eye)
+        grid_az = self._grid_azimuth(row, col, azimuth_deg)
+        el, _, ground = self._render(row, col, grid_az, eye_offset_m)
         if not edges or not math.isfinite(ground):
             return el, np.zeros(el.shape, dtype=bool)
-        relief = edge_relief(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, el, ground + eye)
+        relief = edge_relief(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_az, el,
+                             ground + self.height_m + eye_offset_m)
         return el, relief < OPEN_RELIEF_M
+
+    def _grid_azimuth(self, row: float, col: float, azimuth_deg: np.ndarray) -> np.ndarray:
+        """True azimuths as the grid's, by the convergence at the node nearest (``row``, ``col``)."""
+        node = min(max(int(round(row)), 0), self.grid.n_rows - 1) * self.grid.n_cols + min(
+            max(int(round(col)), 0), self.grid.n_cols - 1)
+        return azimuth_deg - float(self.grid.convergence_deg[node])
+
+    def _render(self, row: float, col: float, grid_azimuth_deg: np.ndarray,
+                eye_offset_m: float) -> tuple[np.ndarray, np.ndarray, float]:
+        return render(self.terrain, self.grid.dx_m, self.grid.dy_m, row, col, grid_azimuth_deg, self.dist,
+                      self.height_m + eye_offset_m)
 
 
 def open_cap_deg(scale_deg: float) -> float:
