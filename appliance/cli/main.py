@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import atexit
+import gc
 import importlib
 import re
 import sys
@@ -126,6 +128,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"viper {command}: error: {printable(str(error))}", file=sys.stderr)
         return error.exit_code
     args = parser.parse_args(argv)
+    if from_shell:
+        # the process is this one command: what its imports made lives to its end, and the objects alive at its
+        # end are left to the exit.  Frozen, they are no longer traversed by the cyclic collector: neither by
+        # the collections of the command's own garbage nor by the interpreter's teardown (0.25 s after
+        # `viper locate`, about a tenth of the command)
+        gc.freeze()
+        atexit.register(gc.freeze)
     func = getattr(args, "func", None)
     if func is None:
         parser.print_help(sys.stderr)
