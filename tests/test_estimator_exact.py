@@ -86,6 +86,37 @@ def test_parallax_jacobian_predicts_small_moves(valley_db):
     assert np.corrcoef((s_up - s0) / 0.5, J[:, 3])[0, 1] > 0.95
 
 
+def test_a_render_shared_among_threads_is_the_march_of_one(valley_db):
+    """A render's azimuths are marched on numba's threads together (raycast.march_shared): each ray by the
+    same kernel, so the skyline and the ranges are those of one march over all of them, bit for bit, on
+    any count of azimuths (split in unequal parts too) and at any fractional place."""
+    import numba
+
+    from appliance.estimator import raycast
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread: nothing is shared")
+    _, db = valley_db
+    g = skyline_grid(db)
+    t = g.terrain
+    dist = t.distances(min(g.dx_m, g.dy_m))
+    rng = np.random.default_rng(5)
+    threads = numba.get_num_threads()
+    for n in (raycast.SHARED_MIN_AZIMUTHS * 2, 601, 1681):
+        az = np.sort(rng.uniform(0.0, 360.0, n))
+        row, col = rng.uniform(2.0, g.n_rows - 3.0), rng.uniform(2.0, g.n_cols - 3.0)
+        numba.set_num_threads(2)
+        try:
+            shared = render(t, g.dx_m, g.dy_m, row, col, az, dist, 1.5)
+            numba.set_num_threads(1)
+            one = render(t, g.dx_m, g.dy_m, row, col, az, dist, 1.5)
+        finally:
+            numba.set_num_threads(threads)
+        assert np.isfinite(one[0]).sum() > n // 2
+        assert shared[0].tobytes() == one[0].tobytes() and shared[1].tobytes() == one[1].tobytes()
+    assert raycast._march_pools  # the azimuths were shared
+
+
 def test_a_valley_between_nodes_is_located_exactly(valley_db):
     dem, db = valley_db
     lat, lon = VALLEY

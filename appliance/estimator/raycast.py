@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -191,6 +193,39 @@ def march(
             dist_out[j] = bd
 
 
+#: A render's azimuths are shared among numba's threads when each thread gets at least this many of them.
+SHARED_MIN_AZIMUTHS = 64
+_march_pools: dict[int, ThreadPoolExecutor] = {}
+_march_pool_lock = threading.Lock()
+
+
+def march_shared(Z: np.ndarray, dx_m: float, dy_m: float, row: float, col: float, eye_m: float,
+                 grid_azimuth_rad: np.ndarray, dist_m: np.ndarray, r_eff_m: float, block_max: np.ndarray,
+                 tan_out: np.ndarray, dist_out: np.ndarray) -> None:
+    """:func:`march` with the azimuths shared among as many threads as the compiled kernels may use (numba's
+    thread count: the caller's own and the others of a pool; on a thread that runs the kernels with one, as
+    the looks' threads do, all on the caller's).  Each azimuth's ray is marched on its own by the same
+    kernel, so the values are those of one march over all of them."""
+    n = grid_azimuth_rad.size
+    parts = min(numba.get_num_threads(), n // SHARED_MIN_AZIMUTHS)
+    if parts <= 1:
+        march(Z, dx_m, dy_m, row, col, eye_m, grid_azimuth_rad, dist_m, r_eff_m, block_max, BLOCK_CELLS, tan_out,
+              dist_out)
+        return
+    with _march_pool_lock:
+        pool = _march_pools.get(parts - 1)
+        if pool is None:
+            pool = _march_pools[parts - 1] = ThreadPoolExecutor(parts - 1, thread_name_prefix="viper-march",
+                                                                initializer=numba.set_num_threads, initargs=(1,))
+    edges = [n * i // parts for i in range(parts + 1)]
+    others = [pool.submit(march, Z, dx_m, dy_m, row, col, eye_m, grid_azimuth_rad[a:b], dist_m, r_eff_m, block_max,
+                          BLOCK_CELLS, tan_out[a:b], dist_out[a:b]) for a, b in zip(edges[1:-1], edges[2:])]
+    march(Z, dx_m, dy_m, row, col, eye_m, grid_azimuth_rad[: edges[1]], dist_m, r_eff_m, block_max, BLOCK_CELLS,
+          tan_out[: edges[1]], dist_out[: edges[1]])
+    for f in others:
+        f.result()
+
+
 def bilinear(Z: np.ndarray, row: float, col: float) -> float:
     """Height at fractional (row, col) of Z (NaN outside or next to nodata)."""
     n_rows, n_cols = Z.shape
@@ -280,18 +315,18 @@ def render(terrain: Terrain, dx_m: float, dy_m: float, row: float, col: float, g
     az = np.radians(grid_azimuth_deg)
     outer = terrain.outer
     if outer is None:
-        march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist, terrain.r_eff_m, terrain.block_max, BLOCK_CELLS,
-              tan, far)
+        march_shared(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist, terrain.r_eff_m, terrain.block_max, tan,
+                     far)
         return np.degrees(np.arctan(tan)), far, ground
-    march(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
-          terrain.block_max, BLOCK_CELLS, tan, far)
+    march_shared(Z, dx_m, dy_m, tr, tc, ground + height_m, az, dist[dist <= terrain.near_reach_m], terrain.r_eff_m,
+                 terrain.block_max, tan, far)
     ratio = terrain.outer_ratio
     outer_cell = min(dx_m, dy_m) * ratio
     beyond = outer.look_distances(outer_cell) if outer_looks else outer.distances(outer_cell)
     tan_o = np.empty(az.size)
     far_o = np.empty(az.size)
-    march(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
-          beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, BLOCK_CELLS, tan_o, far_o)
+    march_shared(outer.heights64, dx_m * ratio, dy_m * ratio, *terrain.outer_rc(tr, tc), ground + height_m, az,
+                 beyond[beyond > terrain.near_reach_m], outer.r_eff_m, outer.block_max, tan_o, far_o)
     take = np.isfinite(tan_o) & ~(tan >= tan_o)
     tan = np.where(take, tan_o, tan)
     far = np.where(take, far_o, far)
