@@ -400,7 +400,7 @@ def _snow_rows(
     the sky's to the ground's within three rows of the path (the brightness of snow under a pale sky
     departs from the sky's a few rows off the boundary, or not at all), and judged there, with the
     colour step onto the snow as an edge beside the brightness drop and the boundary's score; a line
-    with a colour step onto snow above it, or snow-coloured pixels just above it, is left out.  The
+    with snow-coloured pixels just above it is left out.  The
     path takes a brightness drop as an edge only under sky-coloured pixels (the top of a rock in the
     snow has snow above it), and the snow's colour below the line vouches for the ground where the
     learnt models take shaded snow for sky (:func:`_snow_coloured_below`).
