@@ -21,7 +21,14 @@ from appliance.vision.panorama import Panorama, Projection
 from appliance.vision.posed_stitch import PosedImage, stitch_posed
 from appliance.vision.skyline_detect import DetectionConfig, detect_columns
 from appliance.vision.synth import analytic_skyline_fn
-from appliance.vision.temporal import MOVING_SHIFT_PX, moving_around, moving_pixels
+from appliance.vision.temporal import (
+    MOVING_SHIFT_PX,
+    cloud_below,
+    frame_disagreement,
+    motion_edge,
+    moving_around,
+    moving_pixels,
+)
 
 CAMERA = CameraIntrinsics.from_fov(640, 480, 60.0)
 FN = analytic_skyline_fn(seed=3, mean_deg=2.0, amplitude_deg=2.0)
@@ -137,6 +144,48 @@ def test_moving_around_a_line() -> None:
     above, below = moving_around(moving, np.array([np.nan, np.nan, np.nan]))
     assert not above.any() and not below.any()
 
+
+
+def _smooth_heap(shift_px: float, seed: int) -> np.ndarray:
+    """A 120x400 luminance: a pale sky (0.8) with a smooth white heap (+0.15, Gaussian, 40 px across
+    and 20 px high) centred at column 200 + ``shift_px``, and sensor noise (0.003)."""
+    rr, cc = np.mgrid[0:120, 0:400].astype(np.float64)
+    heap = 0.15 * np.exp(-0.5 * ((cc - 200.0 - shift_px) / 40.0) ** 2 - 0.5 * ((rr - 60.0) / 20.0) ** 2)
+    noise = np.random.default_rng(seed).normal(0.0, 0.003, rr.shape)
+    return (0.8 + heap + noise).astype(np.float32)
+
+
+def test_a_smooth_cloud_that_drifted_reads_as_moving_and_a_still_one_does_not() -> None:
+    # the heap's slope (at most 0.0023 per pixel) is far under what a shift can be measured on against
+    # the noise; drifted by 10 px its flanks change by about 0.02, five times the noise
+    both = np.ones((120, 400), bool)
+    drifted = frame_disagreement([(_smooth_heap(0.0, 1), both), (_smooth_heap(10.0, 2), both)])
+    still = frame_disagreement([(_smooth_heap(0.0, 1), both), (_smooth_heap(0.0, 2), both)])
+    flanks = np.zeros((120, 400), bool)
+    flanks[50:71, 155:176] = True
+    flanks[50:71, 235:256] = True
+    assert moving_pixels(drifted)[flanks].mean() > 0.8
+    # the plain sky beside the heap, and the heap that did not drift, do not move
+    assert not moving_pixels(drifted)[:, :80].any() and not moving_pixels(drifted)[:, 330:].any()
+    assert moving_pixels(still).mean() < 0.001
+
+
+def test_cloud_below_and_the_cloud_s_lower_edge() -> None:
+    moving = np.zeros((30, 3), bool)
+    moving[10:15, 0] = True  # a cloud in rows 10-14 over still ground
+    moving[[20, 22], 1] = True  # two moving pixels in rows 20 and 22
+    moving[25, 2] = True  # one alone
+    below = cloud_below(moving)
+    # at least two moving pixels 2-14 rows below: down to row 11 of column 0 (row 12 has only row 14)
+    assert below[:12, 0].all() and not below[12:, 0].any()
+    assert below[8:19, 1].all() and not below[:8, 1].any() and not below[19:, 1].any()
+    assert not below[:, 2].any()
+    edge = motion_edge(moving)
+    # the first still rows under the cloud (rows 15-18: moving pixels 1-4 rows above, none 1-3 below)
+    assert np.flatnonzero(edge[:, 0]).tolist() == [15, 16, 17, 18]
+    # under the lone pixel at row 25 but not between the two at rows 20 and 22 (row 21: one just below)
+    assert np.flatnonzero(edge[:, 2]).tolist() == [26, 27, 28, 29]
+    assert np.flatnonzero(edge[:, 1]).tolist() == [23, 24, 25, 26]
 
 
 def test_a_snowy_ring_with_white_cloud_behind_the_ridges_is_found_further_with_the_motion() -> None:

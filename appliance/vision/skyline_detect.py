@@ -79,7 +79,7 @@ from appliance.vision.skyline_pixels import (
     line_band,
 )
 from appliance.vision.skyline_snow import SnowEvidence, colour_rows, snow_checks, snow_evidence
-from appliance.vision.temporal import motion_rise, moving_around, moving_pixels
+from appliance.vision.temporal import cloud_below, motion_edge, moving_around, moving_pixels
 
 
 class Method(enum.Enum):
@@ -400,7 +400,7 @@ def _snow_rows(
     the sky's to the ground's within three rows of the path (the brightness of snow under a pale sky
     departs from the sky's a few rows off the boundary, or not at all), and judged there, with the
     colour step onto the snow as an edge beside the brightness drop and the boundary's score; a line
-    with a colour step onto snow above it, or snow-coloured pixels just above it, is left out.  The
+    with snow-coloured pixels just above it is left out.  The
     path takes a brightness drop as an edge only under sky-coloured pixels (the top of a rock in the
     snow has snow above it), and the snow's colour below the line vouches for the ground where the
     learnt models take shaded snow for sky (:func:`_snow_coloured_below`).
@@ -408,11 +408,13 @@ def _snow_rows(
     With ``moving`` (HxW boolean, :func:`appliance.vision.temporal.moving_pixels`: what drifted
     between the capture ring's frames), those pixels count as sky in the path's regions and its
     confidence: a white cloud behind a snowy ridge has the snow's colour and nearly its brightness,
-    but it moves.  The brightness rise from the bottom of the moving pixels onto the snow is an edge
-    too (:func:`appliance.vision.temporal.motion_rise`).  A line with moving pixels below it lies on
-    a cloud, not the ground, and is left out; one with moving pixels just above it and none below is
-    judged with those pixels as sky and not by the colour above it (the snow below must still look
-    like the learnt snow, and the edge be there).
+    but it moves.  The bottom of the moving pixels over still ones is an edge too, whatever the
+    cloud's base's brightness against the snow (:func:`appliance.vision.temporal.motion_edge`), and
+    an edge with moving pixels below it is no edge of the path's (the top of a drifting cloud, which
+    has the sky's colour step onto white above it, :func:`appliance.vision.temporal.cloud_below`).
+    A line with moving pixels below it lies on a cloud, not the ground, and is left out; one with
+    moving pixels just above it and none below is judged with those pixels as sky and not by the
+    colour above it (the snow below must still look like the learnt snow, and the edge be there).
     """
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
@@ -422,9 +424,11 @@ def _snow_rows(
     edge = np.maximum(drop * _sky_coloured_above(ev), np.float32(SNOW_EDGE_SCALE) * ev.score)
     if moving is not None:
         ev = replace(ev, llr=np.where(moving, np.float32(MOVING_LLR), ev.llr).astype(np.float32))
-        # under a white cloud there is no colour step onto the snow, only the brightness rise from the
-        # cloud's grey base: an edge where moving pixels lie just above and none just below
-        edge = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * motion_rise(ev.lum, moving))
+        # under a white cloud there is no colour step onto the snow, and its base may be as bright as the
+        # snow: the bottom of the moving pixels over still ones is an edge of its own
+        edge = np.maximum(edge, np.float32(SNOW_EDGE_SCALE) * motion_edge(moving))
+        # and a boundary onto moving pixels is the top of a drifting cloud: no edge of the ground's
+        edge = np.where(cloud_below(moving), np.float32(0.0), edge).astype(np.float32)
     path = _run_dp(_path_cost(edge, ev.llr, cfg, masked, cfg.edge_weight), cfg, wrap)
     placed = colour_rows(ev.chroma, path.astype(np.float64))
     # the boundary's score peaks at the brightness rise, the colour step a row either side of the crossing

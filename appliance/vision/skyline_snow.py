@@ -23,10 +23,13 @@ On plain arrays (an image's rows, the detector's line and confidence); the path 
   where blue minus red crosses halfway from the sky's to the ground's (:func:`colour_rows`) and
   judged there with the colour step onto the snow as an edge too (snow barely brighter than the
   sky has a weak score but a full colour step);
-- a line is left out where a boundary lies above it, where the pixels just above it have the snow's
-  colour rather than the sky's (the top of a rock a few rows below the skyline) or where it dips
-  well below its neighbours (:func:`snow_checks`).  Where a white cloud stands behind the ridge
-  the snow has nearly its colour and brightness: those azimuths are mostly left out.
+- a line is left out where the pixels just above it have the snow's colour rather than the sky's
+  (the top of a rock a few rows below the skyline) or look like the learnt snow, or where it dips
+  well below its neighbours (:func:`snow_checks`).  A boundary above a line is not held against
+  it: the rocks' tops are caught by those checks, and what stands above a line the path placed
+  on the colour step is mostly the top of a white cloud resting on the ridge.  Where a white cloud
+  stands behind the ridge the snow has nearly its colour and brightness: outside the capture
+  ring's overlaps those azimuths are mostly left out or drawn on the cloud's top.
 """
 
 from __future__ import annotations
@@ -75,9 +78,6 @@ SNOW_ROWS = (3, 30)
 CHROMA_CUT = 0.35
 #: A candidate this many rows or more above the detector's line shows that line to be below the skyline.
 STEP_ABOVE_PX = 3.0
-#: A boundary more than this many rows above a line puts the line below the skyline (the boundary's
-#: score reaches about three rows above the colour step itself: its bands are read from three rows away).
-BOUNDARY_ABOVE_PX = 4.0
 #: A line more than DIP_PX rows below the highest line within DIP_COLUMNS columns is left out.
 DIP_COLUMNS = 5
 DIP_PX = 8.0
@@ -154,14 +154,6 @@ def snow_candidates(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     best = np.argmax(score, axis=0)
     best_score = score[best, np.arange(w)]
     return np.where(best_score >= MIN_SCORE, best.astype(np.float64), np.nan), np.asarray(best_score)
-
-
-def step_above(score: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Per column: whether a sky/snow boundary (``score`` at least MIN_SCORE) lies more than
-    BOUNDARY_ABOVE_PX rows above ``rows``: the line is then below the skyline."""
-    h = score.shape[0]
-    r = np.where(np.isfinite(rows), rows, -10.0 * h)
-    return np.asarray(((score >= MIN_SCORE) & (np.arange(h)[:, None] < (r - BOUNDARY_ABOVE_PX)[None, :])).any(axis=0))
 
 
 def _agree_with_neighbours(cand: np.ndarray, wrap: bool) -> np.ndarray:
@@ -249,23 +241,23 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
 def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
                 wrap: bool, moving_above: np.ndarray | None = None,
                 moving_below: np.ndarray | None = None) -> np.ndarray:
-    """``conf`` set to 0 where the line at ``rows`` lies below a sky/snow boundary, where the pixels
-    3-10 rows above it look more like snow than sky or those 2-3 rows above it are nearer the snow's
-    colour than the sky's, or where it dips more than DIP_PX rows below
+    """``conf`` set to 0 where the pixels 3-10 rows above the line at ``rows`` look more like snow
+    than sky or those 2-3 rows above it are nearer the snow's colour than the sky's, or where it
+    dips more than DIP_PX rows below
     the highest line within DIP_COLUMNS columns (the top of a rock in snow that looks like the sky:
     far snow in haze takes the air's colour).
 
     Per column (from the capture ring's frames, :func:`appliance.vision.temporal.moving_around`):
     a line with ``moving_below`` (a cloud below it) is left out; one with ``moving_above`` and not
     ``moving_below`` (a drifting white cloud just above, static ground below) is not judged by the
-    colour above it nor by a boundary above it (the cloud's top)."""
+    colour above it."""
     w = ev.llr.shape[1]
     r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
     above = np.clip(line_band(ev.llr, r, -np.arange(3, 11)), -1.0, 1.0).mean(axis=0)
     # and just above the line the colour is nearer the sky's than the snow's (a rock a few rows below
     # the skyline has snow just above its top)
     snow_just_above = line_band(ev.chroma, r, -np.arange(2, 4)).mean(axis=0) < ev.chroma_cut
-    colour_bad = step_above(ev.score, rows) | (above < SKY_ABOVE_MIN) | snow_just_above
+    colour_bad = (above < SKY_ABOVE_MIN) | snow_just_above
     if moving_above is not None and moving_below is not None:
         colour_bad = (colour_bad & ~(moving_above & ~moving_below)) | moving_below
     bad = colour_bad | ~np.isfinite(rows)

@@ -17,12 +17,15 @@ cover their luminances are compared:
   pixels reads as a shift of a pixel or more (the linear estimate falls short of large shifts);
 - noise: both luminances are smoothed (Gaussian, sigma 1 px); the difference's noise is read from
   the overlap's median (most of it agrees) and taken off; where the window's texture is under
-  TEXTURE_OVER_NOISE times that noise (a smooth sky, clear or overcast) no shift is measured (0);
+  TEXTURE_OVER_NOISE times that noise (a smooth sky, clear or overcast, or a smooth white cloud)
+  the texture is taken at that floor: the shift read is then a lower bound, about 0 where the
+  frames differ by their noise only (a still smooth sky) and a pixel or more where a smooth cloud
+  drifted far enough to change its pixels well beyond the noise (five times its energy);
 - the window runs along the row only: across the skyline it would lend a cloud's motion to the
   ridge below it.
 
-The result (:func:`frame_disagreement`) is a float32 map of that shift (px): 0 where the frames
-agree or nothing can be measured, NaN where fewer than two frames cover the pixel.  At least
+The result (:func:`frame_disagreement`) is a float32 map of that shift (px): about 0 where the
+frames agree, NaN where fewer than two frames cover the pixel.  At least
 MOVING_SHIFT_PX (:func:`moving_pixels`) it is evidence that the pixel is sky (a cloud moved), never
 is a small one evidence of ground: a clear blue sky does not move either.  On the camera twin's
 snow scenes under 0.1 % of the terrain's pixels read over 0.5 px.  A panorama read from a file, or
@@ -112,9 +115,11 @@ def _pair(a: np.ndarray, b: np.ndarray, both: np.ndarray, rolled: bool = False) 
     # along the row only: a window across the skyline would lend the cloud's motion to the ridge below it
     e_t = cv2.GaussianBlur(it * it, (0, 0), sigmaX=WINDOW_SIGMA_PX, sigmaY=0.5)
     e_g = cv2.GaussianBlur(np.where(m, grad2, 0.0).astype(np.float32), (0, 0), sigmaX=WINDOW_SIGMA_PX, sigmaY=0.5)
-    measurable = e_g >= TEXTURE_OVER_NOISE**2 * noise2
-    shift = np.sqrt(np.maximum(e_t - noise2, 0.0) / np.maximum(e_g, 1e-12))
-    d = np.where(m, np.where(measurable, shift, 0.0), np.nan).astype(np.float32)
+    # where the texture is too faint to measure a shift, it is taken at that floor: the shift read is
+    # then a lower bound (a smooth cloud that drifted far enough to change its pixels well beyond the
+    # noise still reads as moving; a smooth still sky differs by its noise only and reads as none)
+    shift = np.sqrt(np.maximum(e_t - noise2, 0.0) / np.maximum(e_g, TEXTURE_OVER_NOISE**2 * noise2))
+    d = np.where(m, shift, np.nan).astype(np.float32)
     out = np.full(a.shape, np.nan, np.float32)
     out[:, lo:hi] = d
     return out
@@ -178,9 +183,20 @@ def moving_around(moving: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.
     return above, below
 
 
-#: The brightness rise (rows +-2, luminance) at which a motion edge scores fully, and the rows above
-#: (moving pixels there) and below (none there) a pixel that make it the bottom of a moving cloud.
-FULL_RISE = 0.04
+def cloud_below(moving: np.ndarray) -> np.ndarray:
+    """Per pixel (HxW boolean): whether at least MIN_BELOW_PX moving pixels lie within BELOW_ROWS
+    rows below it (:func:`moving_around`'s test of a line, at every row): an edge there is the top of
+    a drifting cloud, not the ground's."""
+    h = moving.shape[0]
+    cs = np.zeros((h + 1, moving.shape[1]), np.int32)
+    np.cumsum(moving, axis=0, dtype=np.int32, out=cs[1:])
+    r = np.arange(h)
+    a, b = np.clip(r + BELOW_ROWS[0], 0, h), np.clip(r + BELOW_ROWS[1] + 1, 0, h)
+    return np.asarray(cs[b] - cs[a] >= MIN_BELOW_PX)
+
+
+#: The rows above (moving pixels there) and below (none there) a pixel that make it the bottom of a
+#: moving cloud (:func:`motion_edge`).
 EDGE_ABOVE_ROWS = (1, 4)
 EDGE_BELOW_ROWS = (1, 3)
 
@@ -196,13 +212,10 @@ def _band_any(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
     return out
 
 
-def motion_rise(lum: np.ndarray, moving: np.ndarray) -> np.ndarray:
-    """Per pixel in [0, 1]: the brightness rise downwards (rows +-2, :data:`FULL_RISE` scores fully)
-    where moving pixels lie within EDGE_ABOVE_ROWS rows above and none within EDGE_BELOW_ROWS below:
-    the lower edge of a drifting cloud against ground brighter than its base (a white cloud behind
-    a snowy ridge)."""
-    lum_h = cv2.blur(np.asarray(lum, dtype=np.float32), (5, 1))
-    pad = np.concatenate([np.repeat(lum_h[:1], 2, 0), lum_h, np.repeat(lum_h[-1:], 2, 0)])
-    rise = np.clip((pad[4:] - pad[:-4]) / FULL_RISE, 0.0, 1.0)
+def motion_edge(moving: np.ndarray) -> np.ndarray:
+    """Per pixel in {0, 1} (float32): 1 where the pixel is still, moving pixels lie within
+    EDGE_ABOVE_ROWS rows above it and none within EDGE_BELOW_ROWS rows below: the lower edge of a
+    drifting cloud against still ground (a white cloud behind a snowy ridge, whatever the brightness
+    of its base against the snow's)."""
     at_bottom = _band_any(moving, -EDGE_ABOVE_ROWS[1], -EDGE_ABOVE_ROWS[0]) & ~_band_any(moving, *EDGE_BELOW_ROWS)
-    return np.asarray(np.where(at_bottom & ~moving, rise, 0.0), dtype=np.float32)
+    return np.asarray(at_bottom & ~moving, dtype=np.float32)
