@@ -4,6 +4,7 @@ the parallax Jacobian, the refinement between nodes, the eye's height per estima
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -115,6 +116,47 @@ def test_a_render_shared_among_threads_is_the_march_of_one(valley_db):
         assert np.isfinite(one[0]).sum() > n // 2
         assert shared[0].tobytes() == one[0].tobytes() and shared[1].tobytes() == one[1].tobytes()
     assert raycast._march_pools  # the azimuths were shared
+
+
+def test_a_forked_child_renders_on_threads_of_its_own(valley_db, tmp_path):
+    """The command server forks: a child whose parent shared a render among threads has none of the
+    pool's threads, so it makes its own pool (a render that waited on its parent's would never end)."""
+    import os
+
+    import numba
+
+    from appliance.estimator import raycast
+
+    if numba.config.NUMBA_NUM_THREADS < 2 or not hasattr(os, "fork"):
+        pytest.skip("one numba thread, or no fork: nothing is shared")
+    _, db = valley_db
+    g = skyline_grid(db)
+    dist = g.terrain.distances(min(g.dx_m, g.dy_m))
+    az = np.linspace(0.0, 359.5, 720)
+    numba.set_num_threads(2)
+    parent = render(g.terrain, g.dx_m, g.dy_m, 3.5, 3.5, az, dist, 1.5)[0]
+    assert raycast._march_pools
+    out = tmp_path / "child.npy"
+    pid = os.fork()
+    if pid == 0:  # the child: render, write, leave without running the parent's exit handlers
+        code = 1
+        try:
+            np.save(out, render(g.terrain, g.dx_m, g.dy_m, 3.5, 3.5, az, dist, 1.5)[0])
+            code = 0
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + 60.0
+    while time.monotonic() < deadline:
+        done, status = os.waitpid(pid, os.WNOHANG)
+        if done:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(pid, 9)
+        os.waitpid(pid, 0)
+        pytest.fail("the forked child's render never ended")
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert np.load(out).tobytes() == parent.tobytes()
 
 
 def test_a_valley_between_nodes_is_located_exactly(valley_db):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -197,6 +198,8 @@ def march(
 SHARED_MIN_AZIMUTHS = 64
 _march_pools: dict[int, ThreadPoolExecutor] = {}
 _march_pool_lock = threading.Lock()
+# a forked child (the command server's) has none of its parent's pool threads: it makes its own pools
+os.register_at_fork(after_in_child=_march_pools.clear)
 
 
 def march_shared(Z: np.ndarray, dx_m: float, dy_m: float, row: float, col: float, eye_m: float,
