@@ -165,21 +165,33 @@ def moving_pixels(motion: np.ndarray) -> np.ndarray:
     return np.asarray(np.nan_to_num(motion, nan=0.0) >= MOVING_SHIFT_PX)
 
 
+def _column_sums(moving: np.ndarray) -> np.ndarray:
+    """(H+1)xW: per column, how many moving pixels lie above each row (row 0's 0 included)."""
+    cs = np.zeros((moving.shape[0] + 1, moving.shape[1]), np.int32)
+    np.cumsum(moving, axis=0, dtype=np.int32, out=cs[1:])
+    return cs
+
+
+def _in_band(sums: np.ndarray, rows: np.ndarray | None, k0: int, k1: int) -> np.ndarray:
+    """How many moving pixels lie in rows ``r + k0 .. r + k1`` of their column (rows off the image count
+    none), from :func:`_column_sums`: per column for integer rows ``r`` (one per column), or HxW for every
+    row of the image (``rows`` None)."""
+    h = sums.shape[0] - 1
+    if rows is None:  # whole rows gathered: the image's every row at once
+        r = np.arange(h)
+        return np.asarray(sums[np.clip(r + k1 + 1, 0, h)] - sums[np.clip(r + k0, 0, h)])
+    cols = np.arange(sums.shape[1])
+    return np.asarray(sums[np.clip(rows + k1 + 1, 0, h), cols] - sums[np.clip(rows + k0, 0, h), cols])
+
+
 def moving_around(moving: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per column, for a line at fractional ``rows`` (NaN = none): whether a moving pixel lies within
     ABOVE_ROWS rows above it, and whether at least MIN_BELOW_PX lie within BELOW_ROWS rows below it."""
-    h, w = moving.shape
-    cols = np.arange(w)
     ok = np.isfinite(rows)
     r = np.round(np.nan_to_num(rows, nan=0.0)).astype(np.int64)
-
-    def count(k0: int, k1: int, sign: int) -> np.ndarray:
-        rr = r[None, :] + sign * np.arange(k0, k1 + 1)[:, None]
-        inside = (rr >= 0) & (rr < h)
-        return np.asarray((moving[np.clip(rr, 0, h - 1), cols[None, :]] & inside).sum(axis=0))
-
-    above = ok & (count(*ABOVE_ROWS, -1) > 0)
-    below = ok & (count(*BELOW_ROWS, 1) >= MIN_BELOW_PX)
+    sums = _column_sums(moving)
+    above = ok & (_in_band(sums, r, -ABOVE_ROWS[1], -ABOVE_ROWS[0]) > 0)
+    below = ok & (_in_band(sums, r, *BELOW_ROWS) >= MIN_BELOW_PX)
     return above, below
 
 
@@ -187,12 +199,7 @@ def cloud_below(moving: np.ndarray) -> np.ndarray:
     """Per pixel (HxW boolean): whether at least MIN_BELOW_PX moving pixels lie within BELOW_ROWS
     rows below it (:func:`moving_around`'s test of a line, at every row): an edge there is the top of
     a drifting cloud, not the ground's."""
-    h = moving.shape[0]
-    cs = np.zeros((h + 1, moving.shape[1]), np.int32)
-    np.cumsum(moving, axis=0, dtype=np.int32, out=cs[1:])
-    r = np.arange(h)
-    a, b = np.clip(r + BELOW_ROWS[0], 0, h), np.clip(r + BELOW_ROWS[1] + 1, 0, h)
-    return np.asarray(cs[b] - cs[a] >= MIN_BELOW_PX)
+    return np.asarray(_in_band(_column_sums(moving), None, *BELOW_ROWS) >= MIN_BELOW_PX)
 
 
 #: The rows above (moving pixels there) and below (none there) a pixel that make it the bottom of a
@@ -201,21 +208,12 @@ EDGE_ABOVE_ROWS = (1, 4)
 EDGE_BELOW_ROWS = (1, 3)
 
 
-def _band_any(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
-    """Per pixel, whether ``x`` holds anywhere in rows ``r + k0 .. r + k1`` of its column."""
-    h = x.shape[0]
-    out = np.zeros_like(x)
-    for k in range(k0, k1 + 1):
-        lo, hi = max(0, -k), min(h, h - k)
-        if hi > lo:
-            out[lo:hi] |= x[lo + k : hi + k]
-    return out
-
-
 def motion_edge(moving: np.ndarray) -> np.ndarray:
     """Per pixel in {0, 1} (float32): 1 where the pixel is still, moving pixels lie within
     EDGE_ABOVE_ROWS rows above it and none within EDGE_BELOW_ROWS rows below: the lower edge of a
     drifting cloud against still ground (a white cloud behind a snowy ridge, whatever the brightness
     of its base against the snow's)."""
-    at_bottom = _band_any(moving, -EDGE_ABOVE_ROWS[1], -EDGE_ABOVE_ROWS[0]) & ~_band_any(moving, *EDGE_BELOW_ROWS)
+    sums = _column_sums(moving)
+    at_bottom = (_in_band(sums, None, -EDGE_ABOVE_ROWS[1], -EDGE_ABOVE_ROWS[0]) > 0) & (
+        _in_band(sums, None, *EDGE_BELOW_ROWS) == 0)
     return np.asarray(at_bottom & ~moving, dtype=np.float32)
