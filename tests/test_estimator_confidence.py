@@ -403,3 +403,42 @@ def test_a_poor_fit_that_leaves_white_noise_is_the_answer_without_searching_agai
     cell_m = math.sqrt(db.grid.dx_m * db.grid.dy_m)
     assert truth_error_m(db, place(db, res), truth) < 2.0 * cell_m and not res.ambiguous
     assert res.rms_residual_deg > SIGMA_DEG[0] and res.sigma_deg_searched == SIGMA_DEG
+
+
+def test_a_place_is_weighed_against_the_answer_fitted_as_the_answer_was():
+    # the answer was fitted again with the head's tilt (its residual RMS 0.280 -> 0.249 deg); another
+    # place 4.5 cells away fitted as well before that (0.281 deg), and with the tilt fits better still
+    from types import SimpleNamespace
+
+    from appliance.estimator.exact import Fit
+    from appliance.estimator.measurement import Measurement
+    from appliance.estimator.noise import rival_fits
+
+    n = 300
+    grid = SimpleNamespace(n_rows=20, n_cols=20)
+    lp = np.zeros(400)
+    meas = Measurement(np.zeros(n), np.ones(n), np.ones(n, dtype=bool), n, float(n), 0.19, 0.34, 0.26, 1.0, 0.05, 0.0)
+    temper = 0.074
+
+    def fit(row: float, col: float, rms: float) -> Fit:
+        return Fit(row, col, 0.0, n * rms**2, n, 1)
+
+    unpolished, answer = fit(5.0, 5.0, 0.280), fit(5.1, 5.0, 0.249)
+    other, worse = fit(9.5, 5.5, 0.281), fit(15.0, 15.0, 0.60)
+    fitted_again = fit(9.6, 5.4, 0.245)
+    asked: list[Fit] = []
+
+    def polish(f: Fit) -> Fit:
+        asked.append(f)
+        return fitted_again
+
+    fits = [unpolished, other, worse]
+    # against the polished answer alone, the other place's unpolished fit is no rival
+    assert rival_fits(fits, answer, grid, lp, meas, temper, None) == []
+    # fitted as the answer was, it is; a place that fits far worse is not fitted again at all
+    assert rival_fits(fits, answer, grid, lp, meas, temper, None, unpolished, polish) == [fitted_again]
+    assert asked == [other]
+    # fitted again onto the answer's own place (within two cells), it is the answer's, not a rival
+    assert rival_fits(fits, answer, grid, lp, meas, temper, None, unpolished, lambda f: fit(6.0, 5.5, 0.2)) == []
+    # fitted again and still worse than the answer, no rival either
+    assert rival_fits(fits, answer, grid, lp, meas, temper, None, unpolished, lambda f: fit(9.5, 5.5, 0.33)) == []

@@ -414,6 +414,8 @@ class _Found:
     best_fit: Fit | None
     notes: list[str]
     temper: float = 1.0
+    #: the best fit as the search made it, before it was polished at the learned sigma (None: not polished)
+    unpolished_fit: Fit | None = None
 
 
 def _estimate_once(grid: SkylineGrid, azimuth_deg: np.ndarray, elevation_deg: np.ndarray,
@@ -494,7 +496,9 @@ def _with_learned_noise(grid: SkylineGrid, found: _Found, search: _Search) -> _F
         meas, temper = learned_measurement(searched, best_fit, floor)
     polished = polished_fit(grid, meas, best_fit, search.heading_tolerance_deg, search.height_m, position_prior)
     answer = found.answer
+    unpolished = None
     if polished is not None:
+        unpolished = best_fit
         best_fit = polished
         answer = Answer(polished.row, polished.col, polished.heading_deg, polished.rms_deg, polished.covariance_cells)
         meas, temper = learned_measurement(searched, best_fit, floor)
@@ -503,7 +507,7 @@ def _with_learned_noise(grid: SkylineGrid, found: _Found, search: _Search) -> _F
     plausible = Plausible(found.plausible.nodes, lo * temper + lp, up * temper + lp, scored)
     post = posteriors(meas, lp, plausible, found.rescored, temper)
     return replace(found, meas=meas, plausible=plausible, post=post, answer=answer, best_fit=best_fit,
-                   temper=temper)
+                   temper=temper, unpolished_fit=unpolished)
 
 
 def _result(grid: SkylineGrid, found: _Found, searched: Measurement, learned: bool, search: _Search,
@@ -512,8 +516,12 @@ def _result(grid: SkylineGrid, found: _Found, searched: Measurement, learned: bo
     covariance and credible region (``region.py``); ``searched`` is the measurement as searched
     (sigma as given), ``t0`` when the search started (``time.perf_counter``)."""
     meas, post, answer, best_fit, temper = found.meas, found.post, found.answer, found.best_fit, found.temper
+    def polish(fit: Fit) -> Fit | None:
+        return polished_fit(grid, meas, fit, search.heading_tolerance_deg, search.height_m, search.position_prior)
+
     rivals = ([] if best_fit is None
-              else rival_fits(found.fits, best_fit, grid, found.lp, meas, temper, search.position_prior))
+              else rival_fits(found.fits, best_fit, grid, found.lp, meas, temper, search.position_prior,
+                              found.unpolished_fit, polish))
     conf = confidence.modes(post.posterior_mid, grid.n_rows, grid.n_cols, answer.row, answer.col,
                             same_cells=SAME_ANSWER_CELLS)
     cov_cells = answer_covariance(best_fit, meas, temper, conf)

@@ -10,6 +10,7 @@ its curvature.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -123,14 +124,37 @@ def polished_fit(grid: SkylineGrid, meas: Measurement, fit: Fit, heading_toleran
 
 
 def rival_fits(fits: list[Fit], best: Fit, grid: SkylineGrid, lp: np.ndarray, meas: Measurement, temper: float,
-               position_prior: PositionPrior | None) -> list[Fit]:
+               position_prior: PositionPrior | None, unpolished: Fit | None = None,
+               polish: Callable[[Fit], Fit | None] | None = None) -> list[Fit]:
     """The exact fits at other places (more than SAME_ANSWER_CELLS from ``best``) whose upper
-    log-posterior, at the measurement's sigma interval and tempering, reaches ``best``'s lower one."""
-    others = [f for f in fits if math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS]
+    log-posterior, at the measurement's sigma interval and tempering, reaches ``best``'s lower one.
+
+    ``best`` may be ``unpolished`` fitted again (:func:`polished_fit`, with the head's tilt), which
+    the other fits were not: a place whose fit reaches ``unpolished``'s is then fitted again the same
+    way (``polish``) and weighed so against ``best``.  Like is compared with like: a tilt can take more
+    from another place's residuals than from the answer's (a levelled head's residual tilt at the true
+    place, fitted only at the wrong one, made it look the better place)."""
+    def away(f: Fit) -> bool:
+        return math.hypot(f.row - best.row, f.col - best.col) > SAME_ANSWER_CELLS
+
+    others = [f for f in fits if away(f)]
     if not others:
         return []
     lo, up = fit_bounds([best] + others, grid, lp, meas, position_prior, temper)
-    return [f for i, f in enumerate(others, start=1) if up[i] >= lo[0]]
+    rivals = [f for i, f in enumerate(others, start=1) if up[i] >= lo[0]]
+    if unpolished is None or polish is None:
+        return rivals
+    lo_u, up_u = fit_bounds([unpolished] + others, grid, lp, meas, position_prior, temper)
+    for i, f in enumerate(others, start=1):
+        if up[i] >= lo[0] or up_u[i] < lo_u[0]:
+            continue
+        again = polish(f)
+        if again is None or not away(again):
+            continue
+        lo_p, up_p = fit_bounds([best, again], grid, lp, meas, position_prior, temper)
+        if up_p[1] >= lo_p[0]:
+            rivals.append(again)
+    return rivals
 
 
 def answer_covariance(fit: Fit | None, meas: Measurement, temper: float,
