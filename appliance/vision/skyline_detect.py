@@ -109,6 +109,7 @@ class DetectionConfig:
     cloud: bool = True  # dp: white cloud just above a line over dark ground counts as sky (skyline_edges.cloud_above)
     snow: bool = True  # dp: on snowy ground, find the sky/snow boundary by colour (appliance.vision.skyline_snow)
     motion: bool = True  # dp, over snow: pixels that moved between the ring's frames are sky (vision.temporal)
+    cloud_colour: bool = True  # dp, over snow: white less blue than the snow is cloud (skyline_snow.white_cloud)
     step_deg: float = 1.0  # azimuth sampling of the output skyline
 
     def __post_init__(self) -> None:
@@ -407,8 +408,11 @@ def _snow_rows(
 
     With ``moving`` (HxW boolean, :func:`appliance.vision.temporal.moving_pixels`: what drifted
     between the capture ring's frames), those pixels count as sky in the path's regions and its
-    confidence: a white cloud behind a snowy ridge has the snow's colour and nearly its brightness,
-    but it moves.  The bottom of the moving pixels over still ones is an edge too, whatever the
+    confidence: a white cloud behind a snowy ridge has nearly the snow's colour and brightness,
+    but it moves.  White pixels less blue than the snow (with ``cfg.cloud_colour``,
+    :func:`appliance.vision.skyline_snow.white_cloud`) join them and are taken as they are: outside
+    the frames' overlaps, and in a photo without a motion map, nothing else tells that cloud from
+    the snow.  The bottom of the moving pixels over still ones is an edge too, whatever the
     cloud's base's brightness against the snow (:func:`appliance.vision.temporal.motion_edge`), and
     an edge with moving pixels below it is no edge of the path's (the top of a drifting cloud, which
     has the sky's colour step onto white above it, :func:`appliance.vision.temporal.cloud_below`).
@@ -419,6 +423,9 @@ def _snow_rows(
     ev = snow_evidence(img8, rows, np.isfinite(rows) & (conf >= cfg.min_confidence), wrap)
     if ev is None:
         return None
+    if cfg.cloud_colour and ev.cloud is not None:
+        # white cloud less blue than the snow is sky as a drifting cloud is, in or out of the frames' overlaps
+        moving = ev.cloud if moving is None else moving | ev.cloud
     # a brightness drop onto a rock below the skyline has snow above it, not sky: only a drop under
     # sky-coloured pixels is an edge here
     edge = np.maximum(drop * _sky_coloured_above(ev), np.float32(SNOW_EDGE_SCALE) * ev.score)

@@ -29,7 +29,16 @@ On plain arrays (an image's rows, the detector's line and confidence); the path 
   it: the rocks' tops are caught by those checks, and what stands above a line the path placed
   on the colour step is mostly the top of a white cloud resting on the ridge.  Where a white cloud
   stands behind the ridge the snow has nearly its colour and brightness: outside the capture
-  ring's overlaps those azimuths are mostly left out or drawn on the cloud's top.
+  ring's overlaps those azimuths were mostly left out or drawn on the cloud's top;
+- white cloud is told from the snow by its colour (:func:`white_cloud`): snow seen through the air
+  and lit by the blue sky is bluer than the white cloud behind the ridge.  The snow's own blue minus
+  red is learnt below the detector's line (which lies on the ground, at the skyline or on the rocks
+  below it; bright neutral pixels away from rocks, whose colour would bleed into the average); white
+  pixels clearly less blue than it are cloud, and count as sky in the path as the capture ring's
+  moving pixels do (:func:`appliance.vision.skyline_detect._snow_rows`).  Fine texture was tried
+  first and does not tell them apart: the twin's clouds carry shading and edges at the snow's scales
+  (high-pass energy about 2.5 times the sky's noise against about 3 times for rock-free snow, the
+  two spreads overlapping).
 """
 
 from __future__ import annotations
@@ -81,6 +90,21 @@ STEP_ABOVE_PX = 3.0
 #: A line more than DIP_PX rows below the highest line within DIP_COLUMNS columns is left out.
 DIP_COLUMNS = 5
 DIP_PX = 8.0
+#: White cloud (:func:`white_cloud`): blue minus red is averaged over a box this many columns wide and
+#: rows high, of pixels all bright and neutral (a rock's colour bleeds into no average); a pixel at
+#: least CLOUD_CHROMA_GAP less blue than the snow's median is cloud, in patches at least CLOUD_OPEN_PX
+#: (columns, rows) across.
+CLOUD_BOX_PX = (15, 3)
+CLOUD_CHROMA_GAP = 0.008
+CLOUD_OPEN_PX = (9, 5)
+#: The cloud marked is carried down by up to CLOUD_GROW_PX rows through pixels whose CLOUD_NARROW_BOX_PX
+#: box is as much less blue than the snow.
+CLOUD_NARROW_BOX_PX = (7, 3)
+CLOUD_GROW_PX = 6
+#: A cloud pixel is kept where the sky, or cloud kept, lies within this many rows above it.
+CLOUD_HANG_PX = 14
+#: Fewest snow pixels to learn the snow's colour from.
+CLOUD_MIN_SNOW_PX = 500
 
 
 def _band_mean(x: np.ndarray, k0: int, k1: int) -> np.ndarray:
@@ -201,6 +225,7 @@ class SnowEvidence:
     lum: np.ndarray  # the blue-weighted intensity
     chroma: np.ndarray  # blue minus red, smoothed
     chroma_cut: float  # CHROMA_CUT of the way from the snow's blue minus red to the sky's, at the trusted rows
+    cloud: np.ndarray | None = None  # per pixel: white cloud less blue than the snow (:func:`white_cloud`)
 
 
 def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: bool) -> SnowEvidence | None:
@@ -209,7 +234,9 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
     their neighbours and lie above the line or where it is not found (the boundary's score; in a
     column without one, the colour step alone: snow no brighter than a pale sky shows no rise onto
     it); None where the ground is not snowy or too few candidates are trusted to learn sky and snow
-    from (the brightness drop then finds the skyline: snow clearly darker than the sky)."""
+    from (the brightness drop then finds the skyline: snow clearly darker than the sky).  Its
+    ``cloud`` is the white cloud told from the snow below the confident line by colour
+    (:func:`white_cloud`)."""
     h, w = img8.shape[:2]
     f = _to_float(img8)
     luma = _luma(f)
@@ -235,7 +262,66 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
         return None
     sky_chroma = float(np.median(chroma[(rr >= t - 8) & (rr <= t - 4)]))
     snow_chroma = float(np.median(chroma[(rr >= t + 4) & (rr <= t + 8)]))
-    return SnowEvidence(score, colour_step, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma))
+    ground = np.where(found, rows, -10.0 * h)[None, :]
+    cloud = white_cloud(f, luma, (rr >= ground + GROUND_ROWS[0]) & (rr <= ground + GROUND_ROWS[1]))
+    return SnowEvidence(score, colour_step, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma),
+                        cloud)
+
+
+def white_cloud(f: np.ndarray, lum: np.ndarray, snow_rows: np.ndarray) -> np.ndarray | None:
+    """Per pixel (HxW boolean) of the float image ``f`` (luminance ``lum``): white cloud, told from the
+    snow by its colour; None where fewer than CLOUD_MIN_SNOW_PX snow pixels lie in ``snow_rows`` (HxW
+    boolean: the ground's rows, below the detector's first line; the candidates the snow pass trusts
+    include the tops of white clouds, whose colour would then be learnt as the snow's).
+
+    Blue minus red is averaged over a CLOUD_BOX_PX box whose pixels are all bright and neutral (the
+    snowy-ground test's colour: no rock or sky in the box); the snow's is the median of those boxes
+    in ``snow_rows``.  A box at least CLOUD_CHROMA_GAP less blue than that is cloud: snow lit by the
+    blue sky and seen through the air is bluer than a white cloud (in the camera twin by about 0.015;
+    the boxes of rock-free snow lie within 0.007 of their median).  Patches narrower than
+    CLOUD_OPEN_PX are dropped (a strip of less blue snow beside a rock); the rest is carried down by
+    up to CLOUD_GROW_PX rows through the CLOUD_NARROW_BOX_PX boxes under the same cut (the wide box
+    blends the snow beside a sloping ridge into the cloud's lowest rows), and kept where it hangs from
+    the sky (:func:`_hanging`: the snow's colour changes with distance, a near slope under a hazier,
+    bluer far one is less blue than the snow's median).  A thin cloud's edge, blended
+    with the blue sky, takes the snow's colour and is not marked; a snow field whose parts differ in
+    colour (sunlit and shaded) may mark its least blue part.
+    """
+    chroma = f[..., 0] - f[..., 2]
+    white = ((lum >= SNOW_MIN_LUMA) & (np.abs(chroma) <= SNOW_MAX_CHROMA)).astype(np.uint8)
+    box_w, box_h = CLOUD_BOX_PX
+    white_box = cv2.erode(white, np.ones((box_h, box_w), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
+    mean = cv2.blur(chroma, (box_w, box_h), borderType=cv2.BORDER_REPLICATE)
+    snow = mean[white_box & snow_rows]
+    if snow.size < CLOUD_MIN_SNOW_PX:
+        return None
+    cut = float(np.median(snow)) - CLOUD_CHROMA_GAP
+    cloud = (white_box & (mean < cut)).astype(np.uint8)
+    open_w, open_h = CLOUD_OPEN_PX
+    cloud = cv2.morphologyEx(cloud, cv2.MORPH_OPEN, np.ones((open_h, open_w), np.uint8)) > 0
+    narrow_w, narrow_h = CLOUD_NARROW_BOX_PX
+    narrow = cv2.blur(chroma, (narrow_w, narrow_h), borderType=cv2.BORDER_REPLICATE) < cut
+    narrow &= cv2.erode(white, np.ones((narrow_h, narrow_w), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
+    for _ in range(CLOUD_GROW_PX):
+        below = np.zeros_like(cloud)
+        below[1:] = cloud[:-1]
+        cloud |= below & narrow
+    return _hanging(cloud, (lum >= SNOW_MIN_LUMA) & (chroma > SNOW_MAX_CHROMA))
+
+
+def _hanging(cloud: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """The pixels of ``cloud`` (HxW boolean) joined to the sky above them: down each column from the
+    image's top (taken as sky), a cloud pixel is kept where the sky (``sky``) or a kept cloud pixel
+    lies within CLOUD_HANG_PX rows above it.  A cloud behind a ridge hangs from the sky, its top
+    blended with the blue over a few rows; a patch of less blue snow below a bluer, hazier far slope
+    has snow or rocks above it."""
+    h, w = cloud.shape
+    out = np.zeros_like(cloud)
+    gap = np.zeros(w, dtype=np.int64)
+    for r in range(h):
+        out[r] = cloud[r] & (gap < CLOUD_HANG_PX)
+        gap = np.where(sky[r] | out[r], 0, gap + 1)
+    return out
 
 
 def snow_checks(ev: SnowEvidence, rows: np.ndarray, conf: np.ndarray, min_confidence: float,
