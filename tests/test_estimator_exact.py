@@ -274,3 +274,40 @@ def test_the_estimate_is_the_same_on_one_thread_as_on_several(valley_db, view_de
     assert one.notes == several.notes
     # the fit is above the map's precision (CONVERGED_RMS times CONVERGED_SIGMA_DEG): every mode looked at
     assert several.rms_residual_deg > 1.5 * 0.05
+
+
+def test_a_fit_that_ends_far_worse_than_its_look_promised_is_made_again_from_the_next_nodes():
+    # two places looked alike (55.5 and 67.2); the second one's fit stopped in a poor optimum (a residual sum
+    # three times the first's); a start one node over finds its own optimum, better than either
+    from types import SimpleNamespace
+
+    from appliance.estimator.exact import Fit
+    from appliance.estimator.refinement import _RefineContext
+
+    n_cols = 10
+    grid = SimpleNamespace(n_rows=10, n_cols=n_cols, offset_deg=np.zeros(100))
+    a, b = 2 * n_cols + 2, 6 * n_cols + 6
+    sums = {a: 25.5, b: 73.0, b + n_cols: 13.5}
+    starts: list[int] = []
+
+    def fit(cand, start, phi):
+        starts.append(cand)
+        return Fit(float(cand // n_cols), float(cand % n_cols), phi, sums.get(cand, 90.0), 315, 1)
+
+    ctx = _RefineContext.__new__(_RefineContext)
+    ctx.grid, ctx._fit = grid, fit
+    looks = [(55.5, a, (2.0, 2.0), 0.5), (67.2, b, (6.0, 6.0), 0.7)]
+    fits = ctx.fit_looked(looks)
+    assert [f.ssd for f in fits] == [25.5, 13.5]
+    # the four neighbours of the second node were tried, with its look's heading
+    assert sorted(starts[2:]) == sorted([b - n_cols, b + n_cols, b - 1, b + 1])
+    assert fits[1].heading_deg == 0.7
+    # a fit as good as its look promised (less than twice the best's sum) is left as it is
+    sums[b] = 40.0
+    starts.clear()
+    assert [f.ssd for f in ctx.fit_looked(looks)] == [25.5, 40.0] and starts == [a, b]
+    # so is one whose look was not within the margin of the best look (a place that never looked alike)
+    sums[b] = 73.0
+    starts.clear()
+    far = [(55.5, a, (2.0, 2.0), 0.5), (120.0, b, (6.0, 6.0), 0.7)]
+    assert [f.ssd for f in ctx.fit_looked(far, beat=100.0)] == [25.5, 73.0] and starts == [a, b]

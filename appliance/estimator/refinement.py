@@ -44,6 +44,9 @@ CONVERGED_RMS = 1.5
 CONVERGED_SIGMA_DEG = 0.05
 RIVAL_LOOKS = 4
 LOOK_MARGIN = 2.0
+#: A fit whose look came within LOOK_MARGIN of the best look but whose residual sum ends above this many
+#: times the best fit's is made again from the node's neighbours (:meth:`_RefineContext._fit_again`).
+FAILED_FIT_RATIO = 2.0
 #: Modes whose upper log-posterior lies further than this below the best's get no look.
 SCREEN_MARGIN_NATS = 30.0
 #: A look stands for the neighbourhood of its point, this spread (1 sigma, cells) around it.
@@ -148,6 +151,7 @@ class _RefineContext:
         one is given."""
         fits: list[Fit] = []
         refined: list[int] = []
+        made: list[tuple[float, int, float, Fit]] = []  # each fit with its look's cost, node and heading
         for cost, cand, start, phi in sorted(looks, key=lambda v: v[0]):
             if not math.isfinite(cost) or len(refined) >= REFINE_NODES or cost > LOOK_MARGIN * beat:
                 break
@@ -157,7 +161,30 @@ class _RefineContext:
             fit = self._fit(cand, start, phi)
             if fit is not None:
                 fits.append(fit)
+                made.append((cost, cand, phi, fit))
+        if len(made) < 2:
+            return fits
+        best_look, best_ssd = min(m[0] for m in made), min(m[3].ssd for m in made)
+        for i, (cost, cand, phi, fit) in enumerate(made):
+            if cost <= LOOK_MARGIN * best_look and fit.ssd > FAILED_FIT_RATIO * best_ssd:
+                fits[i] = self._fit_again(cand, phi, fit)
         return fits
+
+    def _fit_again(self, cand: int, phi: float, failed: Fit) -> Fit:
+        """The best of ``failed`` (the fit from node ``cand``) and fits from the node's four neighbours
+        (heading ``phi``): a place whose look promised as much as the best's but whose fit ended far
+        worse stopped in a poor optimum, and a start a node over may find the place's own."""
+        g = self.grid
+        row, col = divmod(cand, g.n_cols)
+        best = failed
+        for r, c in ((row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1)):
+            node = r * g.n_cols + c
+            if not (0 <= r < g.n_rows and 0 <= c < g.n_cols) or not math.isfinite(float(g.offset_deg[node])):
+                continue
+            again = self._fit(node, (float(r), float(c)), phi)
+            if again is not None and again.ssd < best.ssd:
+                best = again
+        return best
 
 
 #: One look of the refinement: its cost, the node, the start (fractional row, col) and the heading (deg).
