@@ -2,7 +2,9 @@
 
 On a map's terrain (``exact.py``), every distinct mode of the region gets one exact render (a
 look, heading scanned along it), the best few looks are fitted in full (position, heading, eye
-height) and the fit of highest lower posterior is the answer.  The looks run on threads of their
+height) and the fit of highest lower posterior is the answer.  A fit whose look promised as much as
+the best's but which ends far worse stopped in a poor optimum, and is made again from its node's
+neighbours.  The looks run on threads of their
 own (their ray march releases the GIL).  Without terrain, the answer is refined between the
 database's skylines (``subcell.py``).
 """
