@@ -135,18 +135,25 @@ def _chroma_luma(f: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.asarray(chroma, dtype=np.float32), np.asarray(lum, dtype=np.float32)
 
 
+def _ground_rows(rows: np.ndarray, h: int) -> np.ndarray:
+    """HxW boolean: the pixels GROUND_ROWS below ``rows`` (per column; none where it is not finite)."""
+    rr = np.arange(h)[:, None]
+    r = np.where(np.isfinite(rows), rows, -10.0 * h)[None, :]
+    return (rr >= r + GROUND_ROWS[0]) & (rr <= r + GROUND_ROWS[1])
+
+
+def _bright_neutral(lum: np.ndarray, chroma: np.ndarray) -> np.ndarray:
+    """Per pixel: bright (``lum`` at least SNOW_MIN_LUMA) and neutral (|blue - red| at most SNOW_MAX_CHROMA)."""
+    return (lum >= SNOW_MIN_LUMA) & (np.abs(chroma) <= SNOW_MAX_CHROMA)
+
+
 def snowy_ground_share(f: np.ndarray, lum: np.ndarray, rows: np.ndarray) -> float:
     """The share of the pixels 4-40 rows below ``rows`` (columns with a row) that are bright and neutral, in
     the float image ``f`` whose luminance is ``lum``."""
-    chroma = f[..., 0] - f[..., 2]
-    h = lum.shape[0]
-    rr = np.arange(h)[:, None]
-    r = np.where(np.isfinite(rows), rows, -10.0 * h)[None, :]
-    sel = (rr >= r + GROUND_ROWS[0]) & (rr <= r + GROUND_ROWS[1])
+    sel = _ground_rows(rows, lum.shape[0])
     if not sel.any():
         return 0.0
-    snow = (lum >= SNOW_MIN_LUMA) & (np.abs(chroma) <= SNOW_MAX_CHROMA)
-    return float(snow[sel].mean())
+    return float(_bright_neutral(lum, f[..., 0] - f[..., 2])[sel].mean())
 
 
 def snow_score(chroma: np.ndarray, lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -262,8 +269,7 @@ def snow_evidence(img8: np.ndarray, rows: np.ndarray, found: np.ndarray, wrap: b
         return None
     sky_chroma = float(np.median(chroma[(rr >= t - 8) & (rr <= t - 4)]))
     snow_chroma = float(np.median(chroma[(rr >= t + 4) & (rr <= t + 8)]))
-    ground = np.where(found, rows, -10.0 * h)[None, :]
-    cloud = white_cloud(f, luma, (rr >= ground + GROUND_ROWS[0]) & (rr <= ground + GROUND_ROWS[1]))
+    cloud = white_cloud(f, luma, _ground_rows(np.where(found, rows, np.nan), h))
     return SnowEvidence(score, colour_step, llr, lum, chroma, snow_chroma + CHROMA_CUT * (sky_chroma - snow_chroma),
                         cloud)
 
@@ -288,7 +294,7 @@ def white_cloud(f: np.ndarray, lum: np.ndarray, snow_rows: np.ndarray) -> np.nda
     colour (sunlit and shaded) may mark its least blue part.
     """
     chroma = f[..., 0] - f[..., 2]
-    white = ((lum >= SNOW_MIN_LUMA) & (np.abs(chroma) <= SNOW_MAX_CHROMA)).astype(np.uint8)
+    white = _bright_neutral(lum, chroma).astype(np.uint8)
     box_w, box_h = CLOUD_BOX_PX
     white_box = cv2.erode(white, np.ones((box_h, box_w), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
     mean = cv2.blur(chroma, (box_w, box_h), borderType=cv2.BORDER_REPLICATE)
